@@ -1,0 +1,26 @@
+"""Procedures: one module each. ``get_procedure(name)`` looks one up by name."""
+
+from __future__ import annotations
+
+from importlib import import_module
+
+from rigctl.errors import ConfigError
+
+from .base import Procedure
+
+_MODULES = {
+    "head-sweep": "procedures.head_sweep",
+}
+
+
+def procedure_names() -> list[str]:
+    return sorted(_MODULES)
+
+
+def get_procedure(name: str) -> Procedure:
+    """The procedure called ``name``; ``ConfigError`` lists the known ones otherwise."""
+    module_name = _MODULES.get(name)
+    if module_name is None:
+        raise ConfigError(f"unknown procedure {name!r}; known: {', '.join(procedure_names())}")
+    module = import_module(module_name)
+    return module.PROCEDURE

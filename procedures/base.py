@@ -1,0 +1,155 @@
+"""What a procedure is: parameters, a plan of steps, and a solve.
+
+Procedures never touch hardware (Bluesky's plans-versus-RunEngine split): ``plan``
+returns the list of steps the runner executes, and ``solve`` works only on what
+was recorded, so any recorded run can be solved again offline.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, ClassVar
+
+from pydantic import BaseModel, ConfigDict, ValidationError
+
+from rigctl.config import RigConfig
+from rigctl.errors import ConfigError
+from rigctl.records import Capture, RunDirectory
+
+
+@dataclass(frozen=True)
+class MoveHead:
+    """Move the head to pan, tilt, roll (rad)."""
+
+    pan: float
+    tilt: float
+    roll: float
+    label: str = ""
+    device: ClassVar[str] = "head"
+
+    def describe(self) -> str:
+        return (f"head -> pan {math.degrees(self.pan):+.2f}, tilt {math.degrees(self.tilt):+.2f},"
+                f" roll {math.degrees(self.roll):+.2f} deg")
+
+
+@dataclass(frozen=True)
+class MoveArmJoints:
+    """Move all six arm joints to ``q`` (rad)."""
+
+    q: tuple[float, ...]
+    label: str = ""
+    device: ClassVar[str] = "arm"
+
+    def describe(self) -> str:
+        return "arm -> q [" + ", ".join(f"{math.degrees(v):+.1f}" for v in self.q) + "] deg"
+
+
+@dataclass(frozen=True)
+class MoveArmJoint:
+    """Move one arm joint (0-based ``index``) to ``angle`` (rad), holding the others."""
+
+    index: int
+    angle: float
+    label: str = ""
+    device: ClassVar[str] = "arm"
+
+    def describe(self) -> str:
+        return f"arm joint {self.index + 1} -> {math.degrees(self.angle):+.2f} deg"
+
+
+@dataclass(frozen=True)
+class MoveArmLinear:
+    """Straight-line TCP move to ``pose`` (x, y, z m; rotation vector rad)."""
+
+    pose: tuple[float, ...]
+    label: str = ""
+    device: ClassVar[str] = "arm"
+
+    def describe(self) -> str:
+        x, y, z = (1000 * v for v in self.pose[:3])
+        return f"arm linear -> ({x:.1f}, {y:.1f}, {z:.1f}) mm"
+
+
+@dataclass(frozen=True)
+class Settle:
+    """Wait for vibrations to die out before capturing."""
+
+    seconds: float
+    label: str = ""
+    device: ClassVar[str | None] = None
+
+    def describe(self) -> str:
+        return f"settle {self.seconds:.2f} s"
+
+
+@dataclass(frozen=True)
+class CaptureStep:
+    """Record the head angles, arm joints and (if ``image``) a fresh camera frame."""
+
+    label: str = ""
+    image: bool = True
+    extra: dict[str, Any] = field(default_factory=dict, hash=False, compare=False)
+    device: ClassVar[str | None] = None
+
+    def describe(self) -> str:
+        return f"capture {self.label}" + ("" if self.image else " (readings only)")
+
+
+Step = MoveHead | MoveArmJoints | MoveArmJoint | MoveArmLinear | Settle | CaptureStep
+
+
+class Params(BaseModel):
+    """Base of procedure parameter models: unknown keys are refused."""
+
+    model_config = ConfigDict(extra="forbid")
+
+
+@dataclass
+class SolveContext:
+    """What a solve may read: the recorded run, its rig file and parameters."""
+
+    run: RunDirectory
+    config: RigConfig
+    params: Any
+
+    def captures(self) -> list[Capture]:
+        return self.run.captures()
+
+    @property
+    def plots_dir(self) -> Path:
+        return self.run.plots_dir
+
+
+class Procedure:
+    """Base class. Subclasses set ``name``, ``params_model``, ``devices`` and implement
+    ``plan`` and ``solve``."""
+
+    name: ClassVar[str] = ""
+    summary: ClassVar[str] = ""
+    params_model: ClassVar[type[Params]] = Params
+    devices: ClassVar[tuple[str, ...]] = ()  # devices that must be configured
+    optional_devices: ClassVar[tuple[str, ...]] = ()
+
+    def parse_params(self, config: RigConfig, overrides: dict[str, Any]) -> Params:
+        """Rig-file defaults, then ``overrides``; errors name the parameter."""
+        merged = {**config.procedures.get(self.name, {}), **overrides}
+        try:
+            return self.params_model.model_validate(merged)
+        except ValidationError as exc:
+            lines = []
+            for err in exc.errors():
+                key = ".".join(str(p) for p in err["loc"]) or "(params)"
+                msg = err["msg"].removeprefix("Value error, ")
+                if err["type"] == "extra_forbidden":
+                    known = ", ".join(self.params_model.model_fields)
+                    msg = f"unknown parameter (known: {known})"
+                lines.append(f"{self.name}: param {key}: {msg}")
+            raise ConfigError("\n".join(lines)) from None
+
+    def plan(self, params: Any, config: RigConfig) -> list[Step]:
+        raise NotImplementedError
+
+    def solve(self, ctx: SolveContext) -> dict[str, Any]:
+        raise NotImplementedError

@@ -1,0 +1,293 @@
+"""The ``rigctl`` command line (typer + rich).
+
+``--json`` prints machine-readable output on stdout and nothing else; progress and
+messages go to stderr. Exit codes: 0 success, 1 run failed, 2 refused (bad input,
+limits, busy), 3 aborted.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import typer
+import yaml
+from rich.console import Console
+from rich.table import Table
+
+from rigctl import __version__
+from rigctl.config import load_rig
+from rigctl.errors import ConfigError, RigError
+
+app = typer.Typer(add_completion=False, no_args_is_help=True,
+                  help="rigctl: rig controller for camera and robot calibration.")
+runs_app = typer.Typer(no_args_is_help=True, help="Recorded runs.")
+mock_app = typer.Typer(no_args_is_help=True, help="Protocol stand-ins for the hardware.")
+bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks (JSON and a table).")
+app.add_typer(runs_app, name="runs")
+app.add_typer(mock_app, name="mock")
+app.add_typer(bench_app, name="bench")
+
+err = Console(stderr=True)
+out = Console()
+
+EXIT_FAILED, EXIT_REFUSED, EXIT_ABORTED = 1, 2, 3
+
+
+def _print_json(data: Any) -> None:
+    from rigctl.records import to_jsonable
+
+    sys.stdout.write(json.dumps(to_jsonable(data), indent=2, default=str) + "\n")
+    sys.stdout.flush()
+
+
+def _fail(exc: Exception, as_json: bool, code: int = EXIT_REFUSED) -> None:
+    if as_json:
+        _print_json({"error": str(exc), "type": type(exc).__name__})
+    else:
+        err.print(f"[red]error:[/red] {exc}", markup=True, highlight=False)
+    raise typer.Exit(code)
+
+
+def parse_params(items: list[str]) -> dict[str, Any]:
+    """``key=value`` pairs; values are read as YAML (numbers, lists, booleans)."""
+    params: dict[str, Any] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise ConfigError(f"--param {item!r}: expected key=value")
+        try:
+            params[key.strip()] = yaml.safe_load(value)
+        except yaml.YAMLError:
+            raise ConfigError(f"--param {key}: cannot read value {value!r}") from None
+    return params
+
+
+def _version(value: bool) -> None:
+    if value:
+        typer.echo(f"rigctl {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def main(version: bool = typer.Option(False, "--version", callback=_version, is_eager=True,
+                                      help="Print the version and exit.")) -> None:
+    """rigctl: rig controller for camera and robot calibration."""
+
+
+@app.command()
+def run(procedure: str = typer.Argument(..., help="Procedure name (see `rigctl procedures`)."),
+        rig: Path = typer.Option(..., "--rig", help="Rig file (YAML)."),
+        param: list[str] = typer.Option([], "--param", "-p", help="key=value, repeatable."),
+        dry_run: bool = typer.Option(False, "--dry-run", help="Print the plan; touch nothing."),
+        as_json: bool = typer.Option(False, "--json", help="JSON on stdout, nothing else."),
+        operator: str | None = typer.Option(None, "--operator", help="Who runs it.")) -> None:
+    """Run a procedure on the rig, recording everything."""
+    from rigctl.runner import Runner
+
+    try:
+        config = load_rig(rig)
+        runner = Runner(config, operator=operator, show_progress=not as_json or sys.stderr.isatty())
+        overrides = parse_params(param)
+        if dry_run:
+            plan = runner.dry_run(procedure, overrides)
+            if as_json:
+                _print_json(plan.as_dict())
+            else:
+                _print_plan(plan)
+            raise typer.Exit(0 if not plan.violations else EXIT_REFUSED)
+        outcome = runner.run(procedure, overrides)
+    except RigError as exc:
+        _fail(exc, as_json)
+    if as_json:
+        _print_json(outcome.result if outcome.status == "succeeded" and outcome.result is not None
+                    else outcome.as_dict())
+    else:
+        colour = {"succeeded": "green", "aborted": "yellow"}.get(outcome.status, "red")
+        err.print(f"run {outcome.run_id}: [{colour}]{outcome.status}[/{colour}]"
+                  + (f" ({outcome.reason})" if outcome.reason else ""), highlight=False)
+        err.print(f"records: {outcome.run_dir}", highlight=False)
+        if outcome.result is not None:
+            out.print_json(json.dumps(_summary(outcome.result), default=str))
+    raise typer.Exit({"succeeded": 0, "aborted": EXIT_ABORTED}.get(outcome.status, EXIT_FAILED))
+
+
+def _summary(result: dict[str, Any]) -> dict[str, Any]:
+    return result.get("summary", result)
+
+
+def _print_plan(plan) -> None:
+    table = Table(title=f"plan: {plan.procedure} ({len(plan.steps)} steps)")
+    table.add_column("#", justify="right")
+    table.add_column("device")
+    table.add_column("step")
+    for row in plan.as_dict()["steps"]:
+        table.add_row(str(row["n"]), row["device"] or "-", row["description"])
+    out.print(table)
+    if plan.violations:
+        for violation in plan.violations:
+            err.print(f"[red]limit:[/red] {violation}", highlight=False)
+    else:
+        err.print("[green]all moves within soft limits[/green]; no device was touched")
+
+
+@app.command("procedures")
+def list_procedures(as_json: bool = typer.Option(False, "--json")) -> None:
+    """List the procedures with their parameters."""
+    import procedures
+
+    rows = []
+    for name in procedures.procedure_names():
+        proc = procedures.get_procedure(name)
+        rows.append({"name": name, "summary": proc.summary, "devices": list(proc.devices),
+                     "params": proc.params_model.model_json_schema()})
+    if as_json:
+        _print_json(rows)
+        return
+    table = Table(title="procedures")
+    for col in ("name", "devices", "summary"):
+        table.add_column(col)
+    for row in rows:
+        table.add_row(row["name"], ", ".join(row["devices"]), row["summary"])
+    out.print(table)
+
+
+@runs_app.command("list")
+def runs_list(rig: Path = typer.Option(..., "--rig"), limit: int = typer.Option(20, "--limit"),
+              procedure: str | None = typer.Option(None, "--procedure"),
+              as_json: bool = typer.Option(False, "--json")) -> None:
+    """Recent runs from the index."""
+    from rigctl.records import RecordIndex
+
+    try:
+        config = load_rig(rig)
+        rows = RecordIndex(config.database_url()).list(limit, procedure)
+    except RigError as exc:
+        _fail(exc, as_json)
+    if as_json:
+        _print_json(rows)
+        return
+    table = Table(title=f"runs of {config.name}")
+    for col in ("run id", "procedure", "status", "started", "operator", "reason"):
+        table.add_column(col)
+    for r in rows:
+        table.add_row(r["run_id"], r["procedure"], r["status"],
+                      r["started_at"].strftime("%Y-%m-%d %H:%M:%S"), r["operator"] or "",
+                      (r["reason"] or "")[:60])
+    out.print(table)
+
+
+@runs_app.command("show")
+def runs_show(run_id: str, rig: Path = typer.Option(..., "--rig"),
+              as_json: bool = typer.Option(False, "--json")) -> None:
+    """One run: its index row and its result."""
+    from rigctl.records import RecordIndex, RunDirectory
+
+    try:
+        config = load_rig(rig)
+        row = RecordIndex(config.database_url()).get(run_id)
+        run_dir = RunDirectory(row["run_dir"])
+        row["captures"] = len(run_dir.captures()) if run_dir.path.exists() else 0
+        result_path = run_dir.path / "result.json"
+        row["result"] = json.loads(result_path.read_text()) if result_path.exists() else None
+    except RigError as exc:
+        _fail(exc, as_json)
+    if as_json:
+        _print_json(row)
+        return
+    for key, value in row.items():
+        if key != "result":
+            out.print(f"[bold]{key}[/bold]: {value}", highlight=False)
+    if row["result"] is not None:
+        out.print_json(json.dumps(_summary(row["result"]), default=str))
+
+
+@app.command()
+def solve(run_dir: Path = typer.Argument(..., help="A run directory."),
+          as_json: bool = typer.Option(False, "--json")) -> None:
+    """Solve a recorded run again, offline; the old result is kept as result.N.json."""
+    from rigctl.records import RecordIndex
+    from rigctl.runner import solve_recorded
+
+    try:
+        index = None
+        try:
+            config = load_rig(run_dir / "rig.yaml")
+            config.source_path = None
+            index = RecordIndex(config.database_url()) if config.records.database_url else None
+        except RigError:
+            pass
+        if index is None:
+            index_path = run_dir.resolve().parent / "index.sqlite"
+            if index_path.exists():
+                index = RecordIndex(f"sqlite:///{index_path}")
+        result = solve_recorded(run_dir, index)
+    except RigError as exc:
+        _fail(exc, as_json, EXIT_FAILED)
+    if as_json:
+        _print_json(result)
+    else:
+        out.print_json(json.dumps(_summary(result), default=str))
+
+
+@app.command()
+def export(run: str = typer.Argument(..., help="Run directory, or run id with --rig."),
+           fmt: str = typer.Option("json", "--format", help="json | opencv | ros"),
+           output: Path | None = typer.Option(None, "--out", help="Output file."),
+           rig: Path | None = typer.Option(None, "--rig")) -> None:
+    """Export a run's calibration."""
+    from rigctl.exports import export_result
+    from rigctl.records import RecordIndex, RunDirectory
+
+    try:
+        run_path = Path(run)
+        if not run_path.is_dir():
+            if rig is None:
+                raise ConfigError(f"{run}: not a run directory (give --rig to look up a run id)")
+            config = load_rig(rig)
+            run_path = Path(RecordIndex(config.database_url()).get(run)["run_dir"])
+        run_dir = RunDirectory(run_path)
+        suffix = {"json": ".json", "opencv": ".opencv.yaml", "ros": ".camera_info.yaml"}
+        target = output or run_dir.path / f"export{suffix.get(fmt, '.out')}"
+        path = export_result(run_dir.result(), fmt, target, run_dir.run_id)
+    except RigError as exc:
+        _fail(exc, False, EXIT_FAILED)
+    err.print(f"wrote {path}", highlight=False)
+
+
+@app.command()
+def doctor(rig: Path = typer.Option(..., "--rig"),
+           as_json: bool = typer.Option(False, "--json")) -> None:
+    """Connect each configured device and report what it is and how fast it answers."""
+    from rigctl.doctor import check_rig
+
+    try:
+        config = load_rig(rig)
+    except RigError as exc:
+        _fail(exc, as_json)
+    report = check_rig(config)
+    if as_json:
+        _print_json(report)
+    else:
+        table = Table(title=f"doctor: {config.name}")
+        for col in ("device", "state", "details", "round trip"):
+            table.add_column(col)
+        for row in report:
+            colour = {"ok": "green", "missing": "yellow"}.get(row["state"], "red")
+            latency = f"{row['latency_ms']:.2f} ms" if row.get("latency_ms") else "-"
+            table.add_row(row["device"], f"[{colour}]{row['state']}[/{colour}]",
+                          row["message"], latency)
+        out.print(table)
+    raise typer.Exit(0 if all(r["state"] in ("ok", "missing") for r in report) else EXIT_FAILED)
+
+
+def wait_forever() -> None:  # pragma: no cover - used by long-running commands
+    while True:
+        time.sleep(3600)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    app()

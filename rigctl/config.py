@@ -1,0 +1,309 @@
+"""The rig file: a YAML description of the devices, records, procedures and service.
+
+Validated with pydantic. Degrees and millimetres live here, at the edge; the
+``*_rad`` helpers convert once. Every error names the file, the key path and the
+reason, e.g. ``rig.yaml: devices.head.limits.pan: max 200 deg exceeds the servo
+range of 180 deg``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from rigctl.errors import ConfigError
+
+HEAD_AXES = ("pan", "tilt", "roll")
+SERVO_RANGE_DEG = 180.0  # position mode: 4096 pulses over one turn, centred at 2048
+UR_JOINT_RANGE_DEG = 363.0  # UR joints turn +-363 deg (controller software limit)
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+def _check_range(value: list[float], limit: float) -> list[float]:
+    if len(value) != 2:
+        raise ValueError("expected [min, max]")
+    lo, hi = float(value[0]), float(value[1])
+    if lo >= hi:
+        raise ValueError(f"min {lo:g} deg must be below max {hi:g} deg")
+    if hi > limit:
+        raise ValueError(f"max {hi:g} deg exceeds the servo range of {limit:g} deg")
+    if lo < -limit:
+        raise ValueError(f"min {lo:g} deg exceeds the servo range of -{limit:g} deg")
+    return [lo, hi]
+
+
+class HeadLimits(_Strict):
+    """Soft limits per axis, degrees, in the head's own (offset and direction applied) frame."""
+
+    pan: list[float] = [-90.0, 90.0]
+    tilt: list[float] = [-45.0, 45.0]
+    roll: list[float] = [-180.0, 180.0]
+
+    @field_validator("pan", "tilt", "roll")
+    @classmethod
+    def _in_servo_range(cls, value: list[float]) -> list[float]:
+        return _check_range(value, SERVO_RANGE_DEG)
+
+
+class AxisMap(_Strict):
+    pan: int = 1
+    tilt: int = 2
+    roll: int = 3
+
+
+class AxisFloat(_Strict):
+    pan: float = 0.0
+    tilt: float = 0.0
+    roll: float = 0.0
+
+
+class AxisSign(_Strict):
+    pan: Literal[1, -1] = 1
+    tilt: Literal[1, -1] = 1
+    roll: Literal[1, -1] = 1
+
+
+class HeadPark(_Strict):
+    policy: Literal["hold", "home", "torque_off", "home_then_torque_off"] = "home"
+    angles_deg: list[float] = [0.0, 0.0, 0.0]
+
+
+class HeadConfig(_Strict):
+    port: str
+    baud: int = 1_000_000
+    model: Literal["xm430-w350", "xl430-w250"] = "xm430-w350"
+    ids: AxisMap = AxisMap()
+    limits: HeadLimits = HeadLimits()
+    zero_offset_deg: AxisFloat = AxisFloat()
+    direction: AxisSign = AxisSign()
+    speed_cap_dps: float = Field(60.0, gt=0, le=300)
+    accel_cap_dps2: float = Field(240.0, gt=0, le=5000)
+    move_timeout_s: float = Field(15.0, gt=0)
+    settle_s: float = Field(0.2, ge=0)
+    retries: int = Field(3, ge=0, le=10)
+    park: HeadPark = HeadPark()
+
+    @field_validator("baud")
+    @classmethod
+    def _supported_baud(cls, value: int) -> int:
+        allowed = (9600, 57600, 115200, 1_000_000, 2_000_000, 3_000_000, 4_000_000, 4_500_000)
+        if value not in allowed:
+            raise ValueError(f"{value} is not a Dynamixel baud rate (one of {allowed})")
+        return value
+
+    @model_validator(mode="after")
+    def _distinct_ids(self) -> HeadConfig:
+        ids = [self.ids.pan, self.ids.tilt, self.ids.roll]
+        if len(set(ids)) != 3:
+            raise ValueError(f"ids: pan, tilt and roll need distinct servo IDs, got {ids}")
+        if not all(0 <= i <= 252 for i in ids):
+            raise ValueError(f"ids: servo IDs must be 0-252, got {ids}")
+        return self
+
+    def limits_rad(self) -> dict[str, tuple[float, float]]:
+        return {
+            axis: (math.radians(getattr(self.limits, axis)[0]),
+                   math.radians(getattr(self.limits, axis)[1]))
+            for axis in HEAD_AXES
+        }
+
+
+class ArmPark(_Strict):
+    policy: Literal["hold", "home"] = "hold"
+    joints_deg: list[float] | None = None
+
+
+class ArmConfig(_Strict):
+    host: str = "127.0.0.1"
+    model: Literal["ur3e", "ur5e", "ur10e"] = "ur5e"
+    joint_limits_deg: list[list[float]] = Field(default_factory=lambda: [[-360.0, 360.0]] * 6)
+    home_deg: list[float] = [0.0, -90.0, 90.0, -90.0, -90.0, 0.0]
+    speed_cap_dps: float = Field(60.0, gt=0, le=180)
+    accel_cap_dps2: float = Field(80.0, gt=0, le=800)
+    linear_speed_mm_s: float = Field(100.0, gt=0, le=1000)
+    linear_accel_mm_s2: float = Field(300.0, gt=0, le=3000)
+    move_timeout_s: float = Field(30.0, gt=0)
+    settle_s: float = Field(0.2, ge=0)
+    connect_retries: int = Field(3, ge=1, le=20)
+    park: ArmPark = ArmPark()
+
+    @field_validator("joint_limits_deg")
+    @classmethod
+    def _six_ranges(cls, value: list[list[float]]) -> list[list[float]]:
+        if len(value) != 6:
+            raise ValueError(f"expected 6 [min, max] pairs, got {len(value)}")
+        out = []
+        for i, pair in enumerate(value):
+            try:
+                out.append(_check_range(pair, UR_JOINT_RANGE_DEG))
+            except ValueError as exc:
+                raise ValueError(f"joint {i + 1}: {exc}") from None
+        return out
+
+    @field_validator("home_deg")
+    @classmethod
+    def _six_values(cls, value: list[float]) -> list[float]:
+        if len(value) != 6:
+            raise ValueError(f"expected 6 joint angles, got {len(value)}")
+        return value
+
+    def joint_limits_rad(self) -> list[tuple[float, float]]:
+        return [(math.radians(lo), math.radians(hi)) for lo, hi in self.joint_limits_deg]
+
+
+class CameraConfig(_Strict):
+    device: str | int  # /dev/videoN, an index, or a stream URL (http://, rtsp://)
+    width: int = Field(1280, gt=0, le=16384)
+    height: int = Field(720, gt=0, le=16384)
+    fourcc: str = "MJPG"
+    fps: float | None = Field(None, gt=0)
+    controls: dict[str, float] = Field(default_factory=dict)
+    auto_off: bool = True
+    timeout_s: float = Field(3.0, gt=0)
+
+    @field_validator("fourcc")
+    @classmethod
+    def _four_chars(cls, value: str) -> str:
+        if len(value) != 4:
+            raise ValueError(f"FOURCC must have 4 characters, got {value!r}")
+        return value
+
+    @field_validator("controls")
+    @classmethod
+    def _known_controls(cls, value: dict[str, float]) -> dict[str, float]:
+        known = {"exposure", "gain", "focus", "white_balance", "brightness", "contrast"}
+        unknown = sorted(set(value) - known)
+        if unknown:
+            raise ValueError(f"unknown camera control(s) {unknown}; known: {sorted(known)}")
+        return value
+
+
+class DevicesConfig(_Strict):
+    head: HeadConfig | None = None
+    arm: ArmConfig | None = None
+    camera: CameraConfig | None = None
+
+
+class RecordsConfig(_Strict):
+    directory: str = "records"
+    database_url: str | None = None  # default: sqlite:///<directory>/index.sqlite
+
+
+class Schedule(_Strict):
+    procedure: str
+    cron: str | None = None
+    interval_s: float | None = Field(None, gt=0)
+    params: dict[str, Any] = Field(default_factory=dict)
+    max_delay: str = "1h"
+
+    @model_validator(mode="after")
+    def _one_trigger(self) -> Schedule:
+        if (self.cron is None) == (self.interval_s is None):
+            raise ValueError("give exactly one of cron or interval_s")
+        return self
+
+
+class DriftThresholds(_Strict):
+    focal_pct: float = 0.5
+    principal_point_px: float = 3.0
+    link_mm: float = 0.5
+    link_deg: float = 0.05
+    hand_eye_mm: float = 2.0
+    hand_eye_deg: float = 0.2
+
+
+class ServiceConfig(_Strict):
+    bind: str = "127.0.0.1"
+    port: int = Field(8765, ge=1, le=65535)
+    token: str | None = None
+    webhook: str | None = None
+    auto_accept: bool = False
+    schedules: list[Schedule] = Field(default_factory=list)
+    drift: DriftThresholds = DriftThresholds()
+
+
+class RigConfig(_Strict):
+    name: str = Field("rig", pattern=r"^[A-Za-z0-9_.-]+$")
+    devices: DevicesConfig = DevicesConfig()
+    records: RecordsConfig = RecordsConfig()
+    procedures: dict[str, dict[str, Any]] = Field(default_factory=dict)
+    service: ServiceConfig = ServiceConfig()
+    world: str | None = None  # simulated rigs only: the ground-truth world file
+
+    # Filled by ``load_rig``: where the file came from, and its text for provenance.
+    source_path: Path | None = Field(None, exclude=True)
+    source_text: str = Field("", exclude=True)
+
+    def config_hash(self) -> str:
+        return hashlib.sha256(self.source_text.encode()).hexdigest()[:16]
+
+    def records_dir(self) -> Path:
+        base = Path(self.records.directory).expanduser()
+        if not base.is_absolute() and self.source_path is not None:
+            base = self.source_path.parent / base
+        return base
+
+    def database_url(self) -> str:
+        return self.records.database_url or f"sqlite:///{self.records_dir() / 'index.sqlite'}"
+
+
+def _format_loc(loc: tuple) -> str:
+    return ".".join(str(part) for part in loc) or "(top level)"
+
+
+def _format_validation(name: str, exc: ValidationError) -> str:
+    lines = []
+    for err in exc.errors():
+        msg = err["msg"]
+        if msg.startswith("Value error, "):
+            msg = msg[len("Value error, "):]
+        if err["type"] == "extra_forbidden":
+            msg = "unknown key"
+        lines.append(f"{name}: {_format_loc(err['loc'])}: {msg}")
+    return "\n".join(lines)
+
+
+def parse_rig(text: str, name: str = "rig.yaml", path: Path | None = None) -> RigConfig:
+    """Parse and validate rig-file text; raise ``ConfigError`` naming file, key and reason."""
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f":{mark.line + 1}:{mark.column + 1}" if mark else ""
+        problem = getattr(exc, "problem", exc)
+        raise ConfigError(f"{name}{where}: not valid YAML: {problem}") from None
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{name}: top level must be a mapping, got {type(data).__name__}")
+    try:
+        config = RigConfig.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(_format_validation(name, exc)) from None
+    config.source_path = path
+    config.source_text = text
+    return config
+
+
+def load_rig(path: str | Path) -> RigConfig:
+    """Read a rig file; errors name the file, the key path and the reason."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: rig file not found") from None
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read rig file: {exc.strerror}") from None
+    return parse_rig(text, name=path.name, path=path.resolve())
+
+
+def procedure_defaults(config: RigConfig, procedure: str) -> dict[str, Any]:
+    return dict(config.procedures.get(procedure, {}))

@@ -1,0 +1,69 @@
+"""Exports of a recorded result: JSON, OpenCV FileStorage YAML, ROS camera_info YAML."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from rigctl.errors import ConfigError, RigError
+
+FORMATS = ("json", "opencv", "ros")
+
+
+def _intrinsics(result: dict[str, Any], run_id: str) -> tuple[np.ndarray, np.ndarray, int, int]:
+    missing = [k for k in ("fx", "fy", "cx", "cy", "width", "height") if k not in result]
+    if missing:
+        raise RigError(f"run {run_id}: result has no camera intrinsics to export "
+                       f"(missing {', '.join(missing)})")
+    K = np.array([[result["fx"], 0.0, result["cx"]], [0.0, result["fy"], result["cy"]],
+                  [0.0, 0.0, 1.0]])
+    dist = np.array(result.get("distortion") or [0.0] * 5, dtype=float)
+    return K, dist, int(result["width"]), int(result["height"])
+
+
+def export_opencv(result: dict[str, Any], path: Path, run_id: str) -> None:
+    """OpenCV FileStorage YAML, readable with ``cv2.FileStorage(path, READ)``."""
+    import cv2
+
+    K, dist, width, height = _intrinsics(result, run_id)
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    fs.write("image_width", width)
+    fs.write("image_height", height)
+    fs.write("camera_matrix", K)
+    fs.write("distortion_coefficients", dist.reshape(1, -1))
+    fs.write("run_id", run_id)
+    fs.release()
+
+
+def export_ros(result: dict[str, Any], path: Path, run_id: str,
+               camera_name: str = "rigctl") -> None:
+    """ROS ``camera_info`` YAML (camera_calibration_parsers layout, plumb_bob model)."""
+    K, dist, width, height = _intrinsics(result, run_id)
+    P = np.hstack([K, np.zeros((3, 1))])
+    doc = {
+        "image_width": width,
+        "image_height": height,
+        "camera_name": camera_name,
+        "camera_matrix": {"rows": 3, "cols": 3, "data": K.ravel().tolist()},
+        "distortion_model": "plumb_bob",
+        "distortion_coefficients": {"rows": 1, "cols": len(dist), "data": dist.tolist()},
+        "rectification_matrix": {"rows": 3, "cols": 3, "data": np.eye(3).ravel().tolist()},
+        "projection_matrix": {"rows": 3, "cols": 4, "data": P.ravel().tolist()},
+    }
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+
+
+def export_result(result: dict[str, Any], fmt: str, path: Path, run_id: str) -> Path:
+    if fmt == "json":
+        path.write_text(json.dumps(result.get("export", result), indent=2) + "\n")
+    elif fmt == "opencv":
+        export_opencv(result, path, run_id)
+    elif fmt == "ros":
+        export_ros(result, path, run_id)
+    else:
+        raise ConfigError(f"--format: unknown export format {fmt!r}; known: {', '.join(FORMATS)}")
+    return path

@@ -1,0 +1,259 @@
+"""Run records: one directory per run, plus an SQL index (SQLite by default).
+
+Layout of a run directory::
+
+    <records>/<run_id>/
+        rig.yaml           copy of the rig file as used
+        params.json        procedure and parameters
+        versions.json      software and device versions (``describe()`` of each device)
+        run.log            the log
+        captures/NNN.png   images, written the moment they are taken
+        captures/NNN.json  sidecar: head angles, joint angles, timestamps, camera settings
+        result.json        the solve, once there is one
+        plots/*.png
+
+The index row is written when the run starts (status ``running``) and updated when it
+ends, so a crash never loses a run: a ``running`` row whose process is gone is shown
+as ``interrupted``.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import os
+import secrets
+import socket
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from sqlalchemy import (
+    JSON,
+    Column,
+    DateTime,
+    Integer,
+    MetaData,
+    String,
+    Table,
+    Text,
+    create_engine,
+    select,
+    update,
+)
+
+from rigctl.errors import ConfigError, RigError
+
+metadata = MetaData()
+
+runs_table = Table(
+    "runs",
+    metadata,
+    Column("run_id", String(64), primary_key=True),
+    Column("procedure", String(64), nullable=False, index=True),
+    Column("status", String(16), nullable=False, index=True),
+    Column("reason", Text, nullable=True),
+    Column("started_at", DateTime(timezone=True), nullable=False),
+    Column("ended_at", DateTime(timezone=True), nullable=True),
+    Column("operator", String(64), nullable=True),
+    Column("rig_name", String(64), nullable=False, index=True),
+    Column("config_hash", String(32), nullable=False),
+    Column("result_summary", JSON, nullable=True),
+    Column("run_dir", Text, nullable=False),
+    Column("host", String(128), nullable=False),
+    Column("pid", Integer, nullable=False),
+    Column("decision", String(16), nullable=True),  # accepted | rejected | drift | pending
+)
+
+TERMINAL = ("succeeded", "failed", "aborted", "interrupted", "skipped")
+
+
+def utcnow() -> dt.datetime:
+    return dt.datetime.now(dt.UTC)
+
+
+def new_run_id(procedure: str) -> str:
+    stamp = utcnow().strftime("%Y%m%dT%H%M%S")
+    return f"{stamp}-{procedure}-{secrets.token_hex(3)}"
+
+
+def to_jsonable(value: Any) -> Any:
+    """Turn numpy values and tuples into plain JSON types."""
+    if isinstance(value, dict):
+        return {str(k): to_jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [to_jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return to_jsonable(value.tolist())
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, float) and not np.isfinite(value):
+        raise RigError(f"refusing to record a non-finite number ({value})")
+    if isinstance(value, Path):
+        return str(value)
+    return value
+
+
+def write_json(path: Path, data: Any) -> None:
+    """Write JSON atomically (temp file + rename) so a crash never leaves half a file."""
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(to_jsonable(data), indent=2, sort_keys=False) + "\n")
+    os.replace(tmp, path)
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+class RecordIndex:
+    """The SQL index of runs (SQLAlchemy; SQLite by default, PostgreSQL by URL)."""
+
+    def __init__(self, url: str) -> None:
+        if url.startswith("sqlite:///"):
+            Path(url[len("sqlite:///"):]).parent.mkdir(parents=True, exist_ok=True)
+        try:
+            self.engine = create_engine(url, future=True)
+            metadata.create_all(self.engine)
+        except Exception as exc:  # SQLAlchemy raises many driver-specific types
+            raise ConfigError(f"records.database_url: cannot open {url!r}: {exc}") from None
+
+    def insert(self, row: dict[str, Any]) -> None:
+        with self.engine.begin() as conn:
+            conn.execute(runs_table.insert().values(**row))
+
+    def update(self, run_id: str, **values: Any) -> None:
+        with self.engine.begin() as conn:
+            conn.execute(update(runs_table).where(runs_table.c.run_id == run_id).values(**values))
+
+    def _refresh_interrupted(self, rows: list[dict]) -> list[dict]:
+        host = socket.gethostname()
+        for row in rows:
+            if row["status"] == "running" and row["host"] == host and not _pid_alive(row["pid"]):
+                reason = f"process {row['pid']} ended without closing the run"
+                self.update(row["run_id"], status="interrupted", reason=reason)
+                row["status"], row["reason"] = "interrupted", reason
+        return rows
+
+    def list(self, limit: int = 50, procedure: str | None = None,
+             rig_name: str | None = None) -> list[dict[str, Any]]:
+        query = select(runs_table).order_by(runs_table.c.started_at.desc()).limit(limit)
+        if procedure:
+            query = query.where(runs_table.c.procedure == procedure)
+        if rig_name:
+            query = query.where(runs_table.c.rig_name == rig_name)
+        with self.engine.connect() as conn:
+            rows = [dict(r._mapping) for r in conn.execute(query)]
+        return self._refresh_interrupted(rows)
+
+    def get(self, run_id: str) -> dict[str, Any]:
+        with self.engine.connect() as conn:
+            rows = [dict(r._mapping) for r in conn.execute(
+                select(runs_table).where(runs_table.c.run_id.startswith(run_id)))]
+        if not rows:
+            raise RigError(f"no run with id {run_id!r} in the index")
+        if len(rows) > 1:
+            raise RigError(f"run id prefix {run_id!r} is ambiguous ({len(rows)} runs)")
+        return self._refresh_interrupted(rows)[0]
+
+
+@dataclass
+class Capture:
+    """One recorded capture: its index, image path (if any) and sidecar metadata."""
+
+    index: int
+    image_path: Path | None
+    meta: dict[str, Any]
+
+    def load_image(self) -> np.ndarray:
+        import cv2
+
+        if self.image_path is None:
+            raise RigError(f"capture {self.index:03d} has no image")
+        image = cv2.imread(str(self.image_path), cv2.IMREAD_UNCHANGED)
+        if image is None:
+            raise RigError(f"{self.image_path}: cannot read image")
+        return image
+
+
+class RunDirectory:
+    """Reads and writes one run directory."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.captures_dir = self.path / "captures"
+        self.plots_dir = self.path / "plots"
+
+    @classmethod
+    def create(cls, root: Path, run_id: str) -> RunDirectory:
+        run = cls(root / run_id)
+        run.captures_dir.mkdir(parents=True, exist_ok=False)
+        run.plots_dir.mkdir()
+        return run
+
+    @property
+    def run_id(self) -> str:
+        return self.path.name
+
+    def write_capture(self, index: int, image: np.ndarray | None, meta: dict[str, Any]) -> Path:
+        """Write ``NNN.png`` (if there is an image) and its ``NNN.json`` sidecar now."""
+        import cv2
+
+        stem = self.captures_dir / f"{index:03d}"
+        if image is not None:
+            if not cv2.imwrite(str(stem.with_suffix(".png")), image):
+                raise RigError(f"{stem}.png: cannot write image")
+            meta = {**meta, "image": f"{index:03d}.png"}
+        write_json(stem.with_suffix(".json"), meta)
+        return stem.with_suffix(".json")
+
+    def captures(self) -> list[Capture]:
+        out = []
+        for sidecar in sorted(self.captures_dir.glob("[0-9][0-9][0-9].json")):
+            try:
+                meta = json.loads(sidecar.read_text())
+            except json.JSONDecodeError as exc:
+                raise RigError(f"{sidecar}: corrupt capture sidecar: {exc}") from None
+            image = self.captures_dir / meta["image"] if meta.get("image") else None
+            out.append(Capture(int(sidecar.stem), image, meta))
+        return out
+
+    def read_json(self, name: str) -> Any:
+        path = self.path / name
+        try:
+            return json.loads(path.read_text())
+        except FileNotFoundError:
+            raise RigError(f"{path}: missing from the run directory") from None
+        except json.JSONDecodeError as exc:
+            raise RigError(f"{path}: corrupt JSON: {exc}") from None
+
+    def write_result(self, result: dict[str, Any]) -> None:
+        """Write ``result.json``; an earlier result is kept as ``result.<n>.json``."""
+        target = self.path / "result.json"
+        if target.exists():
+            n = 1
+            while (self.path / f"result.{n}.json").exists():
+                n += 1
+            os.replace(target, self.path / f"result.{n}.json")
+        write_json(target, result)
+
+    def result(self) -> dict[str, Any]:
+        return self.read_json("result.json")
+
+    def params(self) -> dict[str, Any]:
+        return self.read_json("params.json")
+
+
+def summarize(result: dict[str, Any]) -> dict[str, Any]:
+    """The small subset of a result kept in the index row."""
+    summary = result.get("summary")
+    if isinstance(summary, dict):
+        return to_jsonable(summary)
+    keys = ("fx", "fy", "cx", "cy", "rms_px")
+    return {k: result[k] for k in keys if k in result}

@@ -1,0 +1,389 @@
+"""Runs a procedure: lock, limits, progress, interruption, cleanup, recording.
+
+Only the runner touches devices. A run:
+
+1. validates the parameters and builds the plan (no device touched);
+2. checks every move of the plan against the rig file's soft limits;
+3. takes the rig lock ("busy, held by run X (pid N)" otherwise);
+4. creates the run directory and its index row (status ``running``);
+5. executes the steps, writing each capture the moment it is taken;
+6. solves, and records ``succeeded`` with the result.
+
+Ctrl-C, an abort request, SIGTERM, a device fault or a safety stop stop every
+device the run touched, park them per policy, and record the run as
+``aborted`` or ``failed`` with the reason; the captures stay on disk.
+"""
+
+from __future__ import annotations
+
+import getpass
+import logging
+import math
+import os
+import platform
+import signal
+import socket
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from importlib import metadata as importlib_metadata
+from typing import Any
+
+from rich.console import Console
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
+
+import procedures
+from drivers.base import check_axis_limit
+from procedures.base import (
+    CaptureStep,
+    MoveArmJoint,
+    MoveArmJoints,
+    MoveArmLinear,
+    MoveHead,
+    Procedure,
+    Settle,
+    SolveContext,
+    Step,
+)
+from rigctl import __version__
+from rigctl.config import HEAD_AXES, RigConfig, parse_rig
+from rigctl.errors import AbortedError, ConfigError, RigError, SafetyError
+from rigctl.locks import RigLock
+from rigctl.records import RecordIndex, RunDirectory, new_run_id, summarize, utcnow, write_json
+from rigctl.rig import Rig
+
+log = logging.getLogger("rigctl.run")
+
+EventSink = Callable[[dict[str, Any]], None]
+
+
+@dataclass
+class PlanCheck:
+    """A plan with every move checked against the soft limits."""
+
+    procedure: str
+    params: dict[str, Any]
+    steps: list[Step]
+    violations: list[str] = field(default_factory=list)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "procedure": self.procedure,
+            "params": self.params,
+            "steps": [{"n": i + 1, "kind": type(s).__name__, "device": s.device,
+                       "description": s.describe()} for i, s in enumerate(self.steps)],
+            "limits_ok": not self.violations,
+            "violations": self.violations,
+        }
+
+
+@dataclass
+class RunOutcome:
+    run_id: str
+    status: str
+    reason: str | None
+    run_dir: str
+    result: dict[str, Any] | None
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"run_id": self.run_id, "status": self.status, "reason": self.reason,
+                "run_dir": self.run_dir, "result": self.result}
+
+
+def check_plan(config: RigConfig, steps: list[Step], needs: tuple[str, ...]) -> list[str]:
+    """Every soft-limit violation and missing device of a plan, as operator messages."""
+    problems = []
+    for kind in needs:
+        if getattr(config.devices, kind) is None:
+            problems.append(f"devices.{kind}: the procedure needs it but the rig file has none")
+    head, arm = config.devices.head, config.devices.arm
+    arm_q: list[float] | None = [math.radians(v) for v in arm.home_deg] if arm else None
+    for n, step in enumerate(steps, start=1):
+        try:
+            if isinstance(step, MoveHead) and head is not None:
+                limits = head.limits_rad()
+                for axis, value in zip(HEAD_AXES, (step.pan, step.tilt, step.roll), strict=True):
+                    check_axis_limit(f"head.{axis}", value, *limits[axis])
+            elif isinstance(step, (MoveArmJoints, MoveArmJoint)) and arm is not None:
+                if isinstance(step, MoveArmJoints):
+                    arm_q = list(step.q)
+                    targets = list(enumerate(step.q))
+                else:
+                    if arm_q is not None:
+                        arm_q[step.index] = step.angle
+                    targets = [(step.index, step.angle)]
+                limits = arm.joint_limits_rad()
+                for i, value in targets:
+                    check_axis_limit(f"arm.joint{i + 1}", value, *limits[i])
+        except SafetyError as exc:
+            problems.append(f"step {n} ({step.describe()}): {exc}")
+    return problems
+
+
+def _versions() -> dict[str, str]:
+    out = {"rigctl": __version__, "python": platform.python_version(),
+           "platform": platform.platform()}
+    for dist in ("numpy", "scipy", "opencv-python-headless", "dynamixel-sdk", "ur-rtde"):
+        try:
+            out[dist] = importlib_metadata.version(dist)
+        except importlib_metadata.PackageNotFoundError:
+            out[dist] = "not installed"
+    return out
+
+
+class Runner:
+    """Executes procedures on one rig. Thread-safe ``abort()``; one run at a time."""
+
+    def __init__(self, config: RigConfig, *, factories: dict | None = None,
+                 console: Console | None = None, show_progress: bool = True,
+                 operator: str | None = None, on_event: EventSink | None = None) -> None:
+        self.config = config
+        self.factories = factories
+        self.console = console or Console(stderr=True)
+        self.show_progress = show_progress
+        self.operator = operator or _whoami()
+        self.on_event = on_event
+        self.abort_event = threading.Event()
+        self._abort_reason = "abort requested"
+        self.index = RecordIndex(config.database_url())
+
+    # -- planning -------------------------------------------------------------
+
+    def prepare(self, name: str, overrides: dict[str, Any]) -> tuple[Procedure, Any, PlanCheck]:
+        procedure = procedures.get_procedure(name)
+        params = procedure.parse_params(self.config, overrides)
+        steps = procedure.plan(params, self.config)
+        violations = check_plan(self.config, steps, procedure.devices)
+        return procedure, params, PlanCheck(name, params.model_dump(), steps, violations)
+
+    def dry_run(self, name: str, overrides: dict[str, Any]) -> PlanCheck:
+        """The whole plan with limits checked; touches no device."""
+        return self.prepare(name, overrides)[2]
+
+    # -- control --------------------------------------------------------------
+
+    def abort(self, reason: str = "abort requested") -> None:
+        self._abort_reason = reason
+        self.abort_event.set()
+
+    def _emit(self, **event: Any) -> None:
+        if self.on_event is not None:
+            try:
+                self.on_event(event)
+            except Exception:  # a broken listener must never break a run
+                log.exception("event listener failed")
+
+    # -- execution ------------------------------------------------------------
+
+    def run(self, name: str, overrides: dict[str, Any] | None = None,
+            run_id: str | None = None) -> RunOutcome:
+        """Run ``name`` with parameter ``overrides``; returns the recorded outcome.
+
+        Raises before anything moves (``ConfigError``, ``SafetyError``, ``BusyError``);
+        once the run is recorded, failures end up in the outcome, not as exceptions.
+        """
+        procedure, params, plan = self.prepare(name, overrides or {})
+        if plan.violations:
+            raise SafetyError("plan refused before any motion:\n" + "\n".join(plan.violations))
+        run_id = run_id or new_run_id(name)
+        self.abort_event.clear()
+        self._abort_reason = "abort requested"
+        lock = RigLock(self.config.records_dir() / "locks", self.config.name)
+        lock.acquire(run_id)
+        try:
+            return self._run_locked(procedure, params, plan, run_id)
+        finally:
+            lock.release()
+
+    def _run_locked(self, procedure: Procedure, params: Any, plan: PlanCheck,
+                    run_id: str) -> RunOutcome:
+        run = RunDirectory.create(self.config.records_dir(), run_id)
+        (run.path / "rig.yaml").write_text(self.config.source_text)
+        write_json(run.path / "params.json", {"procedure": procedure.name,
+                                              "params": plan.params, "operator": self.operator})
+        self.index.insert({
+            "run_id": run_id, "procedure": procedure.name, "status": "running", "reason": None,
+            "started_at": utcnow(), "operator": self.operator, "rig_name": self.config.name,
+            "config_hash": self.config.config_hash(), "run_dir": str(run.path.resolve()),
+            "host": socket.gethostname(), "pid": os.getpid(),
+        })
+        handler = logging.FileHandler(run.path / "run.log")
+        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+        root = logging.getLogger()
+        root.addHandler(handler)
+        if root.level > logging.INFO or root.level == logging.NOTSET:
+            root.setLevel(logging.INFO)
+        rig = Rig(self.config, self.factories)
+        self._emit(type="started", run_id=run_id, procedure=procedure.name,
+                   total=len(plan.steps))
+        status, reason, result = "running", None, None
+        restore = self._install_sigterm()
+        try:
+            self._execute(rig, procedure, plan.steps, run, run_id)
+            versions = {"software": _versions(),
+                        "devices": {k: d.describe() for k, d in rig.devices.items()}}
+            write_json(run.path / "versions.json", versions)
+            problems = rig.close_all()
+            if problems:
+                log.warning("after the run: %s", "; ".join(problems))
+            self._emit(type="step", run_id=run_id, step="solve", index=len(plan.steps),
+                       total=len(plan.steps))
+            result = procedure.solve(SolveContext(run, self.config, params))
+            run.write_result(result)
+            status = "succeeded"
+        except (AbortedError, KeyboardInterrupt) as exc:
+            status = "aborted"
+            reason = self._abort_reason if self.abort_event.is_set() else (
+                "interrupted by Ctrl-C" if isinstance(exc, KeyboardInterrupt) else str(exc))
+        except RigError as exc:
+            status, reason = "failed", f"{type(exc).__name__}: {exc}"
+        except Exception as exc:  # a bug: still record it, and keep the captures
+            status, reason = "failed", f"internal error: {type(exc).__name__}: {exc}"
+            log.exception("internal error")
+        finally:
+            if status != "succeeded":
+                self._safe_stop(rig, reason)
+            restore()
+            self.index.update(run_id, status=status, reason=reason, ended_at=utcnow(),
+                              result_summary=summarize(result) if result else None)
+            log.info("run %s %s%s", run_id, status, f": {reason}" if reason else "")
+            root.removeHandler(handler)
+            handler.close()
+            self._emit(type="finished", run_id=run_id, status=status, reason=reason)
+        return RunOutcome(run_id, status, reason, str(run.path), result)
+
+    def _safe_stop(self, rig: Rig, reason: str | None) -> None:
+        """Stop every touched device, then close each (which applies its park policy)."""
+        log.warning("stopping devices: %s", reason)
+        for problem in rig.stop_all() + rig.close_all():
+            log.error("cleanup: %s", problem)
+
+    def _install_sigterm(self) -> Callable[[], None]:
+        if threading.current_thread() is not threading.main_thread():
+            return lambda: None
+        previous = signal.getsignal(signal.SIGTERM)
+        signal.signal(signal.SIGTERM, lambda *_: self.abort("SIGTERM received"))
+        return lambda: signal.signal(signal.SIGTERM, previous)
+
+    def _execute(self, rig: Rig, procedure: Procedure, steps: list[Step], run: RunDirectory,
+                 run_id: str) -> None:
+        # Open every device the procedure uses before the first step.
+        for kind in procedure.devices:
+            rig.open(kind)
+        for kind in procedure.optional_devices:
+            if kind in rig.configured():
+                rig.open(kind)
+        progress = Progress(TextColumn("[bold]{task.description:<40}"), BarColumn(),
+                            MofNCompleteColumn(), TimeElapsedColumn(), TimeRemainingColumn(),
+                            console=self.console, disable=not self.show_progress, transient=False)
+        state = {"last_motion_end": time.time(), "capture": 0,
+                 "head_commanded": None, "arm_commanded": None}
+        with progress:
+            task = progress.add_task(procedure.name, total=len(steps))
+            for n, step in enumerate(steps):
+                if self.abort_event.is_set():
+                    raise AbortedError(self._abort_reason)
+                text = step.label or step.describe()
+                progress.update(task, description=f"{procedure.name}: {text}"[:40])
+                self._emit(type="step", run_id=run_id, index=n, total=len(steps),
+                           step=step.describe())
+                log.info("step %d/%d: %s", n + 1, len(steps), step.describe())
+                self._do_step(rig, step, run, state)
+                progress.advance(task)
+
+    def _do_step(self, rig: Rig, step: Step, run: RunDirectory, state: dict) -> None:
+        if isinstance(step, MoveHead):
+            head = rig.open("head")
+            cfg = self.config.devices.head
+            head.move_to(step.pan, step.tilt, step.roll).wait(cfg.move_timeout_s,
+                                                              self.abort_event)
+            state["head_commanded"] = {"pan": step.pan, "tilt": step.tilt, "roll": step.roll}
+            state["last_motion_end"] = time.time()
+        elif isinstance(step, (MoveArmJoints, MoveArmJoint, MoveArmLinear)):
+            arm = rig.open("arm")
+            cfg = self.config.devices.arm
+            if isinstance(step, MoveArmJoints):
+                status = arm.move_joints(step.q)
+            elif isinstance(step, MoveArmJoint):
+                status = arm.move_joint(step.index, step.angle)
+            else:
+                status = arm.move_linear(step.pose)
+            status.wait(cfg.move_timeout_s, self.abort_event)
+            state["arm_commanded"] = {"kind": type(step).__name__, **_step_fields(step)}
+            state["last_motion_end"] = time.time()
+        elif isinstance(step, Settle):
+            if self.abort_event.wait(step.seconds):
+                raise AbortedError(self._abort_reason)
+        elif isinstance(step, CaptureStep):
+            self._capture(rig, step, run, state)
+        else:  # pragma: no cover - a new step type without runner support
+            raise ConfigError(f"runner cannot execute step {step!r}")
+
+    def _capture(self, rig: Rig, step: CaptureStep, run: RunDirectory, state: dict) -> None:
+        meta: dict[str, Any] = {"index": state["capture"], "label": step.label,
+                                "time": time.time(), "extra": dict(step.extra)}
+        image = None
+        if step.image and "camera" in rig.configured():
+            frame = rig.open("camera").capture(not_before=state["last_motion_end"])
+            image = frame.image
+            meta["camera"] = {"timestamp": frame.timestamp, "sequence": frame.sequence,
+                              "settings": frame.settings}
+        if "head" in rig.devices:
+            angles = rig.devices["head"].read_angles()
+            meta["head"] = {"pan": angles.pan, "tilt": angles.tilt, "roll": angles.roll,
+                            "timestamp": angles.timestamp}
+            meta["head_commanded"] = state["head_commanded"]
+        if "arm" in rig.devices:
+            arm_state = rig.devices["arm"].read_state()
+            meta["arm"] = {"q": list(arm_state.q), "tcp_pose": list(arm_state.tcp_pose),
+                           "timestamp": arm_state.timestamp, "safety": arm_state.safety}
+            meta["arm_commanded"] = state["arm_commanded"]
+        run.write_capture(state["capture"], image, meta)
+        state["capture"] += 1
+
+
+def _step_fields(step) -> dict[str, Any]:
+    return {k: getattr(step, k) for k in ("q", "index", "angle", "pose") if hasattr(step, k)}
+
+
+def _whoami() -> str:
+    try:
+        return getpass.getuser()
+    except Exception:
+        return "unknown"
+
+
+def solve_recorded(run_path, index: RecordIndex | None = None) -> dict[str, Any]:
+    """Solve a recorded run again, offline, from its run directory alone.
+
+    The previous ``result.json`` is kept as ``result.<n>.json``.
+    """
+    run = RunDirectory(run_path)
+    if not run.path.is_dir():
+        raise ConfigError(f"{run.path}: not a run directory")
+    params_doc = run.params()
+    try:
+        rig_text = (run.path / "rig.yaml").read_text()
+    except FileNotFoundError:
+        raise ConfigError(f"{run.path / 'rig.yaml'}: missing from the run directory") from None
+    config = parse_rig(rig_text, name=str(run.path / "rig.yaml"))
+    procedure = procedures.get_procedure(params_doc["procedure"])
+    params = procedure.params_model.model_validate(params_doc["params"])
+    result = procedure.solve(SolveContext(run, config, params))
+    run.write_result(result)
+    if index is not None:
+        try:
+            index.get(run.run_id)
+            index.update(run.run_id, result_summary=summarize(result))
+        except RigError:
+            pass  # the run is not in this index (copied from another machine)
+    return result
+

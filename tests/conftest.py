@@ -1,0 +1,40 @@
+from __future__ import annotations
+
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from rigctl.config import load_rig
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture
+def rig_file(tmp_path: Path):
+    """Write a rig file with a head (and optionally arm/camera) into tmp_path."""
+
+    def make(extra: str = "", head: bool = True, arm: bool = False, camera: bool = False) -> Path:
+        text = "name: test-rig\nrecords:\n  directory: records\ndevices:\n"
+        if head:
+            text += textwrap.indent(textwrap.dedent("""\
+                head:
+                  port: /dev/null
+                  limits: {pan: [-30, 30], tilt: [-20, 20], roll: [-180, 180]}
+                  park: {policy: home, angles_deg: [0, 0, 0]}
+                  move_timeout_s: 5
+                """), "  ")
+        if arm:
+            text += "  arm: {host: 127.0.0.1}\n"
+        if camera:
+            text += "  camera: {device: 0, width: 64, height: 48}\n"
+        path = tmp_path / "rig.yaml"
+        path.write_text(text + extra)
+        return path
+
+    return make
+
+
+@pytest.fixture
+def rig_config(rig_file):
+    return load_rig(rig_file())

@@ -1,0 +1,137 @@
+"""Small test doubles of the device interfaces, for runner tests only (issue 2).
+
+Integration tests use the mock servers through the real client libraries instead.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+
+import numpy as np
+
+from drivers.base import Arm, ArmState, Camera, DeviceError, Frame, Head, HeadAngles, Status
+
+
+class DoubleHead(Head):
+    """Moves at ``speed`` rad/s in a thread; records every call."""
+
+    def __init__(self, cfg, speed: float = 2.0, fail_on_move: int | None = None) -> None:
+        self.cfg = cfg
+        self.speed = speed
+        self.fail_on_move = fail_on_move
+        self.calls: list[str] = []
+        self.angles = np.zeros(3)
+        self._stop = threading.Event()
+        self.moves = 0
+        self.is_open = False
+
+    def open(self) -> None:
+        self.calls.append("open")
+        self.is_open = True
+
+    def close(self) -> None:
+        self.calls.append("close")
+        if self.cfg.park.policy == "home" and self.is_open:
+            self.angles = np.radians(self.cfg.park.angles_deg)
+            self.calls.append("park:home")
+        self.is_open = False
+
+    def describe(self) -> dict:
+        return {"model": "double", "firmware": 0}
+
+    def limits(self):
+        return self.cfg.limits_rad()
+
+    def set_torque(self, enabled: bool) -> None:
+        self.calls.append(f"torque:{enabled}")
+
+    def stop(self) -> None:
+        self.calls.append("stop")
+        self._stop.set()
+
+    def read_angles(self) -> HeadAngles:
+        return HeadAngles(*self.angles, timestamp=time.time())
+
+    def move_to(self, pan, tilt, roll) -> Status:
+        self.check_limits(pan, tilt, roll)
+        self.moves += 1
+        self.calls.append(f"move:{math.degrees(pan):.1f},{math.degrees(tilt):.1f}")
+        status = Status("double head move")
+        if self.fail_on_move is not None and self.moves == self.fail_on_move:
+            status.set_exception(DeviceError("head servo 2 (tilt): overload, torque off"))
+            return status
+        target = np.array([pan, tilt, roll])
+        self._stop.clear()
+
+        def motion():
+            start = self.angles.copy()
+            duration = max(np.max(np.abs(target - start)) / self.speed, 0.01)
+            t0 = time.monotonic()
+            while not self._stop.is_set():
+                f = min((time.monotonic() - t0) / duration, 1.0)
+                self.angles = start + f * (target - start)
+                status.set_progress(f)
+                if f >= 1.0:
+                    status.set_finished()
+                    return
+                time.sleep(0.005)
+            status.set_exception(DeviceError("stopped"))
+
+        threading.Thread(target=motion, daemon=True).start()
+        return status
+
+
+class DoubleArm(Arm):
+    def __init__(self, cfg) -> None:
+        self.cfg = cfg
+        self.q = [math.radians(v) for v in cfg.home_deg]
+        self.calls: list[str] = []
+
+    def open(self) -> None:
+        self.calls.append("open")
+
+    def close(self) -> None:
+        self.calls.append("close")
+
+    def describe(self) -> dict:
+        return {"model": "double arm"}
+
+    def stop(self) -> None:
+        self.calls.append("stop")
+
+    def joint_limits(self):
+        return self.cfg.joint_limits_rad()
+
+    def move_joints(self, q) -> Status:
+        self.check_limits(q)
+        self.q = list(q)
+        self.calls.append("move_joints")
+        return Status.finished()
+
+    def move_linear(self, pose) -> Status:
+        return Status.finished()
+
+    def read_state(self) -> ArmState:
+        return ArmState(tuple(self.q), (0.0,) * 6, time.time())
+
+
+class DoubleCamera(Camera):
+    def __init__(self, cfg) -> None:
+        self.cfg = cfg
+        self.sequence = 0
+
+    def open(self) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+    def describe(self) -> dict:
+        return {"model": "double camera"}
+
+    def capture(self, not_before=None) -> Frame:
+        self.sequence += 1
+        image = np.full((self.cfg.height, self.cfg.width), self.sequence % 255, np.uint8)
+        return Frame(image, time.time(), self.sequence, {"fourcc": self.cfg.fourcc})

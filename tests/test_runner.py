@@ -1,0 +1,186 @@
+"""The runner: lock, limits, dry run, abort and cleanup, records, re-solve."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+import threading
+import time
+
+import pytest
+
+from rigctl.config import load_rig
+from rigctl.errors import BusyError, ConfigError, SafetyError
+from rigctl.locks import RigLock
+from rigctl.records import RecordIndex, RunDirectory, utcnow
+from rigctl.runner import Runner, solve_recorded
+from tests.doubles import DoubleCamera, DoubleHead
+
+
+def make_runner(config, head=None, **kw):
+    built = {}
+
+    def head_factory(cfg):
+        built["head"] = head or DoubleHead(cfg)
+        return built["head"]
+
+    runner = Runner(config, factories={"head": head_factory, "camera": DoubleCamera},
+                    show_progress=False, operator="tester", **kw)
+    return runner, built
+
+
+SMALL = {"pan_deg": [-10, 10], "tilt_deg": [0, 5], "settle_s": 0.0}
+
+
+def test_run_records_captures_index_and_result(rig_config):
+    runner, built = make_runner(rig_config)
+    outcome = runner.run("head-sweep", SMALL)
+    assert outcome.status == "succeeded", outcome.reason
+    run = RunDirectory(outcome.run_dir)
+    captures = run.captures()
+    assert len(captures) == 4
+    first = captures[0].meta
+    assert first["head_commanded"]["pan"] == pytest.approx(math.radians(-10))
+    assert first["head"]["pan"] == pytest.approx(math.radians(-10), abs=1e-9)
+    assert (run.path / "rig.yaml").read_text() == rig_config.source_text
+    assert json.loads((run.path / "params.json").read_text())["params"]["pan_deg"] == [-10, 10]
+    versions = json.loads((run.path / "versions.json").read_text())
+    assert versions["devices"]["head"]["model"] == "double"
+    assert "step 5/13: settle" in (run.path / "run.log").read_text()
+    assert outcome.result["poses"] == 4
+    assert outcome.result["axes"]["pan"]["max_abs_deg"] < 1e-6
+    # index row, read back through a fresh engine
+    row = RecordIndex(rig_config.database_url()).get(outcome.run_id)
+    assert row["status"] == "succeeded" and row["operator"] == "tester"
+    assert row["rig_name"] == "test-rig" and row["config_hash"] == rig_config.config_hash()
+    assert row["result_summary"]["poses"] == 4
+    assert "close" in built["head"].calls
+
+
+def test_resolve_offline_keeps_previous_result(rig_config):
+    runner, _ = make_runner(rig_config)
+    outcome = runner.run("head-sweep", SMALL)
+    again = solve_recorded(outcome.run_dir, RecordIndex(rig_config.database_url()))
+    assert again == outcome.result
+    run_dir = RunDirectory(outcome.run_dir)
+    assert (run_dir.path / "result.1.json").exists()
+    assert json.loads((run_dir.path / "result.1.json").read_text()) == outcome.result
+
+
+def test_limit_violation_refused_before_any_device_is_touched(rig_config):
+    runner, built = make_runner(rig_config)
+    with pytest.raises(SafetyError) as info:
+        runner.run("head-sweep", {"pan_deg": [0, 45], "tilt_deg": [0]})
+    assert "head.pan: target 45.00 deg outside soft limits [-30.0, 30.0] deg" in str(info.value)
+    assert "step 4" in str(info.value)
+    assert built == {}  # no driver was even built
+    assert RecordIndex(rig_config.database_url()).list() == []
+
+
+def test_dry_run_touches_no_device_and_reports_violations(rig_config):
+    runner, built = make_runner(rig_config)
+    plan = runner.dry_run("head-sweep", {"pan_deg": [0, 45], "tilt_deg": [-25, 0]})
+    assert built == {}
+    assert len(plan.steps) == 2 * 2 * 3 + 1
+    assert len(plan.violations) == 3  # (0,-25) (45,-25) (45,0)
+    assert plan.as_dict()["limits_ok"] is False
+
+
+def test_bad_parameter_names_the_parameter(rig_config):
+    runner, _ = make_runner(rig_config)
+    with pytest.raises(ConfigError, match=r"head-sweep: param pan_dgr: unknown parameter"):
+        runner.run("head-sweep", {"pan_dgr": [1]})
+    with pytest.raises(ConfigError, match=r"unknown procedure 'nope'"):
+        runner.run("nope", {})
+
+
+def test_second_run_on_same_rig_fails_at_once_with_holder(rig_config, tmp_path):
+    # Hold the lock from another process, as a concurrent CLI run would.
+    lock_dir = rig_config.records_dir() / "locks"
+    code = (
+        "import sys, time; sys.path.insert(0, '.');"
+        "from pathlib import Path; from rigctl.locks import RigLock;"
+        f"l = RigLock(Path({str(lock_dir)!r}), 'test-rig'); l.acquire('run-X');"
+        "print('held', flush=True); time.sleep(30)"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "held"
+        runner, built = make_runner(rig_config)
+        t0 = time.monotonic()
+        with pytest.raises(BusyError) as info:
+            runner.run("head-sweep", SMALL)
+        assert time.monotonic() - t0 < 2.0
+        assert str(info.value) == f"rig 'test-rig' busy, held by run run-X (pid {proc.pid})"
+        assert built == {}
+    finally:
+        proc.terminate()
+        proc.wait(timeout=5)
+    # released when the holder dies
+    lock = RigLock(lock_dir, "test-rig")
+    lock.acquire("after")
+    lock.release()
+
+
+def test_abort_mid_move_stops_parks_and_keeps_captures(rig_config):
+    slow = {"pan_deg": [-20, 20], "tilt_deg": [0], "settle_s": 0.0}
+    built_head = DoubleHead(rig_config.devices.head, speed=math.radians(20))  # 2 s per move
+    runner, built = make_runner(rig_config, head=built_head)
+    result = {}
+    thread = threading.Thread(target=lambda: result.update(o=runner.run("head-sweep", slow)))
+    thread.start()
+    time.sleep(1.5)  # first move done (1 s), capture taken, second move under way
+    runner.abort("operator pressed abort")
+    thread.join(timeout=10)
+    outcome = result["o"]
+    assert outcome.status == "aborted"
+    assert outcome.reason == "operator pressed abort"
+    calls = built_head.calls
+    assert "stop" in calls and calls[-2:] == ["close", "park:home"]
+    assert len(RunDirectory(outcome.run_dir).captures()) == 1
+    assert not (RunDirectory(outcome.run_dir).path / "result.json").exists()
+    row = RecordIndex(rig_config.database_url()).get(outcome.run_id)
+    assert row["status"] == "aborted" and row["reason"] == "operator pressed abort"
+    # the lock is free again
+    assert runner.run("head-sweep", SMALL).status == "succeeded"
+
+
+def test_device_fault_fails_run_with_reason_and_captures_intact(rig_config):
+    head = DoubleHead(rig_config.devices.head, fail_on_move=3)
+    runner, _ = make_runner(rig_config, head=head)
+    outcome = runner.run("head-sweep", SMALL)
+    assert outcome.status == "failed"
+    assert outcome.reason == "DeviceError: head servo 2 (tilt): overload, torque off"
+    assert len(RunDirectory(outcome.run_dir).captures()) == 2
+    assert "stop" in head.calls and head.calls[-1] == "park:home"
+
+
+def test_run_left_running_by_killed_process_shows_interrupted(rig_config):
+    index = RecordIndex(rig_config.database_url())
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    import socket
+
+    index.insert({"run_id": "dead-run", "procedure": "head-sweep", "status": "running",
+                  "started_at": utcnow(), "rig_name": "test-rig", "config_hash": "x",
+                  "run_dir": "/nowhere", "host": socket.gethostname(), "pid": proc.pid})
+    index.insert({"run_id": "live-run", "procedure": "head-sweep", "status": "running",
+                  "started_at": utcnow(), "rig_name": "test-rig", "config_hash": "x",
+                  "run_dir": "/nowhere", "host": socket.gethostname(), "pid": os.getpid()})
+    rows = {r["run_id"]: r for r in RecordIndex(rig_config.database_url()).list()}
+    assert rows["dead-run"]["status"] == "interrupted"
+    assert "ended without closing" in rows["dead-run"]["reason"]
+    assert rows["live-run"]["status"] == "running"
+
+
+def test_camera_capture_written_as_png_with_settings(rig_file):
+    config = load_rig(rig_file(camera=True))
+    runner, _ = make_runner(config)
+    outcome = runner.run("head-sweep", {**SMALL, "image": True})
+    captures = RunDirectory(outcome.run_dir).captures()
+    image = captures[0].load_image()
+    assert image.shape == (48, 64)
+    assert captures[0].meta["camera"]["settings"] == {"fourcc": "MJPG"}
