@@ -289,5 +289,16 @@ def wait_forever() -> None:  # pragma: no cover - used by long-running commands
         time.sleep(3600)
 
 
+
+@mock_app.command("head", context_settings={"allow_extra_args": True,
+                                             "ignore_unknown_options": True},
+                  add_help_option=False)
+def mock_head(ctx: typer.Context) -> None:
+    """Dynamixel Protocol 2.0 bus on a pty (see `rigctl mock head --help`)."""
+    from mocks import dynamixel_bus
+
+    raise typer.Exit(dynamixel_bus.main(ctx.args))
+
+
 if __name__ == "__main__":  # pragma: no cover
     app()

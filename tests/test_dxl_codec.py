@@ -64,7 +64,7 @@ def test_parser_survives_garbage_and_finds_next_valid_packet(noise, chunks, dxl_
     parser = PacketParser()
     found = []
     pos = 0
-    for size in chunks + [len(stream)]:
+    for size in [*chunks, len(stream)]:
         found += parser.feed(stream[pos:pos + size])
         pos += size
         if pos >= len(stream):

@@ -128,7 +128,7 @@ def test_second_run_on_same_rig_fails_at_once_with_holder(rig_config, tmp_path):
 def test_abort_mid_move_stops_parks_and_keeps_captures(rig_config):
     slow = {"pan_deg": [-20, 20], "tilt_deg": [0], "settle_s": 0.0}
     built_head = DoubleHead(rig_config.devices.head, speed=math.radians(20))  # 2 s per move
-    runner, built = make_runner(rig_config, head=built_head)
+    runner, _built = make_runner(rig_config, head=built_head)
     result = {}
     thread = threading.Thread(target=lambda: result.update(o=runner.run("head-sweep", slow)))
     thread.start()

@@ -1,0 +1,372 @@
+"""``Head`` on ``dynamixel_sdk`` (Protocol 2.0): a pan/tilt/roll head of X-series servos.
+
+Facts this driver is built around (see ``shared/reference/dynamixel-protocol.md``):
+
+- the SDK's ``is_using`` flag is not a lock: every transaction here holds ``self._lock``;
+- sync reads drop the error byte, so an Alert (hardware error) is only visible by reading
+  Hardware Error Status (70); the driver does so whenever a servo stops short of its goal,
+  at the end of every move, and on any reply whose error byte has the Alert bit;
+- a vanished port raises ``termios.error``/``OSError`` (EIO) and leaves the port busy: the
+  driver closes it, reopens the same path and retries once;
+- CRC errors and timeouts are retried ``retries`` times, then ``DeviceError`` names the servo.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import termios
+import threading
+import time
+from typing import Any, ClassVar
+
+import dynamixel_sdk as sdk
+
+from drivers.base import DeviceError, Head, HeadAngles, ProtocolError, SafetyError, Status
+
+log = logging.getLogger(__name__)
+
+MODEL_NUMBERS = {"xm430-w350": 1020, "xl430-w250": 1060}
+AXES = ("pan", "tilt", "roll")
+
+# Control table addresses (X-series, Protocol 2.0).
+ADDR_MODEL, ADDR_FIRMWARE = 0, 6
+ADDR_RETURN_DELAY, ADDR_DRIVE_MODE, ADDR_OPERATING_MODE = 9, 10, 11
+ADDR_MAX_POS, ADDR_MIN_POS = 48, 52
+ADDR_TORQUE, ADDR_HW_ERROR = 64, 70
+ADDR_PROFILE_ACC, ADDR_PROFILE_VEL, ADDR_GOAL = 108, 112, 116
+ADDR_MOVING, ADDR_PRESENT_POS = 122, 132
+STATUS_BLOCK = (122, 14)  # moving, moving status, pwm, current, velocity, present position
+
+HW_ERROR_NAMES = {0x01: "input voltage", 0x04: "overheating", 0x08: "motor encoder",
+                  0x10: "electrical shock", 0x20: "overload"}
+RETRYABLE = (sdk.COMM_RX_TIMEOUT, sdk.COMM_RX_CORRUPT, sdk.COMM_RX_FAIL, sdk.COMM_TX_FAIL)
+
+PULSES_PER_DEG = 4096 / 360.0
+
+
+def hw_error_text(bits: int) -> str:
+    names = [name for bit, name in HW_ERROR_NAMES.items() if bits & bit]
+    return ", ".join(names) or f"0x{bits:02x}"
+
+
+def _signed32(value: int) -> int:
+    return value - (1 << 32) if value & 0x80000000 else value
+
+
+class DynamixelHead(Head):
+    """Pan (id ``ids.pan``), tilt and roll servos on one Protocol 2.0 bus."""
+
+    # EEPROM settings the driver wants; written only where they differ (EEPROM wear).
+    EEPROM_WANTED: ClassVar[dict[int, tuple[int, int]]] = {
+        ADDR_RETURN_DELAY: (1, 0), ADDR_OPERATING_MODE: (1, 3), ADDR_DRIVE_MODE: (1, 0)}
+
+    def __init__(self, cfg) -> None:
+        self.cfg = cfg
+        self.ids = {axis: getattr(cfg.ids, axis) for axis in AXES}
+        self.axis_of = {v: k for k, v in self.ids.items()}
+        self._lock = threading.RLock()
+        self.port: sdk.PortHandler | None = None
+        self.packet = sdk.PacketHandler(2.0)
+        self.info: dict[int, dict[str, Any]] = {}
+        self.eeprom_writes: list[str] = []
+        self.retries_used = 0
+        self._stop_event = threading.Event()
+        self._motion: threading.Thread | None = None
+
+    # -- conversions --------------------------------------------------------------
+
+    def _to_pulses(self, axis: str, angle: float) -> int:
+        servo_deg = (getattr(self.cfg.direction, axis) * math.degrees(angle)
+                     + getattr(self.cfg.zero_offset_deg, axis))
+        return round(2048 + servo_deg * PULSES_PER_DEG)
+
+    def _to_angle(self, axis: str, pulses: int) -> float:
+        servo_deg = (pulses - 2048) / PULSES_PER_DEG
+        return math.radians((servo_deg - getattr(self.cfg.zero_offset_deg, axis))
+                            * getattr(self.cfg.direction, axis))
+
+    def _name(self, dxl_id: int) -> str:
+        return f"head servo {dxl_id} ({self.axis_of.get(dxl_id, '?')}) on {self.cfg.port}"
+
+    # -- transport ----------------------------------------------------------------
+
+    def _open_port(self) -> None:
+        port = sdk.PortHandler(self.cfg.port)
+        try:
+            opened = port.openPort()
+        except Exception as exc:  # pyserial raises SerialException with the OS reason
+            raise DeviceError(f"head: cannot open {self.cfg.port}: {exc}") from None
+        if not opened or not port.setBaudRate(self.cfg.baud):
+            raise DeviceError(f"head: cannot open {self.cfg.port} at {self.cfg.baud} baud")
+        self.port = port
+
+    def _reopen(self) -> None:
+        log.warning("head: port %s vanished (EIO); reopening", self.cfg.port)
+        try:
+            if self.port is not None:
+                self.port.closePort()
+        except Exception:
+            pass
+        self.port = None
+        self._open_port()
+
+    def _call(self, what: str, dxl_id: int | None, fn, *args):
+        """Run one SDK transaction ``fn(port, *args) -> (value, comm, error)`` under the lock,
+        retrying timeouts and corrupt replies; reopen the port once on EIO."""
+        attempts = self.cfg.retries + 1
+        last = ""
+        reopened = False
+        with self._lock:
+            for attempt in range(attempts):
+                if self.port is None:
+                    self._open_port()
+                try:
+                    result = fn(self.port, *args)
+                except (termios.error, OSError) as exc:
+                    if reopened:
+                        raise DeviceError(f"head: {self.cfg.port} lost: {exc}") from None
+                    reopened = True
+                    self._reopen()
+                    continue
+                comm = result[1]
+                if comm == sdk.COMM_SUCCESS:
+                    if attempt:
+                        self.retries_used += attempt
+                    return result
+                last = self.packet.getTxRxResult(comm)
+                if comm not in RETRYABLE:
+                    break
+                log.info("head: %s: %s (try %d/%d)", what, last, attempt + 1, attempts)
+        target = self._name(dxl_id) if dxl_id is not None else f"head bus {self.cfg.port}"
+        raise DeviceError(f"{target}: {what} failed after {attempts} tries: {last}")
+
+    def _check_error(self, dxl_id: int, error: int, what: str) -> None:
+        if error & 0x80:
+            bits = self._read1(dxl_id, ADDR_HW_ERROR, "read hardware error status", check=False)
+            raise DeviceError(f"{self._name(dxl_id)}: hardware error ({hw_error_text(bits)}); "
+                              "torque is off until a reboot")
+        if error:
+            raise ProtocolError(f"{self._name(dxl_id)}: {what}: "
+                                f"{self.packet.getRxPacketError(error)} (error {error})")
+
+    def _read1(self, dxl_id: int, address: int, what: str, check: bool = True) -> int:
+        value, _, error = self._call(what, dxl_id, self.packet.read1ByteTxRx, dxl_id, address)
+        if check:
+            self._check_error(dxl_id, error, what)
+        return value
+
+    def _read4(self, dxl_id: int, address: int, what: str) -> int:
+        value, _, error = self._call(what, dxl_id, self.packet.read4ByteTxRx, dxl_id, address)
+        self._check_error(dxl_id, error, what)
+        return value
+
+    def _write(self, dxl_id: int, address: int, size: int, value: int, what: str) -> None:
+        fn = {1: self.packet.write1ByteTxRx, 2: self.packet.write2ByteTxRx,
+              4: self.packet.write4ByteTxRx}[size]
+        _, _, error = self._call(what, dxl_id, lambda *a: _wrap_write(fn, *a),
+                                 dxl_id, address, value)
+        self._check_error(dxl_id, error, what)
+
+    def _sync_write(self, address: int, size: int, values: dict[int, int], what: str) -> None:
+        def send(port):
+            group = sdk.GroupSyncWrite(port, self.packet, address, size)
+            for dxl_id, value in values.items():
+                group.addParam(dxl_id, (value & 0xFFFFFFFF).to_bytes(size, "little"))
+            return None, group.txPacket(), 0
+
+        self._call(what, None, send)
+
+    def _group_read(self, address: int, size: int, what: str, fast: bool = True
+                    ) -> dict[int, bytes]:
+        def exchange(port):
+            group = sdk.GroupSyncRead(port, self.packet, address, size)
+            for dxl_id in self.ids.values():
+                group.addParam(dxl_id)
+            return group, (group.fastSyncRead() if fast else group.txRxPacket()), 0
+
+        with self._lock:
+            group, _, _ = self._call(what, None, exchange)
+            out = {}
+            for dxl_id in self.ids.values():
+                if not group.isAvailable(dxl_id, address, size):
+                    raise ProtocolError(f"{self._name(dxl_id)}: {what}: no data in the reply")
+                out[dxl_id] = bytes(group.data_dict[dxl_id][:size])
+            return out
+
+    # -- life cycle -----------------------------------------------------------------
+
+    def open(self) -> None:
+        """Ping, check models, fix EEPROM where it differs, enable torque without a jump."""
+        with self._lock:
+            self._open_port()
+            want = MODEL_NUMBERS[self.cfg.model]
+            for axis, dxl_id in self.ids.items():
+                model, _, error = self._call("ping", dxl_id, self.packet.ping, dxl_id)
+                if model != want:
+                    raise DeviceError(f"{self._name(dxl_id)}: model number {model}, expected "
+                                      f"{want} ({self.cfg.model})")
+                firmware = self._read1(dxl_id, ADDR_FIRMWARE, "read firmware", check=False)
+                self.info[dxl_id] = {"axis": axis, "model": model, "firmware": firmware}
+                if error & 0x80:
+                    bits = self._read1(dxl_id, ADDR_HW_ERROR, "read hardware error", check=False)
+                    log.warning("%s: alert on connect (%s); rebooting", self._name(dxl_id),
+                                hw_error_text(bits))
+                    self._call("reboot", dxl_id, lambda *a: _wrap_write(self.packet.reboot, *a),
+                               dxl_id)
+                    time.sleep(0.05)
+                self._configure_eeprom(dxl_id)
+            self._set_profile()
+            self.set_torque(True)
+
+    def _configure_eeprom(self, dxl_id: int) -> None:
+        for address, (size, wanted) in self.EEPROM_WANTED.items():
+            current = self._read1(dxl_id, address, f"read EEPROM {address}")
+            if current != wanted:
+                if self._read1(dxl_id, ADDR_TORQUE, "read torque"):
+                    self._write(dxl_id, ADDR_TORQUE, 1, 0, "torque off for EEPROM write")
+                self._write(dxl_id, address, size, wanted, f"write EEPROM {address}")
+                self.eeprom_writes.append(f"id {dxl_id} addr {address}: {current} -> {wanted}")
+
+    def _set_profile(self) -> None:
+        rpm = self.cfg.speed_cap_dps / 6.0
+        rev_per_min2 = self.cfg.accel_cap_dps2 / 360.0 * 3600.0
+        velocity = max(1, int(rpm / 0.229))
+        acceleration = max(1, int(rev_per_min2 / 214.577))
+        ids = self.ids.values()
+        self._sync_write(ADDR_PROFILE_ACC, 4, dict.fromkeys(ids, acceleration),
+                         "write profile acceleration")
+        self._sync_write(ADDR_PROFILE_VEL, 4, dict.fromkeys(ids, velocity),
+                         "write profile velocity")
+        self.profile = {"velocity": velocity, "acceleration": acceleration}
+
+    def set_torque(self, enabled: bool) -> None:
+        """Torque on: goal := present position first, so the head never jumps."""
+        with self._lock:
+            for dxl_id in self.ids.values():
+                if enabled:
+                    present = _signed32(self._read4(dxl_id, ADDR_PRESENT_POS,
+                                                    "read present position"))
+                    if self._read1(dxl_id, ADDR_TORQUE, "read torque") == 0:
+                        # The goal item is writable with torque off; align it to present.
+                        self._write(dxl_id, ADDR_GOAL, 4, present & 0xFFFFFFFF, "align goal")
+                self._write(dxl_id, ADDR_TORQUE, 1, int(enabled), "write torque enable")
+
+    def close(self) -> None:
+        if self.port is None:
+            return
+        policy = self.cfg.park.policy
+        try:
+            if policy in ("home", "home_then_torque_off"):
+                pan, tilt, roll = (math.radians(a) for a in self.cfg.park.angles_deg)
+                self.move_to(pan, tilt, roll).wait(self.cfg.move_timeout_s)
+            if policy in ("torque_off", "home_then_torque_off"):
+                self.set_torque(False)
+        finally:
+            with self._lock:
+                if self.port is not None:
+                    self.port.closePort()
+                self.port = None
+
+    def describe(self) -> dict[str, Any]:
+        return {"model": self.cfg.model, "port": self.cfg.port, "baud": self.cfg.baud,
+                "servos": {str(k): v for k, v in self.info.items()},
+                "firmware": sorted({v["firmware"] for v in self.info.values()}),
+                "profile": getattr(self, "profile", None), "eeprom_writes": self.eeprom_writes,
+                "sdk": getattr(sdk, "__version__", "dynamixel-sdk")}
+
+    def limits(self) -> dict[str, tuple[float, float]]:
+        return self.cfg.limits_rad()
+
+    # -- motion -------------------------------------------------------------------
+
+    def read_angles(self) -> HeadAngles:
+        t0 = time.time()
+        data = self._group_read(ADDR_PRESENT_POS, 4, "fast sync read present position")
+        t1 = time.time()
+        angles = {axis: self._to_angle(axis, _signed32(int.from_bytes(data[i], "little")))
+                  for axis, i in self.ids.items()}
+        return HeadAngles(angles["pan"], angles["tilt"], angles["roll"], (t0 + t1) / 2)
+
+    def read_status(self) -> dict[int, dict[str, int]]:
+        """Moving, moving status and present position of every servo (one fast sync read)."""
+        data = self._group_read(*STATUS_BLOCK, "fast sync read status")
+        return {dxl_id: {"moving": raw[0], "moving_status": raw[1],
+                         "position": _signed32(int.from_bytes(raw[10:14], "little"))}
+                for dxl_id, raw in data.items()}
+
+    def hardware_errors(self) -> dict[int, int]:
+        data = self._group_read(ADDR_HW_ERROR, 1, "sync read hardware error status", fast=False)
+        return {dxl_id: raw[0] for dxl_id, raw in data.items() if raw[0]}
+
+    def _raise_hardware_errors(self) -> None:
+        errors = self.hardware_errors()
+        if errors:
+            dxl_id, bits = next(iter(errors.items()))
+            raise DeviceError(f"{self._name(dxl_id)}: hardware error ({hw_error_text(bits)}); "
+                              "torque is off until a reboot")
+
+    def move_to(self, pan: float, tilt: float, roll: float) -> Status:
+        """Sync-write the goals, then watch arrival with fast sync reads in a thread."""
+        self.check_limits(pan, tilt, roll)
+        targets = {self.ids[a]: self._to_pulses(a, v)
+                   for a, v in zip(AXES, (pan, tilt, roll), strict=True)}
+        if self._motion is not None and self._motion.is_alive():
+            self._stop_event.set()
+            self._motion.join(timeout=2)
+        self._stop_event.clear()
+        status = Status(f"head move to pan {math.degrees(pan):.2f}, tilt "
+                        f"{math.degrees(tilt):.2f}, roll {math.degrees(roll):.2f} deg")
+        start = {k: v["position"] for k, v in self.read_status().items()}
+        self._sync_write(ADDR_GOAL, 4, targets, "sync write goal position")
+        self._motion = threading.Thread(target=self._watch, args=(status, start, targets),
+                                        name="head-move", daemon=True)
+        self._motion.start()
+        return status
+
+    def _watch(self, status: Status, start: dict[int, int], targets: dict[int, int]) -> None:
+        deadline = time.monotonic() + self.cfg.move_timeout_s
+        span = max(max(abs(targets[i] - start[i]) for i in targets), 1)
+        polls = 0
+        try:
+            while True:
+                if self._stop_event.is_set():
+                    raise SafetyError("head move stopped")
+                state = self.read_status()
+                polls += 1
+                remaining = max(abs(targets[i] - s["position"]) for i, s in state.items())
+                status.set_progress(1.0 - remaining / span)
+                arrived = all(s["moving"] == 0 and s["moving_status"] & 0x01 and
+                              abs(targets[i] - s["position"]) <= 2 for i, s in state.items())
+                if arrived:
+                    self._raise_hardware_errors()
+                    status.set_finished()
+                    return
+                stalled = any(s["moving"] == 0 and not s["moving_status"] & 0x02 and
+                              abs(targets[i] - s["position"]) > 2 for i, s in state.items())
+                if stalled or polls % 25 == 0:
+                    self._raise_hardware_errors()  # an Alert is possible: look for it
+                if time.monotonic() > deadline:
+                    raise DeviceError(f"head: move not finished after {self.cfg.move_timeout_s}"
+                                      f" s (remaining {remaining / PULSES_PER_DEG:.2f} deg)")
+                time.sleep(0.01)
+        except Exception as exc:
+            status.set_exception(exc)
+
+    def stop(self) -> None:
+        """Hold where the head is now: goal := present position on every servo."""
+        self._stop_event.set()
+        if self.port is None:
+            return
+        try:
+            present = {k: v["position"] for k, v in self.read_status().items()}
+            self._sync_write(ADDR_GOAL, 4, present, "sync write goal (stop)")
+        except DeviceError as exc:
+            log.error("head stop: %s", exc)
+            raise
+
+
+def _wrap_write(fn, *args):
+    """Normalise SDK write/reboot results ``(comm, error)`` to ``(None, comm, error)``."""
+    comm, error = fn(*args)
+    return None, comm, error

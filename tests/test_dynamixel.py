@@ -1,0 +1,258 @@
+"""The real dynamixel_sdk against the Protocol 2.0 bus stand-in on a pty."""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+
+import dynamixel_sdk as sdk
+import pytest
+
+from drivers.dynamixel import DynamixelHead
+from rigctl.config import load_rig, parse_rig
+from rigctl.errors import DeviceError, ProtocolError
+from rigctl.records import RunDirectory
+from rigctl.runner import Runner
+from tests.mockproc import MockProcess, control
+
+pytestmark = pytest.mark.integration
+
+
+@pytest.fixture
+def bus(tmp_path):
+    """A stand-in bus with servos 1, 2, 3; stopped by PID in teardown."""
+    link, sock = tmp_path / "dxl", tmp_path / "dxl.sock"
+    proc = MockProcess(["-m", "mocks.dynamixel_bus", "--link", str(link),
+                        "--control", str(sock)])
+    yield proc
+    assert proc.stop() == 0
+    assert not link.exists() and not sock.exists()  # the stand-in cleans up after itself
+
+
+@pytest.fixture
+def port(bus):
+    handler = sdk.PortHandler(bus.ready["link"])
+    assert handler.openPort() and handler.setBaudRate(1_000_000)
+    yield handler
+    handler.closePort()
+
+
+def head_config(link: str, **extra):
+    text = f"devices:\n  head:\n    port: {link}\n    speed_cap_dps: 120\n" \
+           f"    accel_cap_dps2: 600\n    park: {{policy: hold}}\n"
+    for key, value in extra.items():
+        text += f"    {key}: {value}\n"
+    return parse_rig(text).devices.head
+
+
+ph = sdk.PacketHandler(2.0)
+
+
+def test_ping_and_broadcast_ping(port, bus):
+    model, comm, error = ph.ping(port, 2)
+    assert (model, comm, error) == (1020, sdk.COMM_SUCCESS, 0)
+    _, comm, _ = ph.ping(port, 9)
+    assert comm == sdk.COMM_RX_TIMEOUT
+    found, comm = ph.broadcastPing(port)
+    assert comm == sdk.COMM_SUCCESS
+    assert sorted(found) == [1, 2, 3] and found[1] == [1020, 52]
+
+
+def test_read_write_sizes_and_error_bytes(port):
+    assert ph.read2ByteTxRx(port, 1, 0) == (1020, sdk.COMM_SUCCESS, 0)
+    assert ph.write1ByteTxRx(port, 1, 65, 1) == (sdk.COMM_SUCCESS, 0)  # LED
+    assert ph.read1ByteTxRx(port, 1, 65)[0] == 1
+    assert ph.write4ByteTxRx(port, 1, 112, 77) == (sdk.COMM_SUCCESS, 0)
+    assert ph.read4ByteTxRx(port, 1, 112)[0] == 77
+    assert ph.write2ByteTxRx(port, 1, 84, 700) == (sdk.COMM_SUCCESS, 0)
+    assert ph.read2ByteTxRx(port, 1, 84)[0] == 700
+    # read-only item: access error 7; out of range: data range 4; half an item: length 5
+    assert ph.write2ByteTxRx(port, 1, 0, 5) == (sdk.COMM_SUCCESS, 7)
+    assert ph.write1ByteTxRx(port, 1, 68, 9) == (sdk.COMM_SUCCESS, 4)
+    assert ph.write2ByteTxRx(port, 1, 112, 5) == (sdk.COMM_SUCCESS, 5)
+    # EEPROM with torque on: access error
+    assert ph.write1ByteTxRx(port, 1, 64, 1) == (sdk.COMM_SUCCESS, 0)
+    assert ph.write1ByteTxRx(port, 1, 9, 0) == (sdk.COMM_SUCCESS, 7)
+    # goal outside the position limits: data limit error 6
+    assert ph.write4ByteTxRx(port, 1, 116, 5000) == (sdk.COMM_SUCCESS, 6)
+
+
+def test_reg_write_then_action(port):
+    assert ph.regWriteTxRx(port, 2, 65, 1, [1]) == (sdk.COMM_SUCCESS, 0)
+    assert ph.read1ByteTxRx(port, 2, 69)[0] == 1  # registered instruction
+    assert ph.read1ByteTxRx(port, 2, 65)[0] == 0  # not applied yet
+    ph.action(port, sdk.BROADCAST_ID)
+    time.sleep(0.01)
+    assert ph.read1ByteTxRx(port, 2, 65)[0] == 1
+    # A unicast action is answered (instruction error: nothing registered) but the SDK
+    # never reads that reply; the next transaction must still get its own answer.
+    assert ph.action(port, 2) == sdk.COMM_SUCCESS
+    time.sleep(0.01)
+    assert ph.read2ByteTxRx(port, 2, 0) == (1020, sdk.COMM_SUCCESS, 0)
+
+
+def test_sync_and_fast_sync_read_write(port):
+    write = sdk.GroupSyncWrite(port, ph, 112, 4)
+    for dxl_id, value in ((1, 10), (2, 20), (3, 30)):
+        assert write.addParam(dxl_id, value.to_bytes(4, "little"))
+    assert write.txPacket() == sdk.COMM_SUCCESS
+    for fast in (False, True):
+        read = sdk.GroupSyncRead(port, ph, 112, 4)
+        for dxl_id in (1, 2, 3):
+            read.addParam(dxl_id)
+        result = read.fastSyncRead() if fast else read.txRxPacket()
+        assert result == sdk.COMM_SUCCESS
+        assert [read.getData(i, 112, 4) for i in (1, 2, 3)] == [10, 20, 30]
+
+
+def test_bulk_read_write_and_fast_bulk_read(port):
+    write = sdk.GroupBulkWrite(port, ph)
+    assert write.addParam(1, 65, 1, [1])
+    assert write.addParam(3, 112, 4, list((99).to_bytes(4, "little")))
+    assert write.txPacket() == sdk.COMM_SUCCESS
+    read = sdk.GroupBulkRead(port, ph)
+    assert read.addParam(1, 65, 1)
+    assert read.addParam(3, 112, 4)
+    assert read.txRxPacket() == sdk.COMM_SUCCESS
+    assert (read.getData(1, 65, 1), read.getData(3, 112, 4)) == (1, 99)
+    assert read.fastBulkRead() == sdk.COMM_SUCCESS
+    assert (read.getData(1, 65, 1), read.getData(3, 112, 4)) == (1, 99)
+
+
+def test_reboot_clears_hardware_error_and_factory_reset(port, bus):
+    ph.write1ByteTxRx(port, 2, 64, 1)
+    control(bus.ready["control"], {"cmd": "hw_error", "id": 2, "error": "overheat"})
+    value, comm, error = ph.read1ByteTxRx(port, 2, 70)
+    assert (value, comm, error) == (0x04, sdk.COMM_SUCCESS, 0x80)  # Alert bit
+    assert ph.read1ByteTxRx(port, 2, 64)[0] == 0  # torque cut
+    assert ph.write1ByteTxRx(port, 2, 64, 1) == (sdk.COMM_SUCCESS, 0x81)  # refused until reboot
+    assert ph.reboot(port, 2) == (sdk.COMM_SUCCESS, 0x80)
+    assert ph.read1ByteTxRx(port, 2, 70) == (0, sdk.COMM_SUCCESS, 0)
+    ph.write1ByteTxRx(port, 3, 9, 10)
+    assert ph.factoryReset(port, 3, 0x02) == (sdk.COMM_SUCCESS, 0)
+    assert ph.read1ByteTxRx(port, 3, 9)[0] == 250  # back to the default
+    assert ph.clearMultiTurn(port, 3)[0] == sdk.COMM_SUCCESS
+
+
+def test_trapezoid_and_triangle_timing(port):
+    """1024 pulses at profile velocity 100, acceleration 20: 0.975 s trapezoid (e-Manual
+    units 0.229 rpm and 214.577 rev/min^2); 100 pulses: a triangle."""
+    ph.write4ByteTxRx(port, 1, 108, 20)
+    ph.write4ByteTxRx(port, 1, 112, 100)
+    ph.write1ByteTxRx(port, 1, 64, 1)
+    t0 = time.monotonic()
+    ph.write4ByteTxRx(port, 1, 116, 2048 + 1024)
+    status = ph.read1ByteTxRx(port, 1, 123)[0]
+    assert status & 0x02 and (status >> 4) == 3  # profile ongoing, trapezoidal
+    while ph.read1ByteTxRx(port, 1, 122)[0]:
+        time.sleep(0.002)
+    assert time.monotonic() - t0 == pytest.approx(0.975, abs=0.05)
+    assert ph.read4ByteTxRx(port, 1, 132)[0] == 3072
+    ph.write4ByteTxRx(port, 1, 116, 3072 - 100)
+    assert ph.read1ByteTxRx(port, 1, 123)[0] >> 4 == 2  # triangular
+
+
+def test_bus_watchdog_stops_servo_and_locks_goal(port):
+    ph.write1ByteTxRx(port, 1, 64, 1)
+    ph.write1ByteTxRx(port, 1, 98, 5)  # 100 ms
+    time.sleep(0.3)
+    assert ph.read1ByteTxRx(port, 1, 98)[0] == 0xFF  # -1: Bus Watchdog Error
+    assert ph.write4ByteTxRx(port, 1, 116, 2100) == (sdk.COMM_SUCCESS, 7)
+    assert ph.write1ByteTxRx(port, 1, 98, 0) == (sdk.COMM_SUCCESS, 0)
+    assert ph.write4ByteTxRx(port, 1, 116, 2100) == (sdk.COMM_SUCCESS, 0)
+
+
+def test_driver_moves_and_reads_angles(bus):
+    head = DynamixelHead(head_config(bus.ready["link"], zero_offset_deg="{pan: 5}",
+                                     direction="{tilt: -1}"))
+    with head:
+        assert len(head.eeprom_writes) == 3  # return delay time 250 -> 0 on each servo
+        head.move_to(math.radians(12), math.radians(-7), math.radians(45)).wait(10)
+        angles = head.read_angles()
+        quantum = math.radians(360 / 4096)
+        assert abs(angles.pan - math.radians(12)) <= quantum
+        assert abs(angles.tilt - math.radians(-7)) <= quantum
+        assert abs(angles.roll - math.radians(45)) <= quantum
+        servos = {s["id"]: s for s in control(bus.ready["control"], {"cmd": "dump"})["servos"]}
+        # offset and direction reach the wire: pan 12+5 deg, tilt inverted
+        assert servos[1]["goal_position"] == round(2048 + 17 * 4096 / 360)
+        assert servos[2]["goal_position"] == round(2048 + 7 * 4096 / 360)
+    # a second connection finds the EEPROM right and writes nothing
+    head2 = DynamixelHead(head_config(bus.ready["link"]))
+    with head2:
+        assert head2.eeprom_writes == []
+
+
+def test_corrupted_and_dropped_replies_are_retried(bus):
+    head = DynamixelHead(head_config(bus.ready["link"]))
+    with head:
+        control(bus.ready["control"], {"cmd": "corrupt_next"})
+        control(bus.ready["control"], {"cmd": "drop_next"})
+        head.move_to(math.radians(5), 0.0, 0.0).wait(10)
+        assert abs(head.read_angles().pan - math.radians(5)) < 0.002
+        assert head.retries_used >= 2
+
+
+def test_persistent_silence_raises_device_error_naming_servo(bus):
+    head = DynamixelHead(head_config(bus.ready["link"], retries=2))
+    with head:
+        control(bus.ready["control"], {"cmd": "drop_next", "count": 10})
+        with pytest.raises(DeviceError, match=r"head servo 1 \(pan\).*failed after 3 tries"):
+            head._read1(1, 65, "read LED")
+
+
+def test_overload_mid_move_ends_in_device_error_with_torque_off(bus):
+    head = DynamixelHead(head_config(bus.ready["link"], speed_cap_dps=20))
+    with head:
+        status = head.move_to(math.radians(40), 0.0, 0.0)
+        time.sleep(0.4)
+        control(bus.ready["control"], {"cmd": "hw_error", "id": 1, "error": "overload"})
+        with pytest.raises(DeviceError, match=r"servo 1 \(pan\).*overload.*torque is off"):
+            status.wait(10)
+        assert head._read1(1, 64, "read torque", check=False) == 0
+
+
+def test_eeprom_write_with_torque_on_surfaces_access_error(bus):
+    head = DynamixelHead(head_config(bus.ready["link"]))
+    with head, pytest.raises(ProtocolError, match=r"servo 3 \(roll\).*error 7"):
+        head._write(3, 9, 1, 5, "write return delay time")
+
+
+def test_driver_reconnects_after_port_vanishes(bus, tmp_path):
+    link = bus.ready["link"]
+    head = DynamixelHead(head_config(link))
+    head.open()
+    try:
+        bus.stop()
+        replacement = MockProcess(["-m", "mocks.dynamixel_bus", "--link", link])
+        try:
+            angles = head.read_angles()  # EIO on the old pty, reopened on the new one
+            assert angles.pan == pytest.approx(0.0, abs=1e-9)
+        finally:
+            head.port.closePort()
+            head.port = None
+            replacement.stop()
+    finally:
+        head.port = None
+
+
+def test_head_sweep_procedure_runs_through_runner(bus, tmp_path):
+    rig = tmp_path / "rig.yaml"
+    rig.write_text(f"name: dxl-rig\nrecords: {{directory: rec}}\ndevices:\n  head:\n"
+                   f"    port: {bus.ready['link']}\n    speed_cap_dps: 180\n"
+                   f"    accel_cap_dps2: 1000\n")
+    config = load_rig(rig)
+    outcome = Runner(config, show_progress=False).run(
+        "head-sweep", {"pan_deg": [-6, 6], "tilt_deg": [-3, 3], "settle_s": 0.0})
+    assert outcome.status == "succeeded", outcome.reason
+    assert outcome.result["poses"] == 4
+    # encoder quantisation is 0.088 deg: the head reaches every goal within one pulse
+    assert outcome.result["summary"]["max_abs_error_deg"] <= 360 / 4096
+    run = RunDirectory(outcome.run_dir)
+    assert len(run.captures()) == 4
+    versions = (run.path / "versions.json").read_text()
+    assert '"model": "xm430-w350"' in versions
+    servos = control(bus.ready["control"], {"cmd": "dump"})["servos"]
+    assert all(s["goal_position"] == 2048 for s in servos)  # parked home
+    assert os.path.exists(bus.ready["link"])
