@@ -31,7 +31,7 @@ app.add_typer(runs_app, name="runs")
 app.add_typer(mock_app, name="mock")
 app.add_typer(bench_app, name="bench")
 
-err = Console(stderr=True)
+err = Console(stderr=True, soft_wrap=True)
 out = Console()
 
 EXIT_FAILED, EXIT_REFUSED, EXIT_ABORTED = 1, 2, 3
@@ -298,6 +298,26 @@ def mock_head(ctx: typer.Context) -> None:
     from mocks import dynamixel_bus
 
     raise typer.Exit(dynamixel_bus.main(ctx.args))
+
+
+
+@bench_app.command("head")
+def bench_head(as_json: bool = typer.Option(False, "--json"),
+               samples: int = typer.Option(500, "--samples"),
+               transactions: int = typer.Option(10000, "--transactions")) -> None:
+    """Dynamixel latency vs wire limit at 57.6k, 1M, 4M baud; failures; settle time."""
+    from rigctl.bench import head
+    from rigctl.bench.common import print_table
+
+    result = head.run(samples, transactions)
+    if as_json:
+        _print_json(result)
+        return
+    print_table("bench head (ms)", ["baud", "transaction", "median", "p99", "wire limit",
+                                    "ratio", "failures"], head.rows(result), out)
+    out.print(f"failures: {result['failures']}")
+    out.print(f"settle: {result['settle']}")
+    out.print(f"targets: {result['targets']}")
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -1,0 +1,115 @@
+"""``rigctl bench head``: latency of the real dynamixel_sdk against the bus stand-in with
+wire timing, beside the wire-time limit (bytes x 10 / baud)."""
+
+from __future__ import annotations
+
+import math
+import tempfile
+import time
+from pathlib import Path
+
+import dynamixel_sdk as sdk
+
+from rigctl.bench.common import StandIn, stats_ms
+
+IDS = (1, 2, 3)
+# Bytes on the wire: instruction + status packets (4-byte data).
+WIRE_BYTES = {"read": 14 + 15, "sync_read_x3": 17 + 3 * 15, "fast_sync_read_x3": 17 + 8 + 3 * 8}
+
+
+def _transactions(port, ph):
+    sync = sdk.GroupSyncRead(port, ph, 132, 4)
+    fast = sdk.GroupSyncRead(port, ph, 132, 4)
+    for dxl_id in IDS:
+        sync.addParam(dxl_id)
+        fast.addParam(dxl_id)
+    return {
+        "read": lambda: ph.read4ByteTxRx(port, 1, 132)[1],
+        "sync_read_x3": sync.txRxPacket,
+        "fast_sync_read_x3": fast.fastSyncRead,
+    }
+
+
+def bench_baud(baud: int, samples: int, workdir: Path) -> dict:
+    link = workdir / f"dxl-{baud}"
+    with StandIn(["-m", "mocks.dynamixel_bus", "--link", str(link), "--baud", str(baud),
+                  "--wire-timing"]):
+        port = sdk.PortHandler(str(link))
+        port.openPort()
+        port.setBaudRate(baud)
+        ph = sdk.PacketHandler(2.0)
+        for dxl_id in IDS:  # Return Delay Time 0, as the driver configures it
+            ph.write1ByteTxRx(port, dxl_id, 9, 0)
+        out = {}
+        for name, fn in _transactions(port, ph).items():
+            times, failures = [], 0
+            for _ in range(samples):
+                t0 = time.perf_counter()
+                ok = fn() == sdk.COMM_SUCCESS
+                times.append(time.perf_counter() - t0)
+                failures += not ok
+            limit_ms = WIRE_BYTES[name] * 10 / baud * 1000
+            st = stats_ms(times)
+            out[name] = {**st, "wire_limit_ms": limit_ms, "ratio_median": st["median_ms"] /
+                         limit_ms, "failures": failures}
+        port.closePort()
+    return out
+
+
+def bench_failures(n: int, workdir: Path) -> dict:
+    link = workdir / "dxl-fail"
+    with StandIn(["-m", "mocks.dynamixel_bus", "--link", str(link), "--wire-timing"]):
+        port = sdk.PortHandler(str(link))
+        port.openPort()
+        port.setBaudRate(1_000_000)
+        ph = sdk.PacketHandler(2.0)
+        fns = list(_transactions(port, ph).values())
+        failures = sum(fns[i % 3]() != sdk.COMM_SUCCESS for i in range(n))
+        port.closePort()
+    return {"transactions": n, "failures": failures,
+            "failures_per_10000": failures * 10000 / n}
+
+
+def bench_settle(workdir: Path) -> dict:
+    from drivers.dynamixel import DynamixelHead
+    from rigctl.config import parse_rig
+
+    link = workdir / "dxl-move"
+    with StandIn(["-m", "mocks.dynamixel_bus", "--link", str(link), "--wire-timing"]):
+        cfg = parse_rig(f"devices:\n  head: {{port: {link}, park: {{policy: hold}}}}\n"
+                        ).devices.head
+        with DynamixelHead(cfg) as head:
+            t0 = time.perf_counter()
+            head.move_to(math.radians(10), 0.0, 0.0).wait(10)
+            settle = time.perf_counter() - t0
+            error = abs(head.read_angles().pan - math.radians(10))
+    v, a = cfg.speed_cap_dps, cfg.accel_cap_dps2
+    ideal = 10 / v + v / a if 10 > v * v / a else 2 * math.sqrt(10 / a)
+    return {"move_deg": 10.0, "settle_s": settle, "profile_ideal_s": ideal,
+            "speed_cap_dps": v, "accel_cap_dps2": a, "final_error_deg": math.degrees(error)}
+
+
+def run(samples: int = 500, failure_transactions: int = 10000) -> dict:
+    with tempfile.TemporaryDirectory(prefix="rigctl-bench-") as tmp:
+        workdir = Path(tmp)
+        result = {"bauds": {}}
+        for baud in (57_600, 1_000_000, 4_000_000):
+            n = max(samples // 5, 50) if baud < 100_000 else samples
+            result["bauds"][str(baud)] = bench_baud(baud, n, workdir)
+        result["failures"] = bench_failures(failure_transactions, workdir)
+        result["settle"] = bench_settle(workdir)
+    ratio = result["bauds"]["1000000"]["sync_read_x3"]["ratio_median"]
+    result["targets"] = {
+        "sync_read_x3_at_1M_within_1.5x_wire": ratio <= 1.5,
+        "no_failures_in_10000": result["failures"]["failures"] == 0,
+    }
+    return result
+
+
+def rows(result: dict) -> list[list]:
+    out = []
+    for baud, kinds in result["bauds"].items():
+        for name, st in kinds.items():
+            out.append([baud, name, st["median_ms"], st["p99_ms"], st["wire_limit_ms"],
+                        st["ratio_median"], st["failures"]])
+    return out
