@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 import yaml
 
-from rigctl.exports import export_result
 from rigctl.errors import RigError
+from rigctl.exports import export_result
 from tests.conftest import ROOT
 from tests.mockproc import MockProcess
 

@@ -84,7 +84,7 @@ def bench_settle(workdir: Path) -> dict:
             settle = time.perf_counter() - t0
             error = abs(head.read_angles().pan - math.radians(10))
     v, a = cfg.speed_cap_dps, cfg.accel_cap_dps2
-    ideal = 10 / v + v / a if 10 > v * v / a else 2 * math.sqrt(10 / a)
+    ideal = 10 / v + v / a if v * v / a < 10 else 2 * math.sqrt(10 / a)
     return {"move_deg": 10.0, "settle_s": settle, "profile_ideal_s": ideal,
             "speed_cap_dps": v, "accel_cap_dps2": a, "final_error_deg": math.degrees(error)}
 
