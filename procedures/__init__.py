@@ -10,6 +10,7 @@ from .base import Procedure
 
 _MODULES = {
     "head-sweep": "procedures.head_sweep",
+    "arm-sweep": "procedures.arm_sweep",
 }
 
 

@@ -243,6 +243,8 @@ class Runner:
             status = "aborted"
             reason = self._abort_reason if self.abort_event.is_set() else (
                 "interrupted by Ctrl-C" if isinstance(exc, KeyboardInterrupt) else str(exc))
+        except SafetyError as exc:  # a protective or emergency stop aborts the run
+            status, reason = "aborted", f"SafetyError: {exc}"
         except RigError as exc:
             status, reason = "failed", f"{type(exc).__name__}: {exc}"
         except Exception as exc:  # a bug: still record it, and keep the captures

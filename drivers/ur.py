@@ -1,0 +1,268 @@
+"""``Arm`` on ``ur_rtde``: a Universal Robots e-Series arm over RTDE.
+
+- Connects the receive and control interfaces with bounded retries (connections often
+  fail right after a stop).
+- Moves are started asynchronously (``moveJ``/``moveL`` with ``async=True``) and watched
+  from a thread that reads the receive interface: a protective or emergency stop raises
+  ``SafetyError``; a stream that stops advancing raises ``DeviceError`` within
+  ``STALE_S`` (never hangs).
+- Never unlocks a protective stop by itself: ``unlock_protective_stop()`` is an explicit
+  operator action (``rigctl arm unlock``).
+- Teardown: ``disconnect()`` of the control interface sleeps ~0.5 s in ur_rtde; the cost
+  is measured and kept in ``describe()["teardown_s"]``. Teardown of a dead connection
+  runs in a thread bounded by ``TEARDOWN_TIMEOUT_S``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from typing import Any
+
+from drivers.base import Arm, ArmState, DeviceError, SafetyError, Status
+
+log = logging.getLogger(__name__)
+
+STALE_S = 1.0            # stream silent this long: connection lost
+TEARDOWN_TIMEOUT_S = 3.0
+ARRIVAL_TOL_RAD = 1e-3
+
+
+def _bounded(fn, timeout: float, what: str):
+    """Run ``fn`` in a daemon thread; give up (and say so) after ``timeout``."""
+    box: dict[str, Any] = {}
+
+    def target():
+        try:
+            box["value"] = fn()
+        except Exception as exc:  # ur_rtde raises RuntimeError on a dead link
+            box["error"] = exc
+
+    thread = threading.Thread(target=target, daemon=True, name=what)
+    thread.start()
+    thread.join(timeout)
+    if thread.is_alive():
+        raise DeviceError(f"arm: {what} did not return within {timeout:.1f} s")
+    if "error" in box:
+        raise box["error"]
+    return box.get("value")
+
+
+class URArm(Arm):
+    def __init__(self, cfg) -> None:
+        self.cfg = cfg
+        self.control = None
+        self.receive = None
+        self.connect_s: dict[str, float] = {}
+        self.teardown_s: float | None = None
+        self._stop_event = threading.Event()
+        self._watch_thread: threading.Thread | None = None
+        self._last_ts = (0.0, time.monotonic())
+        self.serial = None
+        self.polyscope = None
+
+    # -- connection -----------------------------------------------------------------
+
+    def _with_retries(self, what: str, fn):
+        last: Exception | None = None
+        for attempt in range(self.cfg.connect_retries):
+            try:
+                t0 = time.perf_counter()
+                value = fn()
+                self.connect_s[what] = time.perf_counter() - t0
+                return value
+            except RuntimeError as exc:
+                last = exc
+                log.warning("arm: %s connect attempt %d/%d failed: %s", what, attempt + 1,
+                            self.cfg.connect_retries, exc)
+                time.sleep(0.2 * (attempt + 1))
+        raise DeviceError(f"arm {self.cfg.host}: cannot connect {what} after "
+                          f"{self.cfg.connect_retries} tries: {last}")
+
+    def open(self) -> None:
+        import rtde_control
+        import rtde_receive
+
+        self.receive = self._with_retries(
+            "receive", lambda: rtde_receive.RTDEReceiveInterface(self.cfg.host))
+        self.control = self._with_retries(
+            "control", lambda: rtde_control.RTDEControlInterface(self.cfg.host))
+        self._last_ts = (self.receive.getTimestamp(), time.monotonic())
+        try:
+            import dashboard_client
+
+            dash = dashboard_client.DashboardClient(self.cfg.host)
+            dash.connect()
+            self.serial = dash.getSerialNumber()
+            self.polyscope = dash.polyscopeVersion()
+            dash.disconnect()
+        except Exception as exc:
+            log.info("arm: dashboard not available for provenance: %s", exc)
+        self.check_safety()
+
+    def close(self) -> None:
+        if self.control is None and self.receive is None:
+            return
+        try:
+            if self.cfg.park.policy == "home" and self._alive():
+                home = [math.radians(v) for v in (self.cfg.park.joints_deg or self.cfg.home_deg)]
+                self.move_joints(home).wait(self.cfg.move_timeout_s)
+        finally:
+            t0 = time.perf_counter()
+            control, receive = self.control, self.receive
+            self.control = self.receive = None
+            if control is not None:
+                try:
+                    _bounded(lambda: (control.stopScript(), control.disconnect()),
+                             TEARDOWN_TIMEOUT_S, "control disconnect")
+                except Exception as exc:
+                    log.warning("arm: control teardown: %s", exc)
+            if receive is not None:
+                try:
+                    _bounded(receive.disconnect, TEARDOWN_TIMEOUT_S, "receive disconnect")
+                except Exception as exc:
+                    log.warning("arm: receive teardown: %s", exc)
+            self.teardown_s = time.perf_counter() - t0
+
+    def describe(self) -> dict[str, Any]:
+        return {"model": self.cfg.model, "host": self.cfg.host, "serial": self.serial,
+                "firmware": self.polyscope, "connect_s": self.connect_s,
+                "teardown_s": self.teardown_s,
+                "speed_cap_dps": self.cfg.speed_cap_dps, "accel_cap_dps2": self.cfg.accel_cap_dps2}
+
+    # -- state ------------------------------------------------------------------------
+
+    def _alive(self) -> bool:
+        """The stream is connected and its timestamp advanced within ``STALE_S``."""
+        if self.receive is None or not self.receive.isConnected():
+            return False
+        ts = self.receive.getTimestamp()
+        now = time.monotonic()
+        if ts != self._last_ts[0]:
+            self._last_ts = (ts, now)
+            return True
+        return now - self._last_ts[1] < STALE_S
+
+    def _require_alive(self) -> None:
+        if not self._alive():
+            raise DeviceError(f"arm {self.cfg.host}: RTDE connection lost "
+                              f"(no data for {STALE_S:.1f} s)")
+
+    def check_safety(self) -> None:
+        if self.receive is None:
+            raise DeviceError("arm: not connected")
+        if self.receive.isEmergencyStopped():
+            raise SafetyError(f"arm {self.cfg.host}: emergency stop")
+        if self.receive.isProtectiveStopped():
+            raise SafetyError(f"arm {self.cfg.host}: protective stop; inspect the cause, then "
+                              "unlock explicitly with `rigctl arm unlock`")
+
+    def read_state(self) -> ArmState:
+        self._require_alive()
+        r = self.receive
+        safety = ("emergency_stop" if r.isEmergencyStopped() else
+                  "protective_stop" if r.isProtectiveStopped() else "normal")
+        return ArmState(tuple(r.getActualQ()), tuple(r.getActualTCPPose()), time.time(), safety)
+
+    def joint_limits(self) -> list[tuple[float, float]]:
+        return self.cfg.joint_limits_rad()
+
+    # -- motion -----------------------------------------------------------------------
+
+    def _caps(self) -> tuple[float, float]:
+        return math.radians(self.cfg.speed_cap_dps), math.radians(self.cfg.accel_cap_dps2)
+
+    def move_joints(self, q) -> Status:
+        q = [float(v) for v in q]
+        self.check_limits(q)
+        self._require_alive()
+        self.check_safety()
+        v, a = self._caps()
+        status = Status("arm moveJ to [" + ", ".join(f"{math.degrees(x):.1f}" for x in q) +
+                        "] deg")
+        if not self.control.moveJ(q, v, a, True):
+            raise DeviceError(f"arm {self.cfg.host}: moveJ refused by the controller")
+        self._watch(status, target_q=q)
+        return status
+
+    def move_linear(self, pose) -> Status:
+        pose = [float(v) for v in pose]
+        self._require_alive()
+        self.check_safety()
+        if not self.control.isPoseWithinSafetyLimits(pose):
+            raise SafetyError(f"arm: pose {pose} outside the controller's safety limits")
+        status = Status("arm moveL")
+        v, a = self.cfg.linear_speed_mm_s / 1000.0, self.cfg.linear_accel_mm_s2 / 1000.0
+        if not self.control.moveL(pose, v, a, True):
+            raise DeviceError(f"arm {self.cfg.host}: moveL refused by the controller")
+        self._watch(status, target_pose=pose)
+        return status
+
+    def _watch(self, status: Status, target_q=None, target_pose=None) -> None:
+        if self._watch_thread is not None and self._watch_thread.is_alive():
+            self._stop_event.set()
+            self._watch_thread.join(timeout=2)
+        self._stop_event.clear()
+        self._watch_thread = threading.Thread(
+            target=self._watch_loop, args=(status, target_q, target_pose), daemon=True,
+            name="arm-move")
+        self._watch_thread.start()
+
+    def _watch_loop(self, status: Status, target_q, target_pose) -> None:
+        deadline = time.monotonic() + self.cfg.move_timeout_s
+        start_q = list(self.receive.getActualQ())
+        try:
+            time.sleep(0.01)
+            while True:
+                if self._stop_event.is_set():
+                    raise SafetyError("arm move stopped")
+                self._require_alive()
+                self.check_safety()
+                q = self.receive.getActualQ()
+                if target_q is not None:
+                    span = max(max(abs(t - s) for t, s in zip(target_q, start_q, strict=True)),
+                               1e-9)
+                    left = max(abs(t - c) for t, c in zip(target_q, q, strict=True))
+                    status.set_progress(1 - left / span)
+                running = self.control.getAsyncOperationProgress() >= 0
+                if not running:
+                    if target_q is not None and left > ARRIVAL_TOL_RAD:
+                        raise DeviceError(f"arm: move ended {math.degrees(left):.3f} deg short "
+                                          "of its target")
+                    if target_pose is not None:
+                        err = math.dist(target_pose[:3], self.receive.getActualTCPPose()[:3])
+                        if err > 1e-4:
+                            raise DeviceError(f"arm: moveL ended {err * 1000:.2f} mm short")
+                    status.set_finished()
+                    return
+                if time.monotonic() > deadline:
+                    raise DeviceError(f"arm: move not finished after {self.cfg.move_timeout_s} s")
+                time.sleep(0.01)
+        except Exception as exc:
+            status.set_exception(exc)
+
+    def stop(self) -> None:
+        """Decelerate now (stopJ); skipped when the link is already gone."""
+        self._stop_event.set()
+        if self.control is None or not self._alive():
+            return
+        try:
+            _bounded(lambda: self.control.stopJ(2.0, False), TEARDOWN_TIMEOUT_S, "stopJ")
+        except Exception as exc:
+            log.error("arm: stopJ failed: %s", exc)
+
+    def unlock_protective_stop(self) -> str:
+        """Operator action: unlock a protective stop and restart the control script."""
+        import dashboard_client
+
+        dash = dashboard_client.DashboardClient(self.cfg.host)
+        dash.connect()
+        try:
+            answer = dash.unlockProtectiveStop()
+        finally:
+            dash.disconnect()
+        if self.control is not None:
+            self.control.reuploadScript()
+        return str(answer)

@@ -1,0 +1,860 @@
+"""A Universal Robots e-Series controller stand-in that the real ``ur_rtde`` client drives.
+
+Serves RTDE (30004), the dashboard (29999) and the script port (30003) on one loopback
+address, accepts and ignores 30001/30002, and runs a 500 Hz controller loop reporting
+version 5.11.1. It recognises the uploaded ``rtde_control`` script and emulates its
+register handshake (see ``shared/reference/ur-controller-protocol.md``)::
+
+    rigctl mock arm [--host 127.0.0.1] [--model ur5e] [--world FILE] [--control SOCKET]
+                    [--tcp-model nominal|true]
+
+Prints one JSON ready line and runs until SIGTERM. Control socket (JSON lines):
+``protective_stop``, ``emergency_stop``, ``release_estop``, ``drop_connections``,
+``stall_stream`` (``seconds``), ``dump``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import os
+import signal
+import socket
+import struct
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from mocks.ur_kinematics import ArmModel, matrix_to_pose, pose_to_matrix
+from mocks.ur_motion import JointMove, LinearMove, ServoMove, SpeedMove, StopMove
+
+log = logging.getLogger("mock.ur")
+
+VERSION = (5, 11, 1, 108318)
+PERIOD = 0.002
+JOINT_LIMIT = math.radians(363.0)
+JOINT_SPEED_MAX = math.pi  # rad/s (UR5e: 180 deg/s on every joint)
+JOINT_ACCEL_MAX = 40.0  # rad/s^2
+
+# Runtime, robot and safety modes as the RTDE guide numbers them.
+RUNTIME_STOPPED, RUNTIME_PLAYING, RUNTIME_PAUSED = 1, 2, 4
+ROBOT_POWER_OFF, ROBOT_IDLE, ROBOT_RUNNING = 3, 5, 7
+SAFETY_NORMAL, SAFETY_PROTECTIVE, SAFETY_ROBOT_ESTOP = 1, 3, 7
+
+REALTIME_CMDS = {24, 11, 9, 10, 6, 25, 26, 27, 38, 58, 66, 67, 68, 69, 70, 71}
+
+FIELD_SIZES = {"DOUBLE": ">d", "VECTOR6D": ">6d", "VECTOR3D": ">3d", "INT32": ">i",
+               "UINT32": ">I", "UINT64": ">Q", "VECTOR6INT32": ">6i", "UINT8": ">B",
+               "BOOL": ">?", "VECTOR6UINT32": ">6I"}
+
+OUTPUT_TYPES = {
+    "timestamp": "DOUBLE", "actual_execution_time": "DOUBLE", "speed_scaling": "DOUBLE",
+    "target_speed_fraction": "DOUBLE", "actual_momentum": "DOUBLE",
+    "actual_main_voltage": "DOUBLE", "actual_robot_voltage": "DOUBLE",
+    "actual_robot_current": "DOUBLE", "standard_analog_input0": "DOUBLE",
+    "standard_analog_input1": "DOUBLE", "standard_analog_output0": "DOUBLE",
+    "standard_analog_output1": "DOUBLE", "payload": "DOUBLE", "io_current": "DOUBLE",
+    "tool_analog_input0": "DOUBLE", "tool_analog_input1": "DOUBLE",
+    "tool_output_current": "DOUBLE", "tool_temperature": "DOUBLE",
+    "robot_mode": "INT32", "safety_mode": "INT32", "safety_status": "INT32",
+    "tool_output_voltage": "INT32",
+    "runtime_state": "UINT32", "robot_status_bits": "UINT32", "safety_status_bits": "UINT32",
+    "analog_io_types": "UINT32", "tool_mode": "UINT32", "tool_analog_input_types": "UINT32",
+    "script_control_line": "UINT32", "output_bit_registers0_to_31": "UINT32",
+    "output_bit_registers32_to_63": "UINT32",
+    "actual_digital_input_bits": "UINT64", "actual_digital_output_bits": "UINT64",
+    "joint_mode": "VECTOR6INT32",
+    "actual_tool_accelerometer": "VECTOR3D", "payload_cog": "VECTOR3D",
+    "elbow_position": "VECTOR3D", "elbow_velocity": "VECTOR3D",
+    **{name: "VECTOR6D" for name in (
+        "target_q", "target_qd", "target_qdd", "target_current", "target_moment", "actual_q",
+        "actual_qd", "actual_current", "joint_control_output", "actual_TCP_pose",
+        "actual_TCP_speed", "actual_TCP_force", "target_TCP_pose", "target_TCP_speed",
+        "joint_temperatures", "actual_joint_voltage", "ft_raw_wrench", "payload_inertia",
+        "actual_current_as_torque")},
+    **{f"output_int_register_{i}": "INT32" for i in range(48)},
+    **{f"output_double_register_{i}": "DOUBLE" for i in range(48)},
+}
+INPUT_TYPES = {
+    **{f"input_int_register_{i}": "INT32" for i in range(48)},
+    **{f"input_double_register_{i}": "DOUBLE" for i in range(48)},
+    "external_force_torque": "VECTOR6D", "input_bit_registers0_to_31": "UINT32",
+    "input_bit_registers32_to_63": "UINT32", "speed_slider_mask": "UINT32",
+    "speed_slider_fraction": "DOUBLE", "standard_digital_output_mask": "UINT8",
+    "standard_digital_output": "UINT8", "configurable_digital_output_mask": "UINT8",
+    "configurable_digital_output": "UINT8", "tool_digital_output_mask": "UINT8",
+    "tool_digital_output": "UINT8", "standard_analog_output_mask": "UINT8",
+    "standard_analog_output_type": "UINT8", "standard_analog_output_0": "DOUBLE",
+    "standard_analog_output_1": "DOUBLE",
+}
+
+
+def load_errors(path: str | None) -> dict:
+    """Per-joint errors from a world file (``arm.errors``) or a small YAML (``errors``)."""
+    if not path:
+        return {}
+    data = yaml.safe_load(Path(path).read_text()) or {}
+    section = data.get("arm", data)
+    return section.get("errors", {}) or {}
+
+
+class Controller:
+    """Robot state, the running control script, and the 500 Hz loop."""
+
+    def __init__(self, model: str, errors: dict, tcp_model: str) -> None:
+        self.nominal = ArmModel.nominal(model)
+        self.true = self.nominal.with_errors(**errors)
+        self.model_name = model
+        self.ctrl_model = self.true if tcp_model == "true" else self.nominal
+        self.lock = threading.RLock()
+        self.tick_cond = threading.Condition(self.lock)
+        self.tick = 0
+        self.t = 0.0
+        self.q = np.radians([0.0, -90.0, 90.0, -90.0, -90.0, 0.0])
+        self.qd = np.zeros(6)
+        self.q_target = self.q.copy()
+        self.tcp = np.eye(4)
+        self.payload = 0.0
+        self.motion = None
+        self.motion_kind = None  # "sync" | "async" | "stop_async" | "rt"
+        self.in_int = [0] * 48
+        self.in_double = [0.0] * 48
+        self.out_int = [0] * 48
+        self.out_double = [0.0] * 48
+        self.reg_offset = 0
+        self.runtime_state = RUNTIME_STOPPED
+        self.robot_mode = ROBOT_RUNNING
+        self.safety_mode = SAFETY_NORMAL
+        self.executing = False
+        self.pending_done = False
+        self.async_op_id = 0
+        self.async_wr_count = 0
+        self.watchdog_hz = 0.0
+        self.last_input = time.monotonic()
+        self.stall_until = 0.0
+        self.estop = False
+        self.messages: list[str] = []
+        self.snapshot: dict = {}
+        self.steady_since = 0.0
+        self._update_snapshot()
+
+    # -- registers --------------------------------------------------------------
+
+    def rint(self, i: int) -> int:
+        return self.in_int[i + self.reg_offset]
+
+    def rdouble(self, i: int) -> float:
+        return self.in_double[i + self.reg_offset]
+
+    def wint(self, i: int, v: int) -> None:
+        self.out_int[i + self.reg_offset] = int(v)
+
+    def wdouble(self, i: int, v: float) -> None:
+        self.out_double[i + self.reg_offset] = float(v)
+
+    def q_from(self, i: int) -> np.ndarray:
+        return np.array([self.rdouble(i + k) for k in range(6)])
+
+    def to_out(self, i: int, values) -> None:
+        for k, v in enumerate(values):
+            self.wdouble(i + k, v)
+
+    def _async_progress(self, value: int) -> None:
+        self.async_wr_count = (self.async_wr_count + 1) % 128
+        if value == 0:
+            self.async_op_id = (self.async_op_id + 1) % 128
+        reg = self.async_wr_count * 65536 + self.async_op_id * 16777216
+        if value >= 0:
+            reg += min(value, 32767) + 32768
+        self.wint(2, reg)
+
+    # -- program life cycle ------------------------------------------------------
+
+    def load_script(self, text: str) -> None:
+        lines = text.splitlines()
+        offset = 0
+        for i, line in enumerate(lines):
+            if "reg_offset_int" in line and "=" in line and i + 1 < len(lines):
+                try:
+                    offset = int(lines[i + 1].split()[0])
+                except (ValueError, IndexError):
+                    offset = 0
+                break
+        with self.lock:
+            self.reg_offset = offset
+            self.executing = False
+            self.pending_done = False
+            self.wint(0, 0)
+            self._async_progress(-1)
+            self.wint(0, 1)
+            self.runtime_state = RUNTIME_PLAYING
+            self.messages.append(f"program rtde_control started (register offset {offset})")
+
+    def stop_program(self, reason: str) -> None:
+        with self.lock:
+            if self.runtime_state != RUNTIME_STOPPED:
+                self.messages.append(f"program stopped: {reason}")
+            self.runtime_state = RUNTIME_STOPPED
+            self._stop_motion(4.0)
+
+    def _stop_motion(self, decel: float) -> None:
+        if self.motion is not None and np.any(np.abs(self.qd) > 1e-9):
+            self.motion = StopMove(self.q, self.qd, decel, self.t)
+            self.motion_kind = "halt"
+        elif self.motion_kind != "halt":
+            self.motion = None
+            self.motion_kind = None
+
+    def protective_stop(self, reason: str) -> None:
+        with self.lock:
+            self.safety_mode = SAFETY_PROTECTIVE
+            self.messages.append(f"protective stop: {reason}")
+            self._stop_motion(20.0)
+            if self.runtime_state == RUNTIME_PLAYING:
+                self.runtime_state = RUNTIME_PAUSED
+
+    def emergency_stop(self) -> None:
+        with self.lock:
+            self.estop = True
+            self.safety_mode = SAFETY_ROBOT_ESTOP
+            self.robot_mode = ROBOT_POWER_OFF
+            self.motion, self.motion_kind, self.qd = None, None, np.zeros(6)
+            self.runtime_state = RUNTIME_STOPPED
+            self.messages.append("emergency stop")
+
+    # -- commands ----------------------------------------------------------------
+
+    def _check_joints(self, q) -> bool:
+        return bool(np.all(np.abs(q) <= JOINT_LIMIT))
+
+    def _caps(self, v: float, a: float) -> tuple[float, float]:
+        return min(max(v, 1e-6), JOINT_SPEED_MAX), min(max(a, 1e-6), JOINT_ACCEL_MAX)
+
+    def _start_joint_move(self, q1, v, a, sync: bool) -> bool:
+        if not self._check_joints(q1):
+            self.messages.append("moveJ target outside the joint limits: program halted")
+            self.stop_program("joint limit violation")
+            return False
+        v, a = self._caps(v, a)
+        self.motion = JointMove(self.q, q1, v, a, self.t)
+        self._begin(sync)
+        return True
+
+    def _begin(self, sync: bool) -> None:
+        self.motion_kind = "sync" if sync else "async"
+        if not sync:
+            self._async_progress(0)
+
+    def process(self, cmd: int) -> None:
+        """One command of the control script; sets ``pending_done`` for blocking ones."""
+        async_flag = self.rint(1) == 1
+        if cmd in (1, 2, 3, 4):
+            v, a = self.rdouble(6), self.rdouble(7)
+            self._kill_async()
+            target_q = self.q_from(0) if cmd in (1, 4) else None
+            if cmd == 1:
+                self._start_joint_move(target_q, v, a, not async_flag)
+            elif cmd == 2:
+                q = self.ctrl_model.ik(pose_to_matrix(self.q_from(0)), self.q, self.tcp)
+                if q is None:
+                    self.stop_program("moveJ_IK: no inverse kinematics solution")
+                    return
+                self._start_joint_move(q, v, a, not async_flag)
+            else:
+                T1 = pose_to_matrix(self.q_from(0)) if cmd == 3 else \
+                    self.ctrl_model.tool(target_q, self.tcp)
+                self.motion = LinearMove(self.ctrl_model, self.tcp, self.q, T1,
+                                         min(v, 3.0), min(a, 15.0), self.t)
+                self._begin(not async_flag)
+            self.pending_done = not async_flag
+            return
+        if cmd in (33, 34):  # stopL, stopJ
+            decel = max(self.rdouble(0), 0.1)
+            self._kill_async()
+            self.motion = StopMove(self.q, self.qd, decel, self.t)
+            if async_flag:
+                self.motion_kind = "stop_async"
+                self._async_progress(0)
+            else:
+                self.motion_kind = "sync"
+                self.pending_done = True
+            return
+        if cmd in (15, 16):  # speedStop, servoStop
+            self.motion = StopMove(self.q, self.qd, max(self.rdouble(0), 0.1), self.t)
+            self.motion_kind = "sync"
+            self.pending_done = True
+            return
+        if cmd == 9:  # speedJ
+            target, accel = self.q_from(0), max(self.rdouble(6), 1e-3)
+            target = np.clip(target, -JOINT_SPEED_MAX, JOINT_SPEED_MAX)
+            if isinstance(self.motion, SpeedMove):
+                self.motion.update(target, accel)
+            else:
+                self.motion = SpeedMove(self.q, self.qd, target, accel, self.t)
+            self.motion_kind = "rt"
+            return
+        if cmd == 11:  # servoJ
+            target = self.q_from(0)
+            if not self._check_joints(target):
+                self.protective_stop("servoJ target outside the joint limits")
+                return
+            if isinstance(self.motion, ServoMove):
+                self.motion.update(target, self.rdouble(9))
+            else:
+                self.motion = ServoMove(self.q, target, self.rdouble(9), JOINT_SPEED_MAX,
+                                        self.t)
+            self.motion_kind = "rt"
+            return
+        if cmd == 17:
+            self.payload = self.rdouble(0)
+        elif cmd == 29:
+            self.tcp = pose_to_matrix(self.q_from(0))
+        elif cmd in (30, 46, 60, 61):
+            q_near = self.q_from(6) if cmd in (30, 61) else self.q
+            q = self.ctrl_model.ik(pose_to_matrix(self.q_from(0)), q_near, self.tcp)
+            if cmd in (60, 61):
+                self.wint(1, 1 if q is not None else 0)
+            elif q is not None:
+                self.to_out(0, q)
+            else:
+                self.stop_program("get_inverse_kin: no solution")
+        elif cmd == 31:
+            self.protective_stop("triggerProtectiveStop")
+        elif cmd == 35:
+            self.watchdog_hz = self.rdouble(0)
+            self.last_input = time.monotonic()
+        elif cmd == 36:
+            pose = self.q_from(0)
+            q = self.ctrl_model.ik(pose_to_matrix(pose), self.q, self.tcp)
+            self.wint(1, int(q is not None and self._check_joints(q)))
+        elif cmd == 37:
+            self.wint(1, int(self._check_joints(self.q_from(0))))
+        elif cmd == 39:
+            T = pose_to_matrix(self.q_from(0)) @ pose_to_matrix(self.q_from(6))
+            self.to_out(0, matrix_to_pose(T))
+        elif cmd == 40:
+            self.to_out(0, matrix_to_pose(self.tcp))
+        elif cmd == 43:
+            self.to_out(0, matrix_to_pose(self.ctrl_model.tool(self.q, self.tcp)))
+        elif cmd == 44:
+            tcp = pose_to_matrix(self.q_from(6))
+            self.to_out(0, matrix_to_pose(self.ctrl_model.tool(self.q_from(0), tcp)))
+        elif cmd == 47:
+            self.wint(1, int(self.is_steady()))
+        elif cmd == 58:
+            self.to_out(0, matrix_to_pose(self.ctrl_model.flange(self.q)))
+        elif cmd == 255:
+            self.messages.append("received stop script")
+            self.runtime_state = RUNTIME_STOPPED
+            self._stop_motion(4.0)
+
+    def _kill_async(self) -> None:
+        if self.motion_kind in ("async", "stop_async") and self.motion is not None:
+            self._async_progress(-1)
+        self.motion_kind = None
+
+    def is_steady(self) -> bool:
+        return self.motion is None and self.t - self.steady_since > 0.02
+
+    # -- loop --------------------------------------------------------------------
+
+    def step(self) -> None:
+        with self.lock:
+            self.tick += 1
+            self.t = self.tick * PERIOD
+            self._advance_motion()
+            self._run_program()
+            if self.watchdog_hz > 0 and self.runtime_state == RUNTIME_PLAYING and \
+                    time.monotonic() - self.last_input > 1.0 / self.watchdog_hz:
+                self.watchdog_hz = 0.0
+                self.stop_program("RTDE watchdog: input registers not updated in time")
+            self._update_snapshot()
+            self.tick_cond.notify_all()
+
+    def _advance_motion(self) -> None:
+        if self.motion is None:
+            self.qd = np.zeros(6)
+            return
+        q, qd, done = self.motion.step(self.t)
+        if not self._check_joints(q):
+            self.q, self.qd = self.q, np.zeros(6)
+            self.motion = None
+            self.protective_stop("joint position limit reached")
+            return
+        self.q, self.qd = q, qd
+        if isinstance(self.motion, LinearMove) and self.motion.failed:
+            self.motion = None
+            self.stop_program("moveL: path left the workspace")
+            return
+        if done:
+            kind = self.motion_kind
+            self.motion, self.motion_kind = None, None
+            self.qd = np.zeros(6)
+            self.steady_since = self.t
+            if kind in ("async", "stop_async"):
+                self._async_progress(-1)
+
+    def _run_program(self) -> None:
+        if self.runtime_state != RUNTIME_PLAYING:
+            return
+        if self.pending_done:
+            if self.motion is None or self.motion_kind not in ("sync",):
+                self.pending_done = False
+                self.wint(0, 2)
+            return
+        cmd = self.rint(0)
+        if cmd in REALTIME_CMDS:
+            self.process(cmd)
+            self.wint(0, 1)
+        elif cmd == 0:
+            self.executing = False
+            self.wint(0, 1)
+        elif not self.executing:
+            self.executing = True
+            self.process(cmd)
+            if not self.pending_done and cmd != 255:
+                self.wint(0, 2)
+
+    def _update_snapshot(self) -> None:
+        T_tool = self.ctrl_model.tool(self.q, self.tcp)
+        pose = matrix_to_pose(T_tool)
+        J = self.ctrl_model.jacobian(self.q, self.tcp) if np.any(self.qd) else None
+        tcp_speed = J @ self.qd if J is not None else np.zeros(6)
+        safety_bits = {SAFETY_NORMAL: 0x01, SAFETY_PROTECTIVE: 0x04,
+                       SAFETY_ROBOT_ESTOP: 0x40 | 0x80}.get(self.safety_mode, 0)
+        running = self.runtime_state == RUNTIME_PLAYING
+        robot_bits = (0x01 if self.robot_mode >= ROBOT_IDLE else 0) | (0x02 if running else 0)
+        snap = {
+            "timestamp": self.t, "target_q": self.q, "target_qd": self.qd,
+            "target_qdd": np.zeros(6), "target_current": np.zeros(6),
+            "target_moment": np.zeros(6), "actual_q": self.q, "actual_qd": self.qd,
+            "actual_current": np.full(6, 0.3), "joint_control_output": np.zeros(6),
+            "actual_TCP_pose": pose, "actual_TCP_speed": tcp_speed,
+            "actual_TCP_force": np.zeros(6), "target_TCP_pose": pose,
+            "target_TCP_speed": tcp_speed, "actual_digital_input_bits": 0,
+            "joint_temperatures": np.full(6, 31.5), "actual_execution_time": 0.4,
+            "robot_mode": self.robot_mode, "joint_mode": [253] * 6,
+            "safety_mode": self.safety_mode, "safety_status": self.safety_mode,
+            "actual_tool_accelerometer": [0.0, 0.0, 9.81],
+            "speed_scaling": 1.0, "target_speed_fraction": 1.0, "actual_momentum": 0.0,
+            "actual_main_voltage": 48.0, "actual_robot_voltage": 48.0,
+            "actual_robot_current": 0.8, "actual_joint_voltage": np.full(6, 47.9),
+            "actual_digital_output_bits": 0, "runtime_state": self.runtime_state,
+            "standard_analog_input0": 0.0, "standard_analog_input1": 0.0,
+            "standard_analog_output0": 0.0, "standard_analog_output1": 0.0,
+            "robot_status_bits": robot_bits, "safety_status_bits": safety_bits,
+            "ft_raw_wrench": np.zeros(6), "payload": self.payload,
+            "payload_cog": [0.0, 0.0, 0.0], "payload_inertia": np.zeros(6),
+            "actual_current_as_torque": np.zeros(6),
+            "elbow_position": self.ctrl_model.flange(self.q)[:3, 3] * 0.5,
+            "elbow_velocity": [0.0, 0.0, 0.0],
+        }
+        for i in range(48):
+            snap[f"output_int_register_{i}"] = self.out_int[i]
+            snap[f"output_double_register_{i}"] = self.out_double[i]
+        self.snapshot = snap
+
+    def run_loop(self, stop: threading.Event) -> None:
+        next_t = time.perf_counter()
+        while not stop.is_set():
+            next_t += PERIOD
+            self.step()
+            remaining = next_t - time.perf_counter()
+            if remaining > 0.0004:
+                time.sleep(remaining - 0.0003)
+            while time.perf_counter() < next_t:
+                pass
+            if time.perf_counter() - next_t > 0.05:  # fell far behind: resynchronise
+                next_t = time.perf_counter()
+
+    def dump(self) -> dict:
+        with self.lock:
+            return {"t": self.t, "q": self.q.tolist(), "qd": self.qd.tolist(),
+                    "tcp_pose": matrix_to_pose(self.ctrl_model.tool(self.q, self.tcp)).tolist(),
+                    "runtime_state": self.runtime_state, "robot_mode": self.robot_mode,
+                    "safety_mode": self.safety_mode, "out_int": self.out_int[:4],
+                    "messages": self.messages[-20:], "model": self.model_name}
+
+
+def _recv_exact(sock: socket.socket, n: int) -> bytes:
+    buf = b""
+    while len(buf) < n:
+        chunk = sock.recv(n - len(buf))
+        if not chunk:
+            raise ConnectionError("peer closed")
+        buf += chunk
+    return buf
+
+
+class RTDEConnection:
+    """One RTDE client: handshake, input recipes, and a stream of output packages."""
+
+    def __init__(self, ctrl: Controller, sock: socket.socket, server) -> None:
+        self.ctrl, self.sock, self.server = ctrl, sock, server
+        self.output_names: list[str] = []
+        self.output_fmt = ""
+        self.inputs: dict[int, list[tuple[str, str]]] = {}
+        self.streaming = False
+        self.frequency = 500.0
+        self.send_lock = threading.Lock()
+
+    def send(self, kind: str, payload: bytes) -> None:
+        with self.send_lock:
+            self.sock.sendall(struct.pack(">HB", len(payload) + 3, ord(kind)) + payload)
+
+    def serve(self) -> None:
+        try:
+            while True:
+                size, kind = struct.unpack(">HB", _recv_exact(self.sock, 3))
+                self.handle(chr(kind), _recv_exact(self.sock, size - 3))
+        except (ConnectionError, OSError):
+            pass
+        finally:
+            self.streaming = False
+            self.server.forget(self.sock)
+
+    def handle(self, kind: str, payload: bytes) -> None:
+        if kind == "V":
+            self.send("V", b"\x01")
+        elif kind == "v":
+            self.send("v", struct.pack(">IIII", *VERSION))
+        elif kind == "O":
+            self.frequency = struct.unpack(">d", payload[:8])[0]
+            names = [n for n in payload[8:].decode().split(",") if n]
+            types = [OUTPUT_TYPES.get(n, "NOT_FOUND") for n in names]
+            self.output_names = names
+            self.output_fmt = ">B" + "".join(FIELD_SIZES[t][1:] for t in types
+                                             if t != "NOT_FOUND")
+            self.send("O", b"\x01" + ",".join(types).encode())
+        elif kind == "I":
+            names = [n for n in payload.decode().split(",") if n]
+            types = [INPUT_TYPES.get(n, "NOT_FOUND") for n in names]
+            recipe = len(self.inputs) + 1
+            self.inputs[recipe] = list(zip(names, types, strict=True))
+            self.send("I", bytes([recipe]) + ",".join(types).encode())
+        elif kind == "S":
+            self.send("S", b"\x01")
+            if not self.streaming:
+                self.streaming = True
+                threading.Thread(target=self.stream, daemon=True).start()
+        elif kind == "P":
+            self.streaming = False
+            self.send("P", b"\x01")
+        elif kind == "U":
+            self.on_input(payload)
+
+    def on_input(self, payload: bytes) -> None:
+        recipe = self.inputs.get(payload[0])
+        if recipe is None:
+            return
+        offset = 1
+        ctrl = self.ctrl
+        with ctrl.lock:
+            for name, kind in recipe:
+                fmt = FIELD_SIZES.get(kind)
+                if fmt is None:
+                    return
+                size = struct.calcsize(fmt)
+                value = struct.unpack(fmt, payload[offset:offset + size])
+                offset += size
+                if name.startswith("input_int_register_"):
+                    ctrl.in_int[int(name.rsplit("_", 1)[1])] = value[0]
+                elif name.startswith("input_double_register_"):
+                    ctrl.in_double[int(name.rsplit("_", 1)[1])] = value[0]
+            ctrl.last_input = time.monotonic()
+
+    def stream(self) -> None:
+        ctrl = self.ctrl
+        every = max(1, round(500.0 / max(self.frequency, 1.0)))
+        last_tick = -1
+        try:
+            while self.streaming:
+                with ctrl.tick_cond:
+                    ctrl.tick_cond.wait_for(lambda t=last_tick: ctrl.tick != t, timeout=0.1)
+                    tick, snap = ctrl.tick, ctrl.snapshot
+                if tick == last_tick or tick % every:
+                    last_tick = tick
+                    continue
+                last_tick = tick
+                if time.monotonic() < ctrl.stall_until:
+                    continue
+                values = []
+                for name in self.output_names:
+                    value = snap.get(name)
+                    if value is None:
+                        continue
+                    if isinstance(value, (list, tuple, np.ndarray)):
+                        values.extend(float(v) if isinstance(v, float | np.floating) else v
+                                      for v in (value.tolist() if isinstance(value, np.ndarray)
+                                                else value))
+                    else:
+                        values.append(value)
+                self.send("U", struct.pack(self.output_fmt, 1, *values))
+        except (OSError, struct.error) as exc:
+            log.debug("stream ended: %s", exc)
+            self.streaming = False
+
+
+DASHBOARD_ANSWERS = {
+    "PolyscopeVersion": "URSoftware 5.11.1.108318 (Nov 01 2021)",
+    "polyscopeVersion": "URSoftware 5.11.1.108318 (Nov 01 2021)",
+    "get serial number": "20215500001",
+    "is in remote control": "true",
+    "close popup": "closing popup",
+    "close safety popup": "closing safety popup",
+    "get robot model": "UR5",
+}
+
+
+class Server:
+    """All listening sockets of one stand-in, on one loopback address."""
+
+    def __init__(self, ctrl: Controller, host: str, control_path: Path | None) -> None:
+        self.ctrl, self.host, self.control_path = ctrl, host, control_path
+        self.stop_event = threading.Event()
+        self.clients: set[socket.socket] = set()
+        self.clients_lock = threading.Lock()
+        self.listeners = {}
+        for port, handler in ((30004, self.on_rtde), (29999, self.on_dashboard),
+                              (30003, self.on_script), (30001, self.on_ignore),
+                              (30002, self.on_ignore)):
+            sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            sock.bind((host, port))
+            sock.listen(8)
+            self.listeners[port] = (sock, handler)
+        self.control_sock = None
+        if control_path is not None:
+            if control_path.exists():
+                control_path.unlink()
+            self.control_sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+            self.control_sock.bind(str(control_path))
+            self.control_sock.listen(4)
+
+    def forget(self, sock: socket.socket) -> None:
+        with self.clients_lock:
+            self.clients.discard(sock)
+        try:
+            sock.close()
+        except OSError:
+            pass
+
+    def start(self) -> None:
+        threading.Thread(target=self.ctrl.run_loop, args=(self.stop_event,), daemon=True,
+                         name="controller").start()
+        for port, (sock, handler) in self.listeners.items():
+            threading.Thread(target=self._accept, args=(sock, handler), daemon=True,
+                             name=f"accept-{port}").start()
+        if self.control_sock is not None:
+            threading.Thread(target=self._accept, args=(self.control_sock, self.on_control),
+                             daemon=True, name="control").start()
+
+    def _accept(self, listener: socket.socket, handler) -> None:
+        while not self.stop_event.is_set():
+            try:
+                sock, _ = listener.accept()
+            except OSError:
+                return
+            if listener is not self.control_sock:
+                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+                with self.clients_lock:
+                    self.clients.add(sock)
+            threading.Thread(target=handler, args=(sock,), daemon=True).start()
+
+    def on_rtde(self, sock: socket.socket) -> None:
+        RTDEConnection(self.ctrl, sock, self).serve()
+
+    def on_ignore(self, sock: socket.socket) -> None:
+        try:
+            while sock.recv(65536):
+                pass
+        except OSError:
+            pass
+        self.forget(sock)
+
+    def on_script(self, sock: socket.socket) -> None:
+        data = b""
+        try:
+            while True:
+                chunk = sock.recv(65536)
+                if not chunk:
+                    break
+                data += chunk
+                text = data.decode(errors="replace")
+                if text.lstrip().startswith("def rtde_control():") and \
+                        text.rstrip().splitlines()[-1].strip() == "end":
+                    self.ctrl.load_script(text)
+                    data = b""
+        except OSError:
+            pass
+        self.forget(sock)
+
+    def on_dashboard(self, sock: socket.socket) -> None:
+        ctrl = self.ctrl
+        try:
+            sock.sendall(b"Connected: Universal Robots Dashboard Server\n")
+            buf = b""
+            while True:
+                chunk = sock.recv(4096)
+                if not chunk:
+                    break
+                buf += chunk
+                while b"\n" in buf:
+                    line, buf = buf.split(b"\n", 1)
+                    answer = self.dashboard(line.decode(errors="replace").strip())
+                    sock.sendall((answer + "\n").encode())
+                    if answer == "Disconnected":
+                        raise ConnectionError
+        except (OSError, ConnectionError):
+            pass
+        self.forget(sock)
+        del ctrl
+
+    def dashboard(self, command: str) -> str:
+        ctrl = self.ctrl
+        with ctrl.lock:
+            if command in DASHBOARD_ANSWERS:
+                return DASHBOARD_ANSWERS[command]
+            if command == "stop":
+                ctrl.stop_program("dashboard stop")
+                return "Stopped"
+            if command == "play":
+                if ctrl.runtime_state == RUNTIME_PAUSED and ctrl.safety_mode == SAFETY_NORMAL:
+                    ctrl.runtime_state = RUNTIME_PLAYING
+                    return "Starting program"
+                return "Failed to execute: play"
+            if command == "pause":
+                if ctrl.runtime_state == RUNTIME_PLAYING:
+                    ctrl.runtime_state = RUNTIME_PAUSED
+                return "Pausing program"
+            if command == "running":
+                return f"Program running: {str(ctrl.runtime_state == RUNTIME_PLAYING).lower()}"
+            if command == "programState":
+                state = {RUNTIME_PLAYING: "PLAYING", RUNTIME_PAUSED: "PAUSED"}.get(
+                    ctrl.runtime_state, "STOPPED")
+                return f"{state} rtde_control"
+            if command == "robotmode":
+                names = {ROBOT_POWER_OFF: "POWER_OFF", ROBOT_IDLE: "IDLE",
+                         ROBOT_RUNNING: "RUNNING"}
+                return f"Robotmode: {names.get(ctrl.robot_mode, 'RUNNING')}"
+            if command == "safetystatus" or command == "safetymode":
+                names = {SAFETY_NORMAL: "NORMAL", SAFETY_PROTECTIVE: "PROTECTIVE_STOP",
+                         SAFETY_ROBOT_ESTOP: "ROBOT_EMERGENCY_STOP"}
+                return f"Safetystatus: {names[ctrl.safety_mode]}"
+            if command == "power on":
+                if ctrl.estop:
+                    return "Failed to power on: emergency stop pressed"
+                ctrl.robot_mode = ROBOT_IDLE
+                return "Powering on"
+            if command == "power off":
+                ctrl.robot_mode = ROBOT_POWER_OFF
+                ctrl.stop_program("power off")
+                return "Powering off"
+            if command == "brake release":
+                if ctrl.robot_mode >= ROBOT_IDLE:
+                    ctrl.robot_mode = ROBOT_RUNNING
+                return "Brake releasing"
+            if command == "unlock protective stop":
+                if ctrl.safety_mode == SAFETY_PROTECTIVE:
+                    ctrl.safety_mode = SAFETY_NORMAL
+                    return "Protective stop releasing"
+                return "Cannot unlock protective stop until 5s after occurrence. " \
+                       "Always inspect cause of protective stop before unlocking"
+            if command == "quit":
+                return "Disconnected"
+        return f"could not understand: '{command}'"
+
+    def on_control(self, sock: socket.socket) -> None:
+        with sock, sock.makefile("rwb") as stream:
+            for line in stream:
+                try:
+                    answer = self.control(json.loads(line))
+                except Exception as exc:
+                    answer = {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
+                stream.write((json.dumps(answer) + "\n").encode())
+                stream.flush()
+
+    def control(self, request: dict) -> dict:
+        cmd = request.get("cmd")
+        ctrl = self.ctrl
+        if cmd == "protective_stop":
+            ctrl.protective_stop("injected")
+        elif cmd == "emergency_stop":
+            ctrl.emergency_stop()
+        elif cmd == "release_estop":
+            with ctrl.lock:
+                ctrl.estop = False
+                ctrl.safety_mode = SAFETY_NORMAL
+        elif cmd == "drop_connections":
+            with self.clients_lock:
+                clients = list(self.clients)
+            for sock in clients:
+                try:
+                    sock.shutdown(socket.SHUT_RDWR)
+                except OSError:
+                    pass
+        elif cmd == "stall_stream":
+            ctrl.stall_until = time.monotonic() + float(request.get("seconds", 5.0))
+        elif cmd == "dump":
+            return {"ok": True, **ctrl.dump()}
+        else:
+            return {"ok": False, "error": f"unknown cmd {cmd!r}"}
+        return {"ok": True}
+
+    def close(self) -> None:
+        self.stop_event.set()
+        for sock, _ in self.listeners.values():
+            sock.close()
+        with self.clients_lock:
+            for sock in list(self.clients):
+                try:
+                    sock.shutdown(socket.SHUT_RDWR)
+                    sock.close()
+                except OSError:
+                    pass
+        if self.control_sock is not None:
+            self.control_sock.close()
+            if self.control_path and self.control_path.exists():
+                self.control_path.unlink()
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="rigctl mock arm",
+                                     description="UR e-Series controller stand-in (RTDE).")
+    parser.add_argument("--host", default="127.0.0.1")
+    parser.add_argument("--model", default="ur5e", choices=["ur3e", "ur5e", "ur10e"])
+    parser.add_argument("--world", default=None, help="world file (arm.errors) or errors YAML")
+    parser.add_argument("--control", type=Path, default=None, help="JSON-lines control socket")
+    parser.add_argument("--tcp-model", choices=("nominal", "true"), default="nominal",
+                        help="model behind actual_TCP_pose, FK and IK: uncalibrated (nominal) "
+                             "or factory-calibrated (true)")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if not args.host.startswith("127.") and args.host not in ("localhost", "::1"):
+        print(json.dumps({"error": f"--host {args.host}: the stand-in binds loopback only"}))
+        return 2
+    ctrl = Controller(args.model, load_errors(args.world), args.tcp_model)
+    server = Server(ctrl, args.host, args.control)
+    server.start()
+    done = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: done.set())
+    signal.signal(signal.SIGINT, lambda *_: done.set())
+    print(json.dumps({"host": args.host, "rtde_port": 30004, "dashboard_port": 29999,
+                      "script_port": 30003, "pid": os.getpid(),
+                      "control": str(args.control) if args.control else None}), flush=True)
+    done.wait()
+    server.close()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

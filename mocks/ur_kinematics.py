@@ -1,0 +1,151 @@
+"""Forward and inverse kinematics of the simulated UR arm.
+
+This is the simulator's own forward model, written apart from ``rigctl.geometry`` on
+purpose: a bug shared by simulator and solver would pass every test.
+
+Link transform (Hayati-extended DH): ``A_i = Rz(theta_i + dtheta_i) Tz(d_i) Tx(a_i)
+Rx(alpha_i) Ry(beta_i)``. The nominal values are Universal Robots' published DH tables.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+NOMINAL = {  # d, a, alpha (m, rad); beta = 0
+    "ur3e": ([0.15185, 0, 0, 0.13105, 0.08535, 0.0921],
+             [0, -0.24355, -0.2132, 0, 0, 0]),
+    "ur5e": ([0.1625, 0, 0, 0.1333, 0.0997, 0.0996],
+             [0, -0.425, -0.3922, 0, 0, 0]),
+    "ur10e": ([0.1807, 0, 0, 0.17415, 0.11985, 0.11655],
+              [0, -0.6127, -0.57155, 0, 0, 0]),
+}
+ALPHA = [np.pi / 2, 0, 0, np.pi / 2, -np.pi / 2, 0]
+
+
+def rotvec_to_matrix(rv) -> np.ndarray:
+    rv = np.asarray(rv, dtype=float)
+    angle = np.linalg.norm(rv)
+    if angle < 1e-12:
+        return np.eye(3)
+    k = rv / angle
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+
+
+def matrix_to_rotvec(R) -> np.ndarray:
+    cos = np.clip((np.trace(R) - 1) / 2, -1.0, 1.0)
+    angle = np.arccos(cos)
+    if angle < 1e-9:
+        return np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / 2
+    if np.pi - angle < 1e-6:
+        # axis from the symmetric part
+        M = (R + np.eye(3)) / 2
+        i = int(np.argmax(np.diag(M)))
+        axis = M[:, i] / np.sqrt(M[i, i])
+        return axis * angle
+    axis = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    return axis / (2 * np.sin(angle)) * angle
+
+
+def pose_to_matrix(pose) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = rotvec_to_matrix(pose[3:6])
+    T[:3, 3] = pose[:3]
+    return T
+
+
+def matrix_to_pose(T) -> np.ndarray:
+    return np.concatenate([T[:3, 3], matrix_to_rotvec(T[:3, :3])])
+
+
+def _link(theta: float, d: float, a: float, alpha: float, beta: float) -> np.ndarray:
+    ct, st = np.cos(theta), np.sin(theta)
+    ca, sa = np.cos(alpha), np.sin(alpha)
+    cb, sb = np.cos(beta), np.sin(beta)
+    rz = np.array([[ct, -st, 0, 0], [st, ct, 0, 0], [0, 0, 1, d], [0, 0, 0, 1]])
+    tx_rx = np.array([[1, 0, 0, a], [0, ca, -sa, 0], [0, sa, ca, 0], [0, 0, 0, 1]])
+    ry = np.array([[cb, 0, sb, 0], [0, 1, 0, 0], [-sb, 0, cb, 0], [0, 0, 0, 1]])
+    return rz @ tx_rx @ ry
+
+
+@dataclass
+class ArmModel:
+    """Link parameters (nominal plus errors) and the tool offset."""
+
+    d: np.ndarray
+    a: np.ndarray
+    alpha: np.ndarray
+    beta: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    theta_offset: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    tcp: np.ndarray = field(default_factory=lambda: np.eye(4))
+
+    @classmethod
+    def nominal(cls, model: str) -> ArmModel:
+        if model not in NOMINAL:
+            raise ValueError(f"unknown UR model {model!r}; known: {sorted(NOMINAL)}")
+        d, a = NOMINAL[model]
+        return cls(np.array(d, float), np.array(a, float), np.array(ALPHA, float))
+
+    def with_errors(self, theta_deg=None, d_mm=None, a_mm=None, alpha_deg=None,
+                    beta_deg=None) -> ArmModel:
+        z = np.zeros(6)
+
+        def arr(v, scale):
+            return z if v is None else np.asarray(v, float) * scale
+
+        return ArmModel(self.d + arr(d_mm, 1e-3), self.a + arr(a_mm, 1e-3),
+                        self.alpha + arr(alpha_deg, np.pi / 180),
+                        self.beta + arr(beta_deg, np.pi / 180),
+                        self.theta_offset + arr(theta_deg, np.pi / 180), self.tcp.copy())
+
+    def flange(self, q) -> np.ndarray:
+        """T_base_flange for joint angles ``q``."""
+        T = np.eye(4)
+        for i in range(6):
+            T = T @ _link(q[i] + self.theta_offset[i], self.d[i], self.a[i], self.alpha[i],
+                          self.beta[i])
+        return T
+
+    def tool(self, q, tcp: np.ndarray | None = None) -> np.ndarray:
+        return self.flange(q) @ (self.tcp if tcp is None else tcp)
+
+    def jacobian(self, q, tcp: np.ndarray | None = None, eps: float = 1e-7) -> np.ndarray:
+        """6x6 numerical Jacobian of (position, small rotation) w.r.t. q."""
+        T0 = self.tool(q, tcp)
+        J = np.zeros((6, 6))
+        for i in range(6):
+            dq = np.array(q, float)
+            dq[i] += eps
+            T1 = self.tool(dq, tcp)
+            J[:3, i] = (T1[:3, 3] - T0[:3, 3]) / eps
+            dR = T1[:3, :3] @ T0[:3, :3].T
+            J[3:, i] = np.array([dR[2, 1] - dR[1, 2], dR[0, 2] - dR[2, 0],
+                                 dR[1, 0] - dR[0, 1]]) / (2 * eps)
+        return J
+
+    def ik(self, target: np.ndarray, q_near, tcp: np.ndarray | None = None,
+           tol_pos: float = 1e-10, tol_rot: float = 1e-10, iterations: int = 100):
+        """Joint angles reaching ``target`` (4x4), by damped Newton steps from ``q_near``,
+        so the solution found is the one nearest ``q_near``. ``None`` if none converges."""
+        q = np.array(q_near, float)
+        for _ in range(iterations):
+            T = self.tool(q, tcp)
+            err_p = target[:3, 3] - T[:3, 3]
+            dR = target[:3, :3] @ T[:3, :3].T
+            err_r = matrix_to_rotvec(dR)
+            if np.linalg.norm(err_p) < tol_pos and np.linalg.norm(err_r) < tol_rot:
+                return q
+            J = self.jacobian(q, tcp)
+            e = np.concatenate([err_p, err_r])
+            lam = 1e-6
+            step = np.linalg.solve(J.T @ J + lam * np.eye(6), J.T @ e)
+            if np.linalg.norm(step) > 0.5:
+                step *= 0.5 / np.linalg.norm(step)
+            q = q + step
+        T = self.tool(q, tcp)
+        if np.linalg.norm(target[:3, 3] - T[:3, 3]) < 1e-6 and \
+                np.linalg.norm(matrix_to_rotvec(target[:3, :3] @ T[:3, :3].T)) < 1e-6:
+            return q
+        return None

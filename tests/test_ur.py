@@ -1,0 +1,230 @@
+"""The real ur_rtde client against the UR controller stand-in (RTDE, dashboard, script)."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import pytest
+
+from drivers.ur import URArm
+from rigctl.config import load_rig, parse_rig
+from rigctl.errors import DeviceError, SafetyError
+from rigctl.records import RunDirectory
+from rigctl.runner import Runner
+from tests.mockproc import MockProcess, control
+
+pytestmark = pytest.mark.integration
+
+HOME = np.radians([0.0, -90.0, 90.0, -90.0, -90.0, 0.0])
+
+
+def start_arm(tmp_path, host="127.0.0.2", extra=()):
+    sock = tmp_path / f"ur-{host}.sock"
+    return MockProcess(["-m", "mocks.ur_controller", "--host", host, "--control", str(sock),
+                        *extra])
+
+
+@pytest.fixture
+def arm_proc(tmp_path):
+    proc = start_arm(tmp_path)
+    yield proc
+    proc.stop()
+
+
+@pytest.fixture
+def clients(arm_proc):
+    import rtde_control
+    import rtde_receive
+
+    receive = rtde_receive.RTDEReceiveInterface(arm_proc.ready["host"])
+    ctrl = rtde_control.RTDEControlInterface(arm_proc.ready["host"])
+    yield ctrl, receive
+    ctrl.stopScript()
+    ctrl.disconnect()
+    receive.disconnect()
+
+
+def ur5e_fk(q):
+    """UR5e forward kinematics from the published DH table, written out for this test."""
+    d = [0.1625, 0, 0, 0.1333, 0.0997, 0.0996]
+    a = [0, -0.425, -0.3922, 0, 0, 0]
+    alpha = [math.pi / 2, 0, 0, math.pi / 2, -math.pi / 2, 0]
+    T = np.eye(4)
+    for i in range(6):
+        ct, st, ca, sa = math.cos(q[i]), math.sin(q[i]), math.cos(alpha[i]), math.sin(alpha[i])
+        T = T @ np.array([[ct, -st * ca, st * sa, a[i] * ct], [st, ct * ca, -ct * sa, a[i] * st],
+                          [0, sa, ca, d[i]], [0, 0, 0, 1]])
+    return T
+
+
+def rotation(pose):
+    import cv2
+
+    return cv2.Rodrigues(np.asarray(pose[3:6], float))[0]
+
+
+def test_streams_every_subscribed_variable_consistently(clients):
+    ctrl, receive = clients
+    assert receive.isConnected()
+    assert np.allclose(receive.getActualQ(), HOME)
+    assert np.allclose(receive.getTargetQ(), HOME)
+    assert receive.getRobotMode() == 7 and receive.getSafetyMode() == 1
+    assert receive.getRuntimeState() == 2  # the uploaded control script is playing
+    assert receive.getSafetyStatusBits() == 1
+    assert receive.getSpeedScaling() == 1.0
+    assert receive.getActualMainVoltage() == 48.0
+    assert list(receive.getJointTemperatures()) == [31.5] * 6
+    assert list(receive.getActualToolAccelerometer()) == [0.0, 0.0, 9.81]
+    T = ur5e_fk(HOME)
+    pose = receive.getActualTCPPose()
+    assert np.allclose(pose[:3], T[:3, 3], atol=1e-9)
+    assert np.allclose(rotation(pose), T[:3, :3], atol=1e-9)
+    t0 = receive.getTimestamp()
+    time.sleep(0.2)
+    assert 0.18 < receive.getTimestamp() - t0 < 0.25  # 500 Hz controller clock
+
+
+def test_movej_lands_within_1e4_rad(clients):
+    ctrl, receive = clients
+    target = HOME + np.radians([20, -10, 15, 5, -12, 30])
+    assert ctrl.moveJ(list(target), 1.05, 1.4)
+    assert np.max(np.abs(np.array(receive.getActualQ()) - target)) < 1e-4
+
+
+def test_movel_lands_on_pose_and_tcp_agrees_with_fk(clients):
+    ctrl, receive = clients
+    start = receive.getActualTCPPose()
+    goal = list(start)
+    goal[0] += 0.05
+    goal[2] -= 0.04
+    assert ctrl.moveL(goal, 0.2, 1.0)
+    pose = receive.getActualTCPPose()
+    assert np.allclose(pose[:3], goal[:3], atol=1e-6)
+    T = ur5e_fk(receive.getActualQ())
+    assert np.allclose(pose[:3], T[:3, 3], atol=1e-9)
+    assert np.allclose(ctrl.getForwardKinematics()[:3], pose[:3], atol=1e-9)
+
+
+def test_async_move_progress_then_stopj(clients):
+    ctrl, receive = clients
+    target = list(HOME + np.radians([60, 0, 0, 0, 0, 0]))
+    assert ctrl.moveJ(target, 0.5, 1.0, True)
+    time.sleep(0.3)
+    assert ctrl.getAsyncOperationProgress() >= 0  # running
+    moving = receive.getActualQ()[0]
+    assert 0 < moving < math.radians(60)
+    ctrl.stopJ(2.0, False)  # returns None in ur_rtde 1.6.5
+    time.sleep(0.1)
+    stopped = receive.getActualQ()[0]
+    assert stopped < math.radians(60) - 0.05
+    assert ctrl.getAsyncOperationProgress() < 0
+    assert ctrl.isSteady()
+    time.sleep(0.1)
+    assert receive.getActualQ()[0] == stopped
+
+
+def test_ik_fk_round_trip(clients):
+    ctrl, _ = clients
+    q = list(HOME + np.radians([15, 10, -20, 10, 25, -40]))
+    pose = ctrl.getForwardKinematics(q, [0, 0, 0, 0, 0, 0])
+    q_back = ctrl.getInverseKinematics(pose, q, 1e-10, 1e-10)
+    assert np.max(np.abs(np.array(q_back) - q)) < 1e-8
+    assert ctrl.getInverseKinematicsHasSolution(pose)
+    moved = ctrl.poseTrans(pose, [0, 0, 0.1, 0, 0, 0])
+    T = ur5e_fk(q)
+    assert np.allclose(moved[:3], T[:3, 3] + 0.1 * T[:3, 2], atol=1e-9)
+
+
+def arm_config(host, **extra):
+    text = f"devices:\n  arm:\n    host: {host}\n    speed_cap_dps: 90\n    accel_cap_dps2: 180\n"
+    for key, value in extra.items():
+        text += f"    {key}: {value}\n"
+    return parse_rig(text).devices.arm
+
+
+def test_driver_move_joint_and_soft_limits(arm_proc):
+    arm = URArm(arm_config(arm_proc.ready["host"],
+                           joint_limits_deg="[[-90, 90], [-180, 0], [-160, 160], "
+                                            "[-270, 90], [-180, 180], [-270, 270]]"))
+    with arm:
+        arm.move_joint(5, math.radians(25)).wait(10)
+        state = arm.read_state()
+        assert abs(state.q[5] - math.radians(25)) < 1e-4
+        with pytest.raises(SafetyError, match=r"arm.joint1: target 95.00 deg outside soft"):
+            arm.move_joint(0, math.radians(95))
+        assert abs(arm.read_state().q[0]) < 1e-9  # nothing was sent
+    assert arm.teardown_s is not None and arm.teardown_s < 3.0
+
+
+def test_protective_stop_mid_move_aborts_recorded_run(arm_proc, tmp_path):
+    rig = tmp_path / "rig.yaml"
+    rig.write_text(f"name: ur-rig\ndevices:\n  arm: {{host: {arm_proc.ready['host']}, "
+                   f"speed_cap_dps: 10, accel_cap_dps2: 40}}\n")
+    runner = Runner(load_rig(rig), show_progress=False)
+    import threading
+
+    def inject():
+        time.sleep(2.0)
+        control(arm_proc.ready["control"], {"cmd": "protective_stop"})
+
+    threading.Thread(target=inject, daemon=True).start()
+    outcome = runner.run("arm-sweep", {"joints": [6], "offsets_deg": [-40, 40]})
+    assert outcome.status == "aborted"
+    assert "protective stop" in outcome.reason
+    run = RunDirectory(outcome.run_dir)
+    assert (run.path / "run.log").exists()
+    dump = control(arm_proc.ready["control"], {"cmd": "dump"})
+    assert dump["safety_mode"] == 3  # still stopped: never unlocked automatically
+
+
+def test_stand_in_killed_mid_move_raises_device_error_within_3s(tmp_path):
+    proc = start_arm(tmp_path, host="127.0.0.4")
+    arm = URArm(arm_config("127.0.0.4", speed_cap_dps=10))
+    try:
+        arm.open()
+        status = arm.move_joint(0, math.radians(30))
+        time.sleep(0.3)
+        proc.kill()
+        t0 = time.monotonic()
+        with pytest.raises(DeviceError, match="connection lost"):
+            status.wait(10)
+        assert time.monotonic() - t0 < 3.0
+    finally:
+        t0 = time.monotonic()
+        arm.close()
+        assert time.monotonic() - t0 < 7.0
+        proc.stop()
+    assert proc.proc.poll() is not None
+
+
+def test_two_stand_ins_side_by_side(tmp_path):
+    import rtde_receive
+
+    a = start_arm(tmp_path, host="127.0.0.2")
+    b = start_arm(tmp_path, host="127.0.0.3", extra=("--model", "ur10e"))
+    try:
+        ra = rtde_receive.RTDEReceiveInterface("127.0.0.2")
+        rb = rtde_receive.RTDEReceiveInterface("127.0.0.3")
+        za, zb = ra.getActualTCPPose()[2], rb.getActualTCPPose()[2]
+        assert za == pytest.approx(0.1625 + 0.1333 - 0.1333 + 0.4879 - 0.1625, abs=0.5)
+        assert za != zb  # UR5e and UR10e answer with their own kinematics
+        ra.disconnect()
+        rb.disconnect()
+    finally:
+        a.stop()
+        b.stop()
+
+
+def test_arm_sweep_procedure_runs_through_runner(arm_proc, tmp_path):
+    rig = tmp_path / "rig.yaml"
+    rig.write_text(f"name: ur-rig\ndevices:\n  arm: {{host: {arm_proc.ready['host']}, "
+                   f"speed_cap_dps: 120, accel_cap_dps2: 400}}\n")
+    outcome = Runner(load_rig(rig), show_progress=False).run(
+        "arm-sweep", {"joints": [6, 5], "offsets_deg": [-5, 5], "settle_s": 0.0})
+    assert outcome.status == "succeeded", outcome.reason
+    assert outcome.result["poses"] == 4
+    assert outcome.result["max_joint_error_deg"] < 1e-3
+    captures = RunDirectory(outcome.run_dir).captures()
+    assert len(captures) == 4 and len(captures[0].meta["arm"]["q"]) == 6
