@@ -422,8 +422,11 @@ class Controller:
                 self.wint(0, 2)
 
     def _update_snapshot(self) -> None:
-        T_tool = self.ctrl_model.tool(self.q, self.tcp)
-        pose = matrix_to_pose(T_tool)
+        key = (self.q.tobytes(), self.tcp.tobytes())
+        if key != getattr(self, "_pose_key", None):
+            self._pose_key = key
+            self._pose = matrix_to_pose(self.ctrl_model.tool(self.q, self.tcp))
+        pose = self._pose
         J = self.ctrl_model.jacobian(self.q, self.tcp) if np.any(self.qd) else None
         tcp_speed = J @ self.qd if J is not None else np.zeros(6)
         safety_bits = {SAFETY_NORMAL: 0x01, SAFETY_PROTECTIVE: 0x04,
@@ -466,10 +469,8 @@ class Controller:
             next_t += PERIOD
             self.step()
             remaining = next_t - time.perf_counter()
-            if remaining > 0.0004:
-                time.sleep(remaining - 0.0003)
-            while time.perf_counter() < next_t:
-                pass
+            if remaining > 0:
+                time.sleep(remaining)  # never spin: spinning holds the GIL from the streams
             if time.perf_counter() - next_t > 0.05:  # fell far behind: resynchronise
                 next_t = time.perf_counter()
 

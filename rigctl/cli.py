@@ -7,7 +7,9 @@ limits, busy), 3 aborted.
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -37,11 +39,29 @@ out = Console()
 EXIT_FAILED, EXIT_REFUSED, EXIT_ABORTED = 1, 2, 3
 
 
-def _print_json(data: Any) -> None:
+@contextlib.contextmanager
+def stdout_to_stderr():
+    """Send file descriptor 1 to stderr while device libraries run: ur_rtde prints to
+    stdout from C++, and ``--json`` promises JSON on stdout and nothing else. Yields a
+    file object on the real stdout."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    os.dup2(2, 1)
+    real = os.fdopen(os.dup(saved), "w")
+    try:
+        yield real
+    finally:
+        sys.stdout.flush()
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
+def _print_json(data: Any, stream=None) -> None:
     from rigctl.records import to_jsonable
 
-    sys.stdout.write(json.dumps(to_jsonable(data), indent=2, default=str) + "\n")
-    sys.stdout.flush()
+    stream = stream or sys.stdout
+    stream.write(json.dumps(to_jsonable(data), indent=2, default=str) + "\n")
+    stream.flush()
 
 
 def _fail(exc: Exception, as_json: bool, code: int = EXIT_REFUSED) -> None:
@@ -99,7 +119,8 @@ def run(procedure: str = typer.Argument(..., help="Procedure name (see `rigctl p
             else:
                 _print_plan(plan)
             raise typer.Exit(0 if not plan.violations else EXIT_REFUSED)
-        outcome = runner.run(procedure, overrides)
+        with stdout_to_stderr():
+            outcome = runner.run(procedure, overrides)
     except RigError as exc:
         _fail(exc, as_json)
     if as_json:
@@ -268,7 +289,8 @@ def doctor(rig: Path = typer.Option(..., "--rig"),
         config = load_rig(rig)
     except RigError as exc:
         _fail(exc, as_json)
-    report = check_rig(config)
+    with stdout_to_stderr():
+        report = check_rig(config)
     if as_json:
         _print_json(report)
     else:
@@ -317,6 +339,70 @@ def bench_head(as_json: bool = typer.Option(False, "--json"),
                                     "ratio", "failures"], head.rows(result), out)
     out.print(f"failures: {result['failures']}")
     out.print(f"settle: {result['settle']}")
+    out.print(f"targets: {result['targets']}")
+
+
+@mock_app.command("arm", context_settings={"allow_extra_args": True,
+                                            "ignore_unknown_options": True},
+                  add_help_option=False)
+def mock_arm(ctx: typer.Context) -> None:
+    """UR controller stand-in: RTDE, dashboard, script port (see `rigctl mock arm --help`)."""
+    from mocks import ur_controller
+
+    raise typer.Exit(ur_controller.main(ctx.args))
+
+
+arm_app = typer.Typer(no_args_is_help=True, help="Operator actions on the arm.")
+app.add_typer(arm_app, name="arm")
+
+
+@arm_app.command("unlock")
+def arm_unlock(rig: Path = typer.Option(..., "--rig")) -> None:
+    """Unlock a protective stop (after inspecting its cause) and restart the control script."""
+    from drivers.ur import URArm
+
+    try:
+        config = load_rig(rig)
+        cfg = config.devices.arm
+        if cfg is None:
+            raise ConfigError(f"{rig.name}: devices.arm: not configured")
+        arm = URArm(cfg)
+        import dashboard_client
+
+        dash = dashboard_client.DashboardClient(cfg.host)
+        dash.connect()
+        answer = dash.safetystatus()
+        dash.disconnect()
+        err.print(f"arm {cfg.host}: {answer}")
+        err.print(arm.unlock_protective_stop())
+    except RigError as exc:
+        _fail(exc, False, EXIT_FAILED)
+    except RuntimeError as exc:
+        _fail(RigError(f"arm: {exc}"), False, EXIT_FAILED)
+
+
+@bench_app.command("arm")
+def bench_arm(as_json: bool = typer.Option(False, "--json"),
+              seconds: float = typer.Option(5.0, "--seconds")) -> None:
+    """ur_rtde against the stand-in: connect, stream rate, moveJ overhead and timing."""
+    from rigctl.bench import arm
+    from rigctl.bench.common import print_table
+
+    with stdout_to_stderr() as real_stdout:
+        result = arm.run(seconds)
+    if as_json:
+        _print_json(result, real_stdout)
+        return
+    rows = [[k, v] for k, v in result["stream"].items()]
+    rows += [["connect receive s", result["connect_receive_s"]],
+             ["connect control s", result["connect_control_s"]],
+             ["zero moveJ median ms", result["zero_movej_ms"]["median"]],
+             ["zero moveJ p95 ms", result["zero_movej_ms"]["p95"]],
+             ["teardown s", result["teardown_s"]]]
+    rows += [[f"moveJ {d['distance_rad']} rad v{d['v']} a{d['a']} measured/ideal s",
+              f"{d['measured_s']:.4f} / {d['ideal_s']:.4f} ({d['ratio']:.4f})"]
+             for d in result["movej"]]
+    print_table("bench arm", ["metric", "value"], rows, out)
     out.print(f"targets: {result['targets']}")
 
 

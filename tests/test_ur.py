@@ -66,7 +66,7 @@ def rotation(pose):
 
 
 def test_streams_every_subscribed_variable_consistently(clients):
-    ctrl, receive = clients
+    _ctrl, receive = clients
     assert receive.isConnected()
     assert np.allclose(receive.getActualQ(), HOME)
     assert np.allclose(receive.getTargetQ(), HOME)
