@@ -95,19 +95,19 @@ INPUT_TYPES = {
 }
 
 
-def load_errors(path: str | None) -> dict:
-    """Per-joint errors from a world file (``arm.errors``) or a small YAML (``errors``)."""
+def load_arm_section(path: str | None) -> dict:
+    """``arm`` of a world file (``errors``, ``home_deg``), or a small YAML of ``errors``."""
     if not path:
         return {}
     data = yaml.safe_load(Path(path).read_text()) or {}
-    section = data.get("arm", data)
-    return section.get("errors", {}) or {}
+    return data.get("arm", data) or {}
 
 
 class Controller:
     """Robot state, the running control script, and the 500 Hz loop."""
 
-    def __init__(self, model: str, errors: dict, tcp_model: str) -> None:
+    def __init__(self, model: str, errors: dict, tcp_model: str,
+                 home_deg: list[float] | None = None) -> None:
         self.nominal = ArmModel.nominal(model)
         self.true = self.nominal.with_errors(**errors)
         self.model_name = model
@@ -116,7 +116,7 @@ class Controller:
         self.tick_cond = threading.Condition(self.lock)
         self.tick = 0
         self.t = 0.0
-        self.q = np.radians([0.0, -90.0, 90.0, -90.0, -90.0, 0.0])
+        self.q = np.radians(home_deg or [0.0, -90.0, 90.0, -90.0, -90.0, 0.0])
         self.qd = np.zeros(6)
         self.q_target = self.q.copy()
         self.tcp = np.eye(4)
@@ -843,7 +843,9 @@ def main(argv: list[str] | None = None) -> int:
     if not args.host.startswith("127.") and args.host not in ("localhost", "::1"):
         print(json.dumps({"error": f"--host {args.host}: the stand-in binds loopback only"}))
         return 2
-    ctrl = Controller(args.model, load_errors(args.world), args.tcp_model)
+    arm = load_arm_section(args.world)
+    model = arm.get("model", args.model) if args.world else args.model
+    ctrl = Controller(model, arm.get("errors") or {}, args.tcp_model, arm.get("home_deg"))
     server = Server(ctrl, args.host, args.control)
     server.start()
     done = threading.Event()

@@ -406,5 +406,52 @@ def bench_arm(as_json: bool = typer.Option(False, "--json"),
     out.print(f"targets: {result['targets']}")
 
 
+sim_app = typer.Typer(no_args_is_help=True, help="The whole rig on stand-ins.")
+app.add_typer(sim_app, name="sim")
+
+
+@sim_app.command("up")
+def sim_up(world: Path = typer.Option(Path("mocks/worlds/default.yaml"), "--world"),
+           rig_out: Path = typer.Option(Path("sim-rig.yaml"), "--rig-out"),
+           host: str = typer.Option("127.0.0.1", "--host"),
+           records: str = typer.Option("records", "--records"),
+           port: int = typer.Option(18080, "--camera-port")) -> None:
+    """Start head bus, arm controller and camera on one world; write a rig file; run
+    until SIGTERM (or `rigctl sim down`)."""
+    from mocks import sim
+
+    try:
+        raise typer.Exit(sim.up(str(world), str(rig_out), host, records, port))
+    except RigError as exc:
+        _fail(exc, False)
+
+
+@sim_app.command("down")
+def sim_down(host: str = typer.Option("127.0.0.1", "--host")) -> None:
+    """Stop the simulated rig running on HOST."""
+    from mocks import sim
+
+    try:
+        _print_json(sim.down(host))
+    except RigError as exc:
+        _fail(exc, False, EXIT_FAILED)
+
+
+@sim_app.command("truth")
+def sim_truth(world: Path = typer.Option(Path("mocks/worlds/default.yaml"), "--world"),
+              as_json: bool = typer.Option(False, "--json")) -> None:
+    """The ground truth of a world file."""
+    from mocks.world import load_world
+
+    try:
+        truth = load_world(world).truth()
+    except RigError as exc:
+        _fail(exc, as_json)
+    if as_json:
+        _print_json(truth)
+    else:
+        out.print_json(json.dumps(truth))
+
+
 if __name__ == "__main__":  # pragma: no cover
     app()

@@ -1,0 +1,177 @@
+"""``Camera`` on OpenCV: a V4L2 device (path or index, ``CAP_V4L2``) or a stream URL
+(``CAP_FFMPEG``).
+
+Freshness: a grabber thread reads frames continuously and keeps only the newest one
+with its arrival time (``time.time()``). ``capture(not_before=t)`` returns the first
+frame that *arrived* at least one frame period (plus ``FRESH_MARGIN_S``) after ``t``:
+a frame arriving that late was exposed after ``t``, even counting the exposure, encode
+and transport latency of a USB or network camera. We chose the grabber over flushing
+buffered frames because the depth of V4L2 and FFMPEG buffers differs by driver and
+cannot be flushed reliably; a reader that always drains them sidesteps the question.
+
+Failures: no new frame within ``timeout_s`` raises ``DeviceError`` (stalled or vanished
+stream), never a hang.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from typing import Any
+
+import cv2
+
+from drivers.base import Camera, DeviceError, Frame
+
+log = logging.getLogger(__name__)
+
+FRESH_MARGIN_S = 0.02
+CONTROL_PROPS = {
+    "exposure": cv2.CAP_PROP_EXPOSURE, "gain": cv2.CAP_PROP_GAIN,
+    "focus": cv2.CAP_PROP_FOCUS, "white_balance": cv2.CAP_PROP_WB_TEMPERATURE,
+    "brightness": cv2.CAP_PROP_BRIGHTNESS, "contrast": cv2.CAP_PROP_CONTRAST,
+}
+
+
+def fourcc_text(value: float) -> str:
+    code = int(value)
+    return "".join(chr((code >> (8 * i)) & 0xFF) for i in range(4))
+
+
+class OpenCVCamera(Camera):
+    def __init__(self, cfg) -> None:
+        self.cfg = cfg
+        self.cap: cv2.VideoCapture | None = None
+        self.is_stream = isinstance(cfg.device, str) and "://" in cfg.device
+        self.settings: dict[str, Any] = {}
+        self._cond = threading.Condition()
+        self._latest: tuple[Any, float, int] | None = None
+        self._error: str | None = None
+        self._running = False
+        self._thread: threading.Thread | None = None
+        self.fps = cfg.fps or 15.0
+
+    @property
+    def name(self) -> str:
+        return f"camera {self.cfg.device}"
+
+    def open(self) -> None:
+        timeout_ms = int(self.cfg.timeout_s * 1000)
+        if self.is_stream:
+            params = [cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, timeout_ms,
+                      cv2.CAP_PROP_READ_TIMEOUT_MSEC, timeout_ms]
+            cap = cv2.VideoCapture(self.cfg.device, cv2.CAP_FFMPEG, params)
+        else:
+            device = self.cfg.device
+            if isinstance(device, str) and device.isdigit():
+                device = int(device)
+            cap = cv2.VideoCapture(device, cv2.CAP_V4L2)
+        if not cap.isOpened():
+            raise DeviceError(f"{self.name}: cannot open (no such device, or stream not "
+                              "reachable)")
+        self.cap = cap
+        self._apply_settings()
+        self._running = True
+        self._thread = threading.Thread(target=self._grab, daemon=True, name="camera-grab")
+        self._thread.start()
+        frame = self.capture()  # also checks the actual frame shape
+        self.settings["actual_shape"] = list(frame.image.shape)
+
+    def _apply_settings(self) -> None:
+        cap, cfg = self.cap, self.cfg
+        failed = []
+        if self.is_stream:
+            if cfg.controls:
+                raise DeviceError(f"{self.name}: controls {sorted(cfg.controls)} cannot be set "
+                                  "on a stream URL; remove them from the rig file")
+            self.settings = {"backend": cap.getBackendName(), "device": cfg.device,
+                             "width": int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)),
+                             "height": int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)),
+                             "fourcc": "MJPG (stream)"}
+            fps = cap.get(cv2.CAP_PROP_FPS)
+            if fps and 0 < fps < 240:
+                self.fps = cfg.fps or fps
+            return
+        cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*cfg.fourcc))
+        cap.set(cv2.CAP_PROP_FRAME_WIDTH, cfg.width)
+        cap.set(cv2.CAP_PROP_FRAME_HEIGHT, cfg.height)
+        if cfg.fps:
+            cap.set(cv2.CAP_PROP_FPS, cfg.fps)
+        if cfg.auto_off:
+            cap.set(cv2.CAP_PROP_AUTO_EXPOSURE, 1)  # V4L2: 1 = manual exposure
+            cap.set(cv2.CAP_PROP_AUTOFOCUS, 0)
+            cap.set(cv2.CAP_PROP_AUTO_WB, 0)
+        for name, value in cfg.controls.items():
+            cap.set(CONTROL_PROPS[name], value)
+        got = {"fourcc": fourcc_text(cap.get(cv2.CAP_PROP_FOURCC)),
+               "width": int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)),
+               "height": int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))}
+        if got["fourcc"] != cfg.fourcc:
+            failed.append(f"fourcc {cfg.fourcc} (got {got['fourcc']})")
+        if (got["width"], got["height"]) != (cfg.width, cfg.height):
+            failed.append(f"size {cfg.width}x{cfg.height} (got {got['width']}x{got['height']})")
+        for name, value in cfg.controls.items():
+            read = cap.get(CONTROL_PROPS[name])
+            got[name] = read
+            if abs(read - value) > 1e-6 * max(1.0, abs(value)):
+                failed.append(f"{name} {value} (got {read})")
+        if failed:
+            raise DeviceError(f"{self.name}: settings did not take: " + "; ".join(failed))
+        self.settings = {"backend": cap.getBackendName(), "device": str(cfg.device), **got}
+
+    def _grab(self) -> None:
+        seq = 0
+        while self._running:
+            ok, image = self.cap.read()
+            arrived = time.time()
+            if not ok:
+                with self._cond:
+                    self._error = "read failed (stream stalled or device gone)"
+                    self._cond.notify_all()
+                time.sleep(0.05)
+                continue
+            seq += 1
+            with self._cond:
+                self._latest = (image, arrived, seq)
+                self._error = None
+                self._cond.notify_all()
+
+    def capture(self, not_before: float | None = None) -> Frame:
+        """The newest frame that arrived one frame period after ``not_before`` (or any
+        frame newer than the call when ``not_before`` is None)."""
+        if self.cap is None:
+            raise DeviceError(f"{self.name}: not open")
+        threshold = (not_before if not_before is not None else time.time())
+        threshold += 1.0 / self.fps + FRESH_MARGIN_S if not_before is not None else 0.0
+        deadline = time.monotonic() + self.cfg.timeout_s
+        with self._cond:
+            while True:
+                latest = self._latest
+                if latest is not None and latest[1] >= threshold:
+                    break
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    why = self._error or "no new frame"
+                    raise DeviceError(f"{self.name}: {why} within {self.cfg.timeout_s:.1f} s")
+                self._cond.wait(remaining)
+        image, arrived, seq = latest
+        h, w = image.shape[:2]
+        if (w, h) != (self.cfg.width, self.cfg.height):
+            raise DeviceError(f"{self.name}: frames are {w}x{h}, the rig file says "
+                              f"{self.cfg.width}x{self.cfg.height}")
+        if image.ndim == 3:
+            image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        return Frame(image, arrived, seq, dict(self.settings))
+
+    def close(self) -> None:
+        self._running = False
+        if self._thread is not None:
+            self._thread.join(timeout=self.cfg.timeout_s + 1)
+        if self.cap is not None:
+            self.cap.release()
+            self.cap = None
+
+    def describe(self) -> dict[str, Any]:
+        return {"model": "OpenCV " + cv2.__version__, "firmware": None,
+                "serial": str(self.cfg.device), "settings": self.settings, "fps": self.fps}

@@ -1,0 +1,161 @@
+"""``rigctl sim up``: the whole rig on stand-ins sharing one world.
+
+Starts the Dynamixel bus (pty), the UR controller and the camera server, writes a rig file
+pointing at them, prints one JSON ready line, and runs until SIGTERM; then it stops every
+child by PID and removes its links and sockets. ``rigctl sim down`` stops a running one.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import selectors
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import yaml
+
+from mocks.world import load_world
+from rigctl.errors import ConfigError, DeviceError
+
+ROOT = Path(__file__).resolve().parents[1]
+STATE_DIR = Path(tempfile.gettempdir())
+
+
+def state_path(host: str) -> Path:
+    return STATE_DIR / f"rigctl-sim-{host}.json"
+
+
+class Child:
+    def __init__(self, name: str, args: list[str], timeout: float = 20.0) -> None:
+        env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH",
+                                                                                 "")}
+        self.name = name
+        self.proc = subprocess.Popen([sys.executable, "-m", *args], stdout=subprocess.PIPE,
+                                     text=True, env=env, start_new_session=True)
+        sel = selectors.DefaultSelector()
+        sel.register(self.proc.stdout, selectors.EVENT_READ)
+        deadline = time.monotonic() + timeout
+        self.ready = None
+        while time.monotonic() < deadline and self.proc.poll() is None:
+            if sel.select(0.1):
+                self.ready = json.loads(self.proc.stdout.readline())
+                break
+        if self.ready is None or "error" in self.ready:
+            self.stop()
+            raise DeviceError(f"sim: {name} stand-in did not start: {self.ready}")
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            os.kill(self.proc.pid, signal.SIGTERM)
+            try:
+                self.proc.wait(10)
+            except subprocess.TimeoutExpired:
+                os.killpg(self.proc.pid, signal.SIGKILL)
+                self.proc.wait(5)
+        if self.proc.stdout:
+            self.proc.stdout.close()
+
+
+def rig_text(world_path: Path, host: str, workdir: Path, camera_url: str, records: str,
+             world) -> dict:
+    cam = world.spec.camera
+    return {
+        "name": f"sim-{host.replace('.', '-')}",
+        "world": str(world_path),
+        "devices": {
+            "head": {"port": str(workdir / "dxl"), "baud": 1_000_000, "model": "xm430-w350",
+                     "limits": {"pan": [-45, 45], "tilt": [-30, 30], "roll": [-180, 180]},
+                     "speed_cap_dps": 120, "accel_cap_dps2": 600, "settle_s": 0.1,
+                     "park": {"policy": "home"}},
+            "arm": {"host": host, "model": world.spec.arm.model,
+                    "home_deg": list(world.spec.arm.home_deg),
+                    "speed_cap_dps": 90, "accel_cap_dps2": 180, "settle_s": 0.1},
+            "camera": {"device": camera_url, "width": cam.width, "height": cam.height,
+                       "fps": cam.fps, "timeout_s": 3.0},
+        },
+        "records": {"directory": records},
+    }
+
+
+def up(world_file: str, rig_out: str, host: str = "127.0.0.1", records: str = "records",
+       port: int = 18080, ready_out=None) -> int:
+    world_path = Path(world_file).resolve()
+    world = load_world(world_path)
+    if not host.startswith("127."):
+        raise ConfigError(f"--host {host}: the simulated rig binds loopback addresses only")
+    if state_path(host).exists():
+        old = json.loads(state_path(host).read_text())
+        try:
+            os.kill(old["pid"], 0)
+            raise DeviceError(f"sim: a simulated rig already runs on {host} (pid {old['pid']});"
+                              " stop it with `rigctl sim down`")
+        except ProcessLookupError:
+            state_path(host).unlink()
+    workdir = Path(tempfile.mkdtemp(prefix=f"rigctl-sim-{host}-"))
+    children: list[Child] = []
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    try:
+        noise_pulses = world.spec.head.encoder_noise_deg * 4096 / 360
+        children.append(Child("head", ["mocks.dynamixel_bus", "--link", str(workdir / "dxl"),
+                                       "--control", str(workdir / "dxl.sock"),
+                                       "--position-noise", str(noise_pulses)]))
+        children.append(Child("arm", ["mocks.ur_controller", "--host", host, "--world",
+                                      str(world_path), "--control", str(workdir / "ur.sock")]))
+        children.append(Child("camera", ["mocks.camera_server", "--world", str(world_path),
+                                         "--host", host, "--port", str(port),
+                                         "--head-control", str(workdir / "dxl.sock"),
+                                         "--arm-control", str(workdir / "ur.sock"),
+                                         "--control", str(workdir / "camera.sock")]))
+        rig = rig_text(world_path, host, workdir, children[2].ready["url"], records, world)
+        rig_path = Path(rig_out).resolve()
+        rig_path.write_text("# written by `rigctl sim up`; points at the stand-ins\n"
+                            + yaml.safe_dump(rig, sort_keys=False))
+        ready = {"pid": os.getpid(), "rig": str(rig_path), "world": str(world_path),
+                 "host": host, "workdir": str(workdir),
+                 "head": children[0].ready, "arm": children[1].ready,
+                 "camera": children[2].ready,
+                 "children": [c.proc.pid for c in children]}
+        state_path(host).write_text(json.dumps(ready))
+        print(json.dumps(ready), file=ready_out or sys.stdout, flush=True)
+        while not stop.is_set():
+            for child in children:
+                if child.proc.poll() is not None:
+                    print(json.dumps({"error": f"{child.name} stand-in exited "
+                                               f"({child.proc.returncode})"}), file=sys.stderr)
+                    stop.set()
+            stop.wait(0.5)
+    finally:
+        for child in reversed(children):
+            child.stop()
+        shutil.rmtree(workdir, ignore_errors=True)
+        state_path(host).unlink(missing_ok=True)
+    return 0
+
+
+def down(host: str = "127.0.0.1", timeout: float = 20.0) -> dict:
+    path = state_path(host)
+    if not path.exists():
+        raise DeviceError(f"sim: no simulated rig is running on {host}")
+    state = json.loads(path.read_text())
+    try:
+        os.kill(state["pid"], signal.SIGTERM)
+    except ProcessLookupError:
+        path.unlink(missing_ok=True)
+        return {"stopped": False, "reason": "was not running"}
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            os.kill(state["pid"], 0)
+        except ProcessLookupError:
+            return {"stopped": True, "pid": state["pid"]}
+        time.sleep(0.1)
+    raise DeviceError(f"sim: pid {state['pid']} did not stop within {timeout:.0f} s")

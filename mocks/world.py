@@ -1,0 +1,354 @@
+"""The simulated rig's ground truth, and the renderer of what its camera sees.
+
+The world file (YAML) is documented key by key in ``mocks/worlds/README.md``. This module
+is the simulator's forward model: projection and distortion by OpenCV's
+``projectPoints``, arm kinematics by ``mocks.ur_kinematics``. It shares no code with the
+solvers in ``rigctl.calib`` / ``rigctl.geometry``, so a bug cannot hide in both.
+
+Frames (``T_a_b`` maps points of b into a): ``base`` (arm base = world), ``flange``,
+``head`` (head mount), ``cam`` (optical: z forward, x right, y down), ``target``.
+Head motion: ``T_head_cam = Ry(pan) Rx(tilt) R_axis(roll) T(offset)``, where the roll
+axis is the camera z axis tilted by ``roll_axis_tilt_deg`` (about camera x, then y).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Literal
+
+import cv2
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from mocks.ur_kinematics import ArmModel
+from rigctl.errors import ConfigError
+
+WORLDS = Path(__file__).resolve().parent / "worlds"
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class CameraTruth(_Strict):
+    width: int = Field(1280, gt=0)
+    height: int = Field(720, gt=0)
+    fx: float = Field(900.0, gt=0)
+    fy: float = Field(905.0, gt=0)
+    cx: float = 652.3
+    cy: float = 371.8
+    distortion: list[float] = Field(default_factory=lambda: [0.0] * 5)
+    pixel_noise: float = Field(0.5, ge=0)
+    jpeg_quality: int = Field(95, ge=10, le=100)
+    fps: float = Field(15.0, gt=0, le=120)
+    blur_sigma: float = Field(0.6, ge=0)
+
+    @field_validator("distortion")
+    @classmethod
+    def _five(cls, v: list[float]) -> list[float]:
+        if len(v) != 5:
+            raise ValueError(f"expected [k1, k2, p1, p2, k3], got {len(v)} values")
+        return v
+
+
+class HeadTruth(_Strict):
+    mount: Literal["flange", "fixed"] = "flange"
+    roll_axis_tilt_deg: list[float] = Field(default_factory=lambda: [0.0, 0.0])
+    camera_offset_mm: list[float] = Field(default_factory=lambda: [0.0, 0.0, 0.0])
+    encoder_noise_deg: float = Field(0.0, ge=0)
+    fixed_xyz_mm: list[float] = Field(default_factory=lambda: [0.0, 0.0, 500.0])
+    fixed_rpy_deg: list[float] = Field(default_factory=lambda: [0.0, 0.0, 0.0])
+
+
+class ArmErrors(_Strict):
+    theta_deg: list[float] = Field(default_factory=lambda: [0.0] * 6)
+    d_mm: list[float] = Field(default_factory=lambda: [0.0] * 6)
+    a_mm: list[float] = Field(default_factory=lambda: [0.0] * 6)
+    alpha_deg: list[float] = Field(default_factory=lambda: [0.0] * 6)
+    beta_deg: list[float] = Field(default_factory=lambda: [0.0] * 6)
+
+
+class ArmTruth(_Strict):
+    model: Literal["ur3e", "ur5e", "ur10e"] = "ur5e"
+    home_deg: list[float] = Field(default_factory=lambda: [0.0, -90.0, 90.0, -90.0, -90.0, 0.0])
+    errors: ArmErrors = ArmErrors()
+
+
+class PoseTruth(_Strict):
+    xyz_mm: list[float] = Field(default_factory=lambda: [0.0, 0.0, 50.0])
+    rpy_deg: list[float] = Field(default_factory=lambda: [0.0, 0.0, 0.0])
+
+
+class TargetTruth(_Strict):
+    rows: int = Field(7, ge=3)
+    cols: int = Field(10, ge=3)
+    square_mm: float = Field(30.0, gt=0)
+    xyz_mm: list[float] = Field(default_factory=lambda: [600.0, 0.0, 0.0])
+    rpy_deg: list[float] = Field(default_factory=lambda: [180.0, 0.0, 0.0])
+
+
+class SceneTruth(_Strict):
+    depth_m: list[float] = Field(default_factory=lambda: [1.5, 6.0])
+    shapes: int = Field(40, ge=0, le=500)
+    cone_deg: float = Field(40.0, gt=0, le=80)
+
+
+class WorldFile(_Strict):
+    seed: int = 1
+    camera: CameraTruth = CameraTruth()
+    head: HeadTruth = HeadTruth()
+    arm: ArmTruth = ArmTruth()
+    hand_eye: PoseTruth = PoseTruth()
+    target: TargetTruth = TargetTruth()
+    scene: SceneTruth = SceneTruth()
+
+
+def rpy_matrix(rpy_deg) -> np.ndarray:
+    """R = Rz(yaw) Ry(pitch) Rx(roll) from [roll, pitch, yaw] in degrees."""
+    r, p, y = np.radians(rpy_deg)
+    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
+    rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
+    ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
+    rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
+    return rz @ ry @ rx
+
+
+def transform(R=None, t=None) -> np.ndarray:
+    T = np.eye(4)
+    if R is not None:
+        T[:3, :3] = R
+    if t is not None:
+        T[:3, 3] = t
+    return T
+
+
+def axis_angle(axis, angle: float) -> np.ndarray:
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K
+
+
+def load_world(path: str | Path) -> World:
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: world file not found") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path.name}: not valid YAML: {exc}") from None
+    try:
+        spec = WorldFile.model_validate(data)
+    except ValidationError as exc:
+        lines = [f"{path.name}: {'.'.join(map(str, e['loc']))}: "
+                 f"{e['msg'].removeprefix('Value error, ')}" for e in exc.errors()]
+        raise ConfigError("\n".join(lines)) from None
+    return World(spec, path)
+
+
+class World:
+    """Ground truth: camera, head, arm, hand-eye, target and scene."""
+
+    def __init__(self, spec: WorldFile, path: Path | None = None) -> None:
+        self.spec, self.path = spec, path
+        cam = spec.camera
+        self.K = np.array([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1.0]])
+        self.dist = np.array(cam.distortion, float)
+        self.size = (cam.width, cam.height)
+        self.arm_true = ArmModel.nominal(spec.arm.model).with_errors(**spec.arm.errors.model_dump())
+        tx, ty = np.radians(spec.head.roll_axis_tilt_deg)
+        self.roll_axis = axis_angle([1, 0, 0], tx) @ axis_angle([0, 1, 0], ty) @ [0, 0, 1.0]
+        self.cam_offset = np.array(spec.head.camera_offset_mm) / 1000.0
+        he = spec.hand_eye
+        self.T_flange_head = transform(rpy_matrix(he.rpy_deg), np.array(he.xyz_mm) / 1000.0)
+        self.T_base_head_fixed = transform(rpy_matrix(spec.head.fixed_rpy_deg),
+                                           np.array(spec.head.fixed_xyz_mm) / 1000.0)
+        tg = spec.target
+        self.T_base_target = transform(rpy_matrix(tg.rpy_deg), np.array(tg.xyz_mm) / 1000.0)
+        self.home_q = np.radians(spec.arm.home_deg)
+        self._scene = self._make_scene()
+        self._board = self._make_board()
+
+    # -- kinematic chain -------------------------------------------------------------
+
+    def T_head_cam(self, pan: float, tilt: float, roll: float) -> np.ndarray:
+        R = axis_angle([0, 1, 0], pan) @ axis_angle([1, 0, 0], tilt) @ \
+            axis_angle(self.roll_axis, roll)
+        return transform(R) @ transform(None, self.cam_offset)
+
+    def T_base_head(self, q) -> np.ndarray:
+        if self.spec.head.mount == "fixed":
+            return self.T_base_head_fixed
+        return self.arm_true.flange(q) @ self.T_flange_head
+
+    def T_base_cam(self, q, head_angles) -> np.ndarray:
+        return self.T_base_head(q) @ self.T_head_cam(*head_angles)
+
+    # -- objects ---------------------------------------------------------------------
+
+    def target_corners(self) -> np.ndarray:
+        """Inner corners in the target frame, row-major ((rows-1) x (cols-1), metres)."""
+        s = self.spec.target.square_mm / 1000.0
+        rows, cols = self.spec.target.rows, self.spec.target.cols
+        return np.array([[(j + 1) * s, (i + 1) * s, 0.0]
+                         for i in range(rows - 1) for j in range(cols - 1)])
+
+    @staticmethod
+    def _polygon(corners: np.ndarray, per_edge: int) -> np.ndarray:
+        pts = []
+        for k in range(len(corners)):
+            a, b = corners[k], corners[(k + 1) % len(corners)]
+            for f in np.linspace(0, 1, per_edge, endpoint=False):
+                pts.append(a + f * (b - a))
+        return np.array(pts)
+
+    def _make_board(self) -> list[tuple[np.ndarray, int]]:
+        s = self.spec.target.square_mm / 1000.0
+        rows, cols = self.spec.target.rows, self.spec.target.cols
+        T = self.T_base_target
+        items = []
+        margin = s
+        outline = np.array([[-margin, -margin, 0], [cols * s + margin, -margin, 0],
+                            [cols * s + margin, rows * s + margin, 0],
+                            [-margin, rows * s + margin, 0]])
+        items.append((self._polygon(outline, 16), 235))
+        for i in range(rows):
+            for j in range(cols):
+                if (i + j) % 2 == 0:
+                    sq = np.array([[j * s, i * s, 0], [(j + 1) * s, i * s, 0],
+                                   [(j + 1) * s, (i + 1) * s, 0], [j * s, (i + 1) * s, 0]])
+                    items.append((self._polygon(sq, 4), 20))
+        return [((T[:3, :3] @ pts.T).T + T[:3, 3], shade) for pts, shade in items]
+
+    def _make_scene(self) -> list[tuple[np.ndarray, int]]:
+        """Planar shapes at random directions and depths around the camera at home."""
+        rng = np.random.default_rng(self.spec.seed)
+        sc = self.spec.scene
+        T_home = self.T_base_cam(self.home_q, (0.0, 0.0, 0.0))
+        shapes = []
+        for _ in range(sc.shapes):
+            depth = rng.uniform(*sc.depth_m)
+            theta = math.radians(sc.cone_deg) * math.sqrt(rng.uniform())
+            phi = rng.uniform(0, 2 * math.pi)
+            direction = np.array([math.sin(theta) * math.cos(phi),
+                                  math.sin(theta) * math.sin(phi), math.cos(theta)])
+            centre = direction * depth
+            size = depth * rng.uniform(0.04, 0.10)
+            kind = rng.integers(3)
+            if kind == 0:  # rectangle
+                w, h = size, size * rng.uniform(0.5, 1.5)
+                local = np.array([[-w, -h], [w, -h], [w, h], [-w, h]]) / 2
+                local = self._polygon(np.c_[local, np.zeros(4)], 8)[:, :2]
+            elif kind == 1:  # triangle
+                ang = rng.uniform(0, 2 * math.pi) + np.array([0, 2.1, 4.2])
+                local = np.c_[np.cos(ang), np.sin(ang)] * size / 1.5
+                local = self._polygon(np.c_[local, np.zeros(3)], 10)[:, :2]
+            else:  # ellipse
+                t = np.linspace(0, 2 * math.pi, 48, endpoint=False)
+                local = np.c_[np.cos(t) * size / 2, np.sin(t) * size / 2 * rng.uniform(0.5, 1)]
+            # plane facing the camera, tilted by up to 25 deg
+            normal = -direction
+            tilt = axis_angle(rng.normal(size=3), math.radians(rng.uniform(0, 25)))
+            normal = tilt @ normal
+            u = np.cross(normal, [0.3, 1.0, 0.1])
+            u /= np.linalg.norm(u)
+            v = np.cross(normal, u)
+            spin = rng.uniform(0, 2 * math.pi)
+            u, v = math.cos(spin) * u + math.sin(spin) * v, -math.sin(spin) * u + math.cos(spin) * v
+            pts_cam = centre + local[:, :1] * u + local[:, 1:2] * v
+            pts = (T_home[:3, :3] @ pts_cam.T).T + T_home[:3, 3]
+            shade = int(rng.choice([rng.uniform(15, 70), rng.uniform(180, 245)]))
+            shapes.append((pts, shade))
+        return shapes
+
+    # -- rendering -------------------------------------------------------------------
+
+    def project(self, points_base: np.ndarray, T_base_cam: np.ndarray) -> np.ndarray:
+        """Pixel coordinates of base-frame points (OpenCV projectPoints, with distortion)."""
+        T_cam_base = np.linalg.inv(T_base_cam)
+        rvec, _ = cv2.Rodrigues(T_cam_base[:3, :3])
+        px, _ = cv2.projectPoints(points_base.reshape(-1, 1, 3), rvec, T_cam_base[:3, 3],
+                                  self.K, self.dist)
+        return px.reshape(-1, 2)
+
+    def target_corner_pixels(self, T_base_cam: np.ndarray) -> np.ndarray:
+        corners = self.target_corners()
+        pts = (self.T_base_target[:3, :3] @ corners.T).T + self.T_base_target[:3, 3]
+        return self.project(pts, T_base_cam)
+
+    def render(self, T_base_cam: np.ndarray, frame_index: int = 0,
+               noise: bool = True) -> np.ndarray:
+        """An 8-bit grey image of what the camera sees (before JPEG)."""
+        w, h = self.size
+        img = np.full((h, w), 118, np.uint8)
+        T_cam_base = np.linalg.inv(T_base_cam)
+        R, t = T_cam_base[:3, :3], T_cam_base[:3, 3]
+        limit_x = 1.3 * max(self.K[0, 2], w - self.K[0, 2]) / self.K[0, 0]
+        limit_y = 1.3 * max(self.K[1, 2], h - self.K[1, 2]) / self.K[1, 1]
+        # Groups are painted far to near; the board is one group (outline, then squares).
+        groups = [[item] for item in self._scene] + [self._board]
+        drawables = []
+        for group in groups:
+            cam_polys = []
+            for pts, shade in group:
+                pc = (R @ pts.T).T + t
+                z = pc[:, 2]
+                xn, yn = pc[:, 0] / np.maximum(z, 1e-9), pc[:, 1] / np.maximum(z, 1e-9)
+                if np.any(z < 0.02) or np.any(np.abs(xn) > 2 * limit_x) or \
+                        np.any(np.abs(yn) > 2 * limit_y):
+                    cam_polys = []  # behind the camera, or where distortion folds back
+                    break
+                if np.all(np.abs(xn) > limit_x) or np.all(np.abs(yn) > limit_y):
+                    continue
+                cam_polys.append((pc, shade))
+            if cam_polys:
+                drawables.append((float(np.mean(cam_polys[0][0][:, 2])), cam_polys))
+        drawables.sort(key=lambda d: -d[0])
+        polys = [p for _, group in drawables for p in group]
+        if polys:
+            allpts = np.concatenate([pc for pc, _ in polys])
+            px, _ = cv2.projectPoints(allpts.reshape(-1, 1, 3), np.zeros(3), np.zeros(3),
+                                      self.K, self.dist)
+            px = px.reshape(-1, 2)
+            start = 0
+            for pc, shade in polys:
+                poly = px[start:start + len(pc)]
+                start += len(pc)
+                # OpenCV fills pixel centres at integer coordinates; shift=4 is 1/16 px.
+                fixed = np.round(poly * 16).astype(np.int32)
+                cv2.fillPoly(img, [fixed], int(shade), lineType=cv2.LINE_AA, shift=4)
+        cam = self.spec.camera
+        if cam.blur_sigma > 0:
+            img = cv2.GaussianBlur(img, (0, 0), cam.blur_sigma)
+        if noise and cam.pixel_noise > 0:
+            rng = np.random.default_rng(self.spec.seed * 1_000_003 + frame_index)
+            noisy = img.astype(np.float32) + rng.standard_normal(img.shape, np.float32) * \
+                cam.pixel_noise
+            img = np.clip(noisy + 0.5, 0, 255).astype(np.uint8)
+        return img
+
+    # -- truth report ----------------------------------------------------------------
+
+    def truth(self) -> dict:
+        cam = self.spec.camera
+        T_flange_cam = self.T_flange_head @ self.T_head_cam(0.0, 0.0, 0.0)
+        links = [{"theta_offset": float(self.arm_true.theta_offset[i]),
+                  "d": float(self.arm_true.d[i]), "a": float(self.arm_true.a[i]),
+                  "alpha": float(self.arm_true.alpha[i]), "beta": float(self.arm_true.beta[i])}
+                 for i in range(6)]
+        return {
+            "fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy,
+            "width": cam.width, "height": cam.height, "distortion": list(cam.distortion),
+            "roll_axis_in_cam": self.roll_axis.tolist(),
+            "camera_offset_m": self.cam_offset.tolist(),
+            "arm": {"model": self.spec.arm.model,
+                    "convention": "A_i = Rz(theta_i + theta_offset) Tz(d) Tx(a) Rx(alpha) Ry(beta)",
+                    "units": {"length": "m", "angle": "rad"}, "links": links,
+                    "T_base_link0": np.eye(4).tolist()},
+            "head_mount": self.spec.head.mount,
+            "T_flange_cam": T_flange_cam.tolist(),
+            "T_base_target": self.T_base_target.tolist(),
+            "target": {"rows": self.spec.target.rows, "cols": self.spec.target.cols,
+                       "square_m": self.spec.target.square_mm / 1000.0},
+        }
