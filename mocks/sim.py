@@ -73,13 +73,19 @@ def rig_text(world_path: Path, host: str, workdir: Path, camera_url: str, record
             "head": {"port": str(workdir / "dxl"), "baud": 1_000_000, "model": "xm430-w350",
                      "limits": {"pan": [-45, 45], "tilt": [-30, 30], "roll": [-180, 180]},
                      "speed_cap_dps": 120, "accel_cap_dps2": 600, "settle_s": 0.1,
-                     "park": {"policy": "home"}},
+                     "park": {"policy": "home"},
+                     "mount": {"xyz_mm": [round(v, -1) for v in world.spec.hand_eye.xyz_mm],
+                               "rpy_deg": [round(v) for v in world.spec.hand_eye.rpy_deg]}},
             "arm": {"host": host, "model": world.spec.arm.model,
                     "home_deg": list(world.spec.arm.home_deg),
                     "speed_cap_dps": 90, "accel_cap_dps2": 180, "settle_s": 0.1},
             "camera": {"device": camera_url, "width": cam.width, "height": cam.height,
                        "fps": cam.fps, "timeout_s": 3.0},
         },
+        "target": {"rows": world.spec.target.rows, "cols": world.spec.target.cols,
+                   "square_mm": world.spec.target.square_mm,
+                   "pose": {"xyz_mm": [round(v, -1) for v in world.spec.target.xyz_mm],
+                            "rpy_deg": list(world.spec.target.rpy_deg)}},
         "records": {"directory": records},
     }
 
@@ -141,6 +147,19 @@ def up(world_file: str, rig_out: str, host: str = "127.0.0.1", records: str = "r
     return 0
 
 
+def _alive(pid: int) -> bool:
+    """True while ``pid`` runs; a zombie (exited, not yet reaped by its parent) is not."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+        return stat.rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return True
+
+
 def down(host: str = "127.0.0.1", timeout: float = 20.0) -> dict:
     path = state_path(host)
     if not path.exists():
@@ -153,9 +172,7 @@ def down(host: str = "127.0.0.1", timeout: float = 20.0) -> dict:
         return {"stopped": False, "reason": "was not running"}
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
-        try:
-            os.kill(state["pid"], 0)
-        except ProcessLookupError:
+        if not _alive(state["pid"]):
             return {"stopped": True, "pid": state["pid"]}
         time.sleep(0.1)
     raise DeviceError(f"sim: pid {state['pid']} did not stop within {timeout:.0f} s")

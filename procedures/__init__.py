@@ -11,6 +11,7 @@ from .base import Procedure
 _MODULES = {
     "head-sweep": "procedures.head_sweep",
     "arm-sweep": "procedures.arm_sweep",
+    "capture-survey": "procedures.capture_survey",
 }
 
 

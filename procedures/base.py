@@ -97,7 +97,19 @@ class CaptureStep:
         return f"capture {self.label}" + ("" if self.image else " (readings only)")
 
 
-Step = MoveHead | MoveArmJoints | MoveArmJoint | MoveArmLinear | Settle | CaptureStep
+@dataclass(frozen=True)
+class Note:
+    """A planning remark (e.g. a pose skipped as unreachable): logged, shown in dry runs."""
+
+    text: str
+    label: str = ""
+    device: ClassVar[str | None] = None
+
+    def describe(self) -> str:
+        return f"note: {self.text}"
+
+
+Step = MoveHead | MoveArmJoints | MoveArmJoint | MoveArmLinear | Settle | CaptureStep | Note
 
 
 class Params(BaseModel):

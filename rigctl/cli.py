@@ -453,5 +453,27 @@ def sim_truth(world: Path = typer.Option(Path("mocks/worlds/default.yaml"), "--w
         out.print_json(json.dumps(truth))
 
 
+@bench_app.command("camera")
+def bench_camera(as_json: bool = typer.Option(False, "--json"),
+                 world: str = typer.Option("default", "--world")) -> None:
+    """Simulated camera: render fps, capture latency after settle, survey time."""
+    from rigctl.bench import camera
+
+    with stdout_to_stderr() as real_stdout:
+        result = camera.run(world)
+    if as_json:
+        _print_json(result, real_stdout)
+        return
+    from rigctl.bench.common import print_table
+
+    r, c, s = result["render"], result["capture_after_settle_ms"], result["survey"]
+    print_table("bench camera", ["metric", "value"], [
+        ["render fps (one core)", r["fps_one_core"]], ["ms per frame", r["ms_per_frame"]],
+        ["capture after settle, median ms", c["median"]], ["... max ms", c["max"]],
+        ["frame period ms", c["frame_period_ms"]],
+        ["capture-survey end to end s", s["seconds"]], ["survey captures", s["captures"]],
+    ], out)
+
+
 if __name__ == "__main__":  # pragma: no cover
     app()

@@ -76,8 +76,23 @@ class HeadPark(_Strict):
     angles_deg: list[float] = [0.0, 0.0, 0.0]
 
 
+class MountPose(_Strict):
+    """A nominal transform, mm and degrees (rpy = Rz(yaw) Ry(pitch) Rx(roll))."""
+
+    xyz_mm: list[float] = Field(default_factory=lambda: [0.0, 0.0, 50.0])
+    rpy_deg: list[float] = Field(default_factory=lambda: [0.0, 0.0, 0.0])
+
+    @field_validator("xyz_mm", "rpy_deg")
+    @classmethod
+    def _three(cls, value: list[float]) -> list[float]:
+        if len(value) != 3:
+            raise ValueError(f"expected 3 values, got {len(value)}")
+        return value
+
+
 class HeadConfig(_Strict):
     port: str
+    mount: MountPose = MountPose()  # nominal T_flange_head (head on the flange), planning
     baud: int = 1_000_000
     model: Literal["xm430-w350", "xl430-w250"] = "xm430-w350"
     ids: AxisMap = AxisMap()
@@ -186,6 +201,16 @@ class CameraConfig(_Strict):
         return value
 
 
+class TargetConfig(_Strict):
+    """The calibration checkerboard and its approximate placement (for planning views;
+    the calibration estimates the exact pose)."""
+
+    rows: int = Field(7, ge=3)
+    cols: int = Field(10, ge=3)
+    square_mm: float = Field(30.0, gt=0)
+    pose: MountPose = MountPose(xyz_mm=[350.0, 100.0, 0.0], rpy_deg=[180.0, 0.0, 0.0])
+
+
 class DevicesConfig(_Strict):
     head: HeadConfig | None = None
     arm: ArmConfig | None = None
@@ -234,6 +259,7 @@ class RigConfig(_Strict):
     name: str = Field("rig", pattern=r"^[A-Za-z0-9_.-]+$")
     devices: DevicesConfig = DevicesConfig()
     records: RecordsConfig = RecordsConfig()
+    target: TargetConfig = TargetConfig()
     procedures: dict[str, dict[str, Any]] = Field(default_factory=dict)
     service: ServiceConfig = ServiceConfig()
     world: str | None = None  # simulated rigs only: the ground-truth world file

@@ -48,6 +48,7 @@ from procedures.base import (
     MoveArmJoints,
     MoveArmLinear,
     MoveHead,
+    Note,
     Procedure,
     Settle,
     SolveContext,
@@ -326,6 +327,8 @@ class Runner:
                 raise AbortedError(self._abort_reason)
         elif isinstance(step, CaptureStep):
             self._capture(rig, step, run, state)
+        elif isinstance(step, Note):
+            log.warning("plan: %s", step.text)
         else:  # pragma: no cover - a new step type without runner support
             raise ConfigError(f"runner cannot execute step {step!r}")
 

@@ -1,0 +1,86 @@
+"""Pose planning with the nominal model: views of the target that keep it in sight."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from rigctl.config import RigConfig
+from rigctl.errors import SolveError
+from rigctl.geometry.kinematics import nominal_ur
+from rigctl.geometry.transforms import inv_T, look_at, make_T, xyz_rpy_to_T
+
+VIEW_SEEDS_DEG = ([0, -100, -100, -70, 90, 0], [0, -80, -110, -80, 90, 0],
+                  [30, -100, -100, -70, 90, 0], [-30, -100, -100, -70, 90, 0])
+
+
+def target_centre(config: RigConfig) -> tuple[np.ndarray, np.ndarray]:
+    """``T_base_target`` (nominal) and the board centre in the base frame."""
+    tg = config.target
+    T = xyz_rpy_to_T(tg.pose.xyz_mm, tg.pose.rpy_deg)
+    s = tg.square_mm / 1000.0
+    centre = T @ np.array([tg.cols * s / 2, tg.rows * s / 2, 0.0, 1.0])
+    return T, centre[:3]
+
+
+def nominal_flange_cam(config: RigConfig) -> np.ndarray:
+    """Nominal ``T_flange_cam`` at head home: the head mount, camera on the head axes."""
+    mount = config.devices.head.mount if config.devices.head else None
+    if mount is None:
+        return make_T(t=[0, 0, 0.05])
+    return xyz_rpy_to_T(mount.xyz_mm, mount.rpy_deg)
+
+
+def plan_target_views(config: RigConfig, n: int, distance_m: float = 0.45,
+                      max_tilt_deg: float = 25.0, seed: int = 0,
+                      ) -> tuple[list[np.ndarray], list[str]]:
+    """Joint configurations whose (nominal) camera looks at the board centre from
+    ``distance_m``, tilted up to ``max_tilt_deg`` off the board normal, with varied roll
+    about the viewing axis. Returns the reachable ones and notes for the skipped."""
+    arm = config.devices.arm
+    if arm is None:
+        raise SolveError("planning target views needs devices.arm in the rig file")
+    model = nominal_ur(arm.model)
+    T_base_target, centre = target_centre(config)
+    normal = -T_base_target[:3, 2]  # board z points into the board; the camera is outside
+    T_cam_flange = inv_T(nominal_flange_cam(config))
+    limits = arm.joint_limits_rad()
+    rng = np.random.default_rng(seed)
+    poses, notes = [], []
+    previous = None
+    attempts = 0
+    while len(poses) < n and attempts < 6 * n:
+        attempts += 1
+        tilt = math.radians(max_tilt_deg) * math.sqrt(rng.uniform()) if len(poses) else 0.0
+        azimuth = rng.uniform(0, 2 * math.pi)
+        helper = np.cross(normal, [1.0, 0.0, 0.0])
+        if np.linalg.norm(helper) < 1e-6:
+            helper = np.cross(normal, [0.0, 1.0, 0.0])
+        u = helper / np.linalg.norm(helper)
+        v = np.cross(normal, u)
+        direction = math.cos(tilt) * normal + math.sin(tilt) * (math.cos(azimuth) * u +
+                                                                 math.sin(azimuth) * v)
+        eye = centre + distance_m * rng.uniform(0.9, 1.1) * direction
+        spin = rng.uniform(-math.pi / 3, math.pi / 3)
+        up = math.cos(spin) * u + math.sin(spin) * v
+        T_base_flange = look_at(eye, centre, up) @ T_cam_flange
+        seeds = ([previous] if previous is not None else []) + \
+            [np.radians(s) for s in VIEW_SEEDS_DEG]
+        q = None
+        for seed_q in seeds:
+            try:
+                q = model.ik(T_base_flange, seed_q)
+            except SolveError:
+                continue
+            q = (q + np.pi) % (2 * np.pi) - np.pi
+            if all(lo <= v <= hi for v, (lo, hi) in zip(q, limits, strict=True)):
+                break
+            q = None
+        if q is None:
+            notes.append(f"view {attempts}: eye {np.round(eye, 3).tolist()} m unreachable or "
+                         "outside the soft limits; skipped")
+            continue
+        poses.append(q)
+        previous = q
+    return poses, notes

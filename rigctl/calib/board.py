@@ -1,0 +1,41 @@
+"""Checkerboard detection (OpenCV ``findChessboardCornersSB``)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+
+def board_points(rows: int, cols: int, square_m: float) -> np.ndarray:
+    """Inner corners in the target frame (x along columns, y along rows), row-major,
+    in the order ``detect_board`` returns them."""
+    return np.array([[(j + 1) * square_m, (i + 1) * square_m, 0.0]
+                     for i in range(rows - 1) for j in range(cols - 1)])
+
+
+def detect_board(image: np.ndarray, rows: int, cols: int) -> np.ndarray | None:
+    """Inner corners (N x 2 pixels, row-major like ``board_points``) or None.
+
+    OpenCV may return the grid in either of its two 180-degree orders. The square
+    enclosed by the first 2x2 inner corners is square (1, 1) of the board, which is black
+    (the origin square (0, 0) is black); in the reversed order it would be square
+    (rows-2, cols-2), white when rows + cols is odd. So a bright first square means the
+    order is reversed, and we flip it."""
+    gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    found, corners = cv2.findChessboardCornersSB(gray, (cols - 1, rows - 1),
+                                                 flags=cv2.CALIB_CB_ACCURACY)
+    if not found:
+        return None
+    pts = corners.reshape(-1, 2).astype(float)
+    if (rows + cols) % 2 == 1:
+        w = cols - 1
+        quad = np.array([pts[0], pts[1], pts[w + 1], pts[w]], np.float32)
+        mask = np.zeros(gray.shape, np.uint8)
+        centre = quad.mean(axis=0)
+        shrunk = centre + 0.6 * (quad - centre)
+        cv2.fillConvexPoly(mask, np.round(shrunk).astype(np.int32), 255)
+        inside = float(cv2.mean(gray, mask)[0])
+        ring = float(np.mean(gray))
+        if inside > ring:
+            pts = pts[::-1].copy()
+    return pts

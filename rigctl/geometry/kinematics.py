@@ -1,0 +1,146 @@
+"""Serial-arm kinematics for the solvers: DH and Hayati link transforms, forward
+kinematics, nominal parameters, and inverse kinematics for planning.
+
+Link transform (thesis 1.2.1, D-H with Hayati's beta for parallel axes)::
+
+    A_i = Rz(theta_i + theta_offset_i) Tz(d_i) Tx(a_i) Rx(alpha_i) Ry(beta_i)
+
+Written independently of the simulator's ``mocks.ur_kinematics``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from rigctl.errors import SolveError
+from rigctl.geometry.transforms import R_to_rotvec
+
+LINK_KEYS = ("theta_offset", "d", "a", "alpha", "beta")
+
+
+def link_transform(theta: float, d: float, a: float, alpha: float, beta: float = 0.0
+                   ) -> np.ndarray:
+    """``Rz(theta) Tz(d) Tx(a) Rx(alpha) Ry(beta)`` (thesis eq. 1.3 with Hayati's beta)."""
+    ct, st = np.cos(theta), np.sin(theta)
+    ca, sa = np.cos(alpha), np.sin(alpha)
+    cb, sb = np.cos(beta), np.sin(beta)
+    # Rz(theta) Tz(d) Tx(a) Rx(alpha), multiplied out
+    A = np.array([[ct, -st * ca, st * sa, a * ct],
+                  [st, ct * ca, -ct * sa, a * st],
+                  [0.0, sa, ca, d],
+                  [0.0, 0.0, 0.0, 1.0]])
+    if beta == 0.0:
+        return A
+    Ry = np.array([[cb, 0.0, sb, 0.0], [0.0, 1.0, 0.0, 0.0], [-sb, 0.0, cb, 0.0],
+                   [0.0, 0.0, 0.0, 1.0]])
+    return A @ Ry
+
+
+@dataclass
+class KinematicModel:
+    """Per-link parameters (arrays of length n) plus base and tool transforms."""
+
+    d: np.ndarray
+    a: np.ndarray
+    alpha: np.ndarray
+    beta: np.ndarray = None
+    theta_offset: np.ndarray = None
+    T_base_link0: np.ndarray = field(default_factory=lambda: np.eye(4))
+    T_flange_tool: np.ndarray = field(default_factory=lambda: np.eye(4))
+
+    def __post_init__(self) -> None:
+        n = len(self.d)
+        self.d, self.a, self.alpha = (np.asarray(v, float) for v in (self.d, self.a, self.alpha))
+        self.beta = np.zeros(n) if self.beta is None else np.asarray(self.beta, float)
+        self.theta_offset = np.zeros(n) if self.theta_offset is None else \
+            np.asarray(self.theta_offset, float)
+
+    @property
+    def n(self) -> int:
+        return len(self.d)
+
+    def copy(self) -> KinematicModel:
+        return KinematicModel(self.d.copy(), self.a.copy(), self.alpha.copy(), self.beta.copy(),
+                              self.theta_offset.copy(), self.T_base_link0.copy(),
+                              self.T_flange_tool.copy())
+
+    def links(self) -> list[dict[str, float]]:
+        return [{k: float(getattr(self, k)[i]) for k in LINK_KEYS} for i in range(self.n)]
+
+    def link(self, i: int, q_i: float) -> np.ndarray:
+        return link_transform(q_i + self.theta_offset[i], self.d[i], self.a[i], self.alpha[i],
+                              self.beta[i])
+
+    def frames(self, q) -> list[np.ndarray]:
+        """``T_base_link{i}`` for i = 0..n (link n is the flange)."""
+        T = self.T_base_link0.copy()
+        out = [T]
+        for i in range(self.n):
+            T = T @ self.link(i, q[i])
+            out.append(T)
+        return out
+
+    def fk(self, q) -> np.ndarray:
+        """``T_base_tool = T_base_link0 A_1 ... A_n T_flange_tool``."""
+        return self.frames(q)[-1] @ self.T_flange_tool
+
+    def ik(self, T_target: np.ndarray, q_seed, iterations: int = 200, tol: float = 1e-10
+           ) -> np.ndarray:
+        """Joints reaching ``T_target`` near ``q_seed``, by damped Gauss-Newton on the pose
+        error; ``SolveError`` if it does not converge (unreachable pose)."""
+        q = np.array(q_seed, float)
+        lam = 1e-4
+        for _ in range(iterations):
+            T = self.fk(q)
+            err = np.concatenate([T_target[:3, 3] - T[:3, 3],
+                                  R_to_rotvec(T_target[:3, :3] @ T[:3, :3].T)])
+            if np.linalg.norm(err) < tol:
+                return q
+            J = self.geometric_jacobian(q)
+            step = np.linalg.solve(J.T @ J + lam * np.eye(self.n), J.T @ err)
+            norm = np.linalg.norm(step)
+            if norm > 0.3:
+                step *= 0.3 / norm
+            q = q + step
+        T = self.fk(q)
+        if np.linalg.norm(T_target[:3, 3] - T[:3, 3]) > 1e-6:
+            raise SolveError("inverse kinematics did not converge: pose out of reach")
+        return q
+
+    def geometric_jacobian(self, q) -> np.ndarray:
+        """6 x n Jacobian of tool position and orientation with respect to the joints."""
+        frames = self.frames(q)
+        p_tool = (frames[-1] @ self.T_flange_tool)[:3, 3]
+        J = np.zeros((6, self.n))
+        for i in range(self.n):
+            # joint i rotates about z of the frame before link i (after theta offset)
+            z = frames[i][:3, 2]
+            p = frames[i][:3, 3]
+            J[:3, i] = np.cross(z, p_tool - p)
+            J[3:, i] = z
+        return J
+
+
+UR_DH = {  # Universal Robots' published nominal DH (d, a), metres
+    "ur3e": ([0.15185, 0, 0, 0.13105, 0.08535, 0.0921], [0, -0.24355, -0.2132, 0, 0, 0]),
+    "ur5e": ([0.1625, 0, 0, 0.1333, 0.0997, 0.0996], [0, -0.425, -0.3922, 0, 0, 0]),
+    "ur10e": ([0.1807, 0, 0, 0.17415, 0.11985, 0.11655], [0, -0.6127, -0.57155, 0, 0, 0]),
+}
+UR_ALPHA = [np.pi / 2, 0, 0, np.pi / 2, -np.pi / 2, 0]
+
+
+def nominal_ur(model: str) -> KinematicModel:
+    """Nominal UR3e/UR5e/UR10e model."""
+    if model not in UR_DH:
+        raise SolveError(f"no nominal kinematics for {model!r}; known: {sorted(UR_DH)}")
+    d, a = UR_DH[model]
+    return KinematicModel(np.array(d, float), np.array(a, float), np.array(UR_ALPHA, float))
+
+
+def puma560_3link() -> KinematicModel:
+    """The three PUMA 560 links of thesis Table 5.5: l = 0, 432.6, 203.2 mm; alpha = 90,
+    -90, 0 deg; d = 203.2, 0, 0 mm."""
+    return KinematicModel(d=np.array([0.2032, 0.0, 0.0]), a=np.array([0.0, 0.4326, 0.2032]),
+                          alpha=np.radians([90.0, -90.0, 0.0]))

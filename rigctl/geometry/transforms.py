@@ -1,0 +1,66 @@
+"""Rigid transforms. ``T_a_b`` maps points of frame b into frame a (4x4, metres)."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+
+def make_T(R=None, t=None) -> np.ndarray:
+    T = np.eye(4)
+    if R is not None:
+        T[:3, :3] = R
+    if t is not None:
+        T[:3, 3] = t
+    return T
+
+
+def inv_T(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid transform, without a general matrix inverse."""
+    R, t = T[:3, :3], T[:3, 3]
+    return make_T(R.T, -R.T @ t)
+
+
+def rotvec_to_R(rv) -> np.ndarray:
+    return Rotation.from_rotvec(np.asarray(rv, float)).as_matrix()
+
+
+def R_to_rotvec(R) -> np.ndarray:
+    return Rotation.from_matrix(np.asarray(R, float)).as_rotvec()
+
+
+def pose_to_T(pose) -> np.ndarray:
+    """UR pose ``[x, y, z, rx, ry, rz]`` (m, rotation vector) to 4x4."""
+    return make_T(rotvec_to_R(pose[3:6]), pose[:3])
+
+
+def T_to_pose(T) -> np.ndarray:
+    return np.concatenate([T[:3, 3], R_to_rotvec(T[:3, :3])])
+
+
+def rpy_deg_to_R(rpy_deg) -> np.ndarray:
+    """``[roll, pitch, yaw]`` in degrees to ``Rz(yaw) Ry(pitch) Rx(roll)``."""
+    return Rotation.from_euler("ZYX", np.asarray(rpy_deg, float)[::-1], degrees=True).as_matrix()
+
+
+def xyz_rpy_to_T(xyz_mm, rpy_deg) -> np.ndarray:
+    return make_T(rpy_deg_to_R(rpy_deg), np.asarray(xyz_mm, float) / 1000.0)
+
+
+def rotation_angle(R) -> float:
+    """Angle (rad) of a rotation matrix."""
+    return float(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0)))
+
+
+def look_at(eye, target, up_hint=(0.0, 1.0, 0.0)) -> np.ndarray:
+    """``T_base_cam`` of an optical frame (z forward, y down) at ``eye`` looking at
+    ``target``."""
+    eye, target = np.asarray(eye, float), np.asarray(target, float)
+    z = target - eye
+    z /= np.linalg.norm(z)
+    x = np.cross(np.asarray(up_hint, float), z)
+    if np.linalg.norm(x) < 1e-6:
+        x = np.cross([1.0, 0.0, 0.0], z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return make_T(np.column_stack([x, y, z]), eye)

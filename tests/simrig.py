@@ -1,0 +1,29 @@
+"""Start `rigctl sim up` as a process for a test, and stop it (and its children) by PID."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from tests.mockproc import ROOT, MockProcess
+
+
+class SimRig:
+    def __init__(self, tmp_path: Path, world: str = "ideal", host: str = "127.0.0.7",
+                 port: int = 18081) -> None:
+        self.rig_path = tmp_path / "sim-rig.yaml"
+        self.proc = MockProcess(["-m", "rigctl.cli", "sim", "up", "--world",
+                                 str(ROOT / "mocks" / "worlds" / f"{world}.yaml"),
+                                 "--rig-out", str(self.rig_path), "--host", host,
+                                 "--records", str(tmp_path / "records"),
+                                 "--camera-port", str(port)], ready_timeout=40)
+        self.ready = self.proc.ready
+
+    def stop(self) -> None:
+        self.proc.stop(timeout=20)
+        for pid in self.ready["children"]:
+            try:
+                os.kill(pid, 0)
+            except ProcessLookupError:
+                continue
+            raise AssertionError(f"stand-in pid {pid} outlived `sim up`")
