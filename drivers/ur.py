@@ -62,6 +62,7 @@ class URArm(Arm):
         self._last_ts = (0.0, time.monotonic())
         self.serial = None
         self.polyscope = None
+        self._monitor_stop = threading.Event()
 
     # -- connection -----------------------------------------------------------------
 
@@ -90,6 +91,8 @@ class URArm(Arm):
         self.control = self._with_retries(
             "control", lambda: rtde_control.RTDEControlInterface(self.cfg.host))
         self._last_ts = (self.receive.getTimestamp(), time.monotonic())
+        self._monitor_stop = threading.Event()
+        threading.Thread(target=self._monitor, daemon=True, name="arm-stream-monitor").start()
         try:
             import dashboard_client
 
@@ -111,6 +114,7 @@ class URArm(Arm):
                 self.move_joints(home).wait(self.cfg.move_timeout_s)
         finally:
             t0 = time.perf_counter()
+            self._monitor_stop.set()
             control, receive = self.control, self.receive
             self.control = self.receive = None
             if control is not None:
@@ -134,16 +138,23 @@ class URArm(Arm):
 
     # -- state ------------------------------------------------------------------------
 
+    def _monitor(self) -> None:
+        """Note when the controller timestamp last advanced (every 20 ms)."""
+        receive = self.receive
+        while not self._monitor_stop.is_set() and receive is not None:
+            try:
+                ts = receive.getTimestamp()
+            except Exception:
+                return
+            if ts != self._last_ts[0]:
+                self._last_ts = (ts, time.monotonic())
+            self._monitor_stop.wait(0.02)
+
     def _alive(self) -> bool:
         """The stream is connected and its timestamp advanced within ``STALE_S``."""
         if self.receive is None or not self.receive.isConnected():
             return False
-        ts = self.receive.getTimestamp()
-        now = time.monotonic()
-        if ts != self._last_ts[0]:
-            self._last_ts = (ts, now)
-            return True
-        return now - self._last_ts[1] < STALE_S
+        return time.monotonic() - self._last_ts[1] < STALE_S
 
     def _require_alive(self) -> None:
         if not self._alive():

@@ -228,3 +228,63 @@ def test_arm_sweep_procedure_runs_through_runner(arm_proc, tmp_path):
     assert outcome.result["max_joint_error_deg"] < 1e-3
     captures = RunDirectory(outcome.run_dir).captures()
     assert len(captures) == 4 and len(captures[0].meta["arm"]["q"]) == 6
+
+
+def test_speedj_servoj_and_their_stops(clients):
+    ctrl, receive = clients
+    ctrl.speedJ([0.2, 0, 0, 0, 0, 0], 2.0, 0.002)
+    time.sleep(0.5)
+    qd = receive.getActualQd()[0]
+    assert qd == pytest.approx(0.2, abs=1e-6)  # ramped at 2 rad/s^2 to 0.2 rad/s
+    ctrl.speedStop(5.0)
+    time.sleep(0.1)
+    assert receive.getActualQd()[0] == 0.0
+    start = np.array(receive.getActualQ())
+    target = start + np.radians([0, 0, 0, 0, 0, 5])
+    for _ in range(150):  # 0.3 s of servoJ at 500 Hz, as a client streaming setpoints would
+        t_start = ctrl.initPeriod()
+        ctrl.servoJ(list(target), 0.5, 0.5, 0.002, 0.05, 300)
+        ctrl.waitPeriod(t_start)
+    ctrl.servoStop(5.0)
+    time.sleep(0.1)
+    assert abs(receive.getActualQ()[5] - target[5]) < math.radians(0.5)
+
+
+def test_set_tcp_moves_the_reported_tool_point(clients):
+    ctrl, receive = clients
+    flange = np.array(receive.getActualTCPPose())
+    assert ctrl.setTcp([0, 0, 0.1, 0, 0, 0])
+    time.sleep(0.05)
+    tool = np.array(receive.getActualTCPPose())
+    T = ur5e_fk(receive.getActualQ())
+    assert np.allclose(tool[:3], flange[:3] + 0.1 * T[:3, 2], atol=1e-9)
+    assert ctrl.getTCPOffset() == pytest.approx([0, 0, 0.1, 0, 0, 0])
+
+
+def test_watchdog_stops_program_when_client_goes_quiet(clients, arm_proc):
+    ctrl, receive = clients
+    assert ctrl.setWatchdog(10.0)  # 10 Hz minimum
+    for _ in range(5):
+        ctrl.kickWatchdog()
+        time.sleep(0.05)
+    assert receive.getRuntimeState() == 2
+    time.sleep(0.4)  # no kicks: the stand-in must stop the program
+    assert receive.getRuntimeState() == 1
+    dump = control(arm_proc.ready["control"], {"cmd": "dump"})
+    assert any("watchdog" in m for m in dump["messages"])
+
+
+def test_emergency_stop_and_stalled_stream_reach_the_driver(arm_proc):
+    arm = URArm(arm_config(arm_proc.ready["host"]))
+    with arm:
+        control(arm_proc.ready["control"], {"cmd": "stall_stream", "seconds": 2})
+        time.sleep(1.3)
+        with pytest.raises(DeviceError, match="connection lost"):
+            arm.read_state()
+        time.sleep(1.0)
+        assert arm.read_state().safety == "normal"
+        control(arm_proc.ready["control"], {"cmd": "emergency_stop"})
+        time.sleep(0.05)
+        with pytest.raises(SafetyError, match="emergency stop"):
+            arm.move_joint(5, 0.1)
+        control(arm_proc.ready["control"], {"cmd": "release_estop"})
