@@ -216,6 +216,9 @@ class DynamixelHead(Head):
                                dxl_id)
                     time.sleep(0.05)
                 self._configure_eeprom(dxl_id)
+                self.info[dxl_id]["position_limits"] = (
+                    self._read4(dxl_id, ADDR_MIN_POS, "read min position limit"),
+                    self._read4(dxl_id, ADDR_MAX_POS, "read max position limit"))
             self._set_profile()
             self.set_torque(True)
 
@@ -311,6 +314,11 @@ class DynamixelHead(Head):
         self.check_limits(pan, tilt, roll)
         targets = {self.ids[a]: self._to_pulses(a, v)
                    for a, v in zip(AXES, (pan, tilt, roll), strict=True)}
+        for dxl_id, goal in targets.items():
+            lo, hi = self.info.get(dxl_id, {}).get("position_limits", (0, 4095))
+            if not lo <= goal <= hi:
+                raise SafetyError(f"{self._name(dxl_id)}: goal {goal} pulses outside the servo's "
+                                  f"position limits [{lo}, {hi}] (check zero_offset_deg)")
         if self._motion is not None and self._motion.is_alive():
             self._stop_event.set()
             self._motion.join(timeout=2)
@@ -319,6 +327,13 @@ class DynamixelHead(Head):
                         f"{math.degrees(tilt):.2f}, roll {math.degrees(roll):.2f} deg")
         start = {k: v["position"] for k, v in self.read_status().items()}
         self._sync_write(ADDR_GOAL, 4, targets, "sync write goal position")
+        # Sync write has no reply: read the goals back so a refused goal is not a silent hang.
+        written = self._group_read(ADDR_GOAL, 4, "fast sync read goal position")
+        for dxl_id, goal in targets.items():
+            got = _signed32(int.from_bytes(written[dxl_id], "little"))
+            if got != goal:
+                raise DeviceError(f"{self._name(dxl_id)}: goal {goal} not accepted (servo "
+                                  f"holds {got}); torque off or goal out of range?")
         self._motion = threading.Thread(target=self._watch, args=(status, start, targets),
                                         name="head-move", daemon=True)
         self._motion.start()

@@ -12,6 +12,7 @@ _MODULES = {
     "head-sweep": "procedures.head_sweep",
     "arm-sweep": "procedures.arm_sweep",
     "capture-survey": "procedures.capture_survey",
+    "active-camera": "procedures.active_camera",
 }
 
 

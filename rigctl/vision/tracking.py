@@ -1,0 +1,141 @@
+"""Tracking contours across a known head motion.
+
+Two ways, as the issue asks:
+
+- ``track_by_shift``: the thesis's method (5.1.2). Dilate the reference contour's edge
+  pixels, shift the mask along the direction the motion moves contours (pan: mostly
+  horizontal, tilt: mostly vertical), AND it with the moved image's edges, and keep the
+  shift with the most overlap; the tracked contour is the moved edges under the mask.
+- ``track_by_prediction``: predict where each point must land from the known rotation
+  and the current estimate of K (``predict`` callback), then search a small window
+  around the prediction (chamfer score on the distance transform of the moved edges).
+  Rolls (thesis future work 6.1.2) use this with the rotated prediction.
+
+Match hygiene: a match is rejected, with the reason, when it is partial (too few
+predicted points find an edge), ambiguous (a second, separate peak scores nearly as
+well), or leaves the image.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.ndimage import map_coordinates
+
+from rigctl.vision.contours import Contour, EdgeMap, subpixel
+
+RADIUS = 2.0
+
+
+@dataclass
+class Match:
+    ok: bool
+    reason: str
+    points: np.ndarray | None = None   # sub-pixel moved points
+    normals: np.ndarray | None = None
+    offset: tuple[float, float] = (0.0, 0.0)
+    coverage: float = 0.0
+
+
+def _distance(emap: EdgeMap) -> np.ndarray:
+    if not hasattr(emap, "_dt"):
+        emap._dt = cv2.distanceTransform(255 - emap.edges, cv2.DIST_L2, 3)
+    return emap._dt
+
+
+def _collect(emap: EdgeMap, template: np.ndarray, radius: float = RADIUS):
+    """Moved edge pixels within ``radius`` of the template points."""
+    h, w = emap.edges.shape
+    mask = np.zeros((h, w), np.uint8)
+    pts = np.round(template).astype(int)
+    inside = (pts[:, 0] >= 0) & (pts[:, 0] < w) & (pts[:, 1] >= 0) & (pts[:, 1] < h)
+    mask[pts[inside, 1], pts[inside, 0]] = 255
+    r = int(np.ceil(radius))
+    mask = cv2.dilate(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2))
+    ys, xs = np.nonzero(mask & emap.edges)
+    return np.c_[xs, ys]
+
+
+def _score(dt: np.ndarray, pts: np.ndarray, cap: float = RADIUS) -> float:
+    d = map_coordinates(dt, [pts[:, 1], pts[:, 0]], order=1, mode="constant", cval=cap * 4)
+    return float(np.mean(d <= cap))
+
+
+def _finish(emap: EdgeMap, template: np.ndarray, offset, min_coverage: float,
+            best: float, second: float, ambiguity: float) -> Match:
+    h, w = emap.edges.shape
+    if np.any(template[:, 0] < 2) or np.any(template[:, 0] > w - 3) or \
+            np.any(template[:, 1] < 2) or np.any(template[:, 1] > h - 3):
+        return Match(False, "leaves the image", offset=offset, coverage=best)
+    if best < min_coverage:
+        return Match(False, f"partial match (coverage {best:.2f} < {min_coverage:.2f})",
+                     offset=offset, coverage=best)
+    if second >= ambiguity * best:
+        return Match(False, f"ambiguous (second peak {second:.2f} vs {best:.2f})",
+                     offset=offset, coverage=best)
+    pixels = _collect(emap, template)
+    if len(pixels) < 0.5 * len(template):
+        return Match(False, "too few edge points under the matched template", offset=offset,
+                     coverage=best)
+    pts, normals, _ = subpixel(emap, pixels)
+    return Match(True, "ok", pts, normals, offset, best)
+
+
+def _search(dt, base: np.ndarray, xs, ys):
+    scores = np.zeros((len(ys), len(xs)))
+    for i, dy in enumerate(ys):
+        for j, dx in enumerate(xs):
+            scores[i, j] = _score(dt, base + np.array([dx, dy]))
+    return scores
+
+
+def _best_and_second(scores: np.ndarray, xs, ys, exclusion: float):
+    i, j = np.unravel_index(np.argmax(scores), scores.shape)
+    best = scores[i, j]
+    yy, xx = np.meshgrid(ys, xs, indexing="ij")
+    far = np.hypot(yy - ys[i], xx - xs[j]) > exclusion
+    second = float(scores[far].max()) if far.any() else 0.0
+    return (float(xs[j]), float(ys[i])), float(best), second
+
+
+def track_by_shift(contour: Contour, moved: EdgeMap, direction: str, max_shift: float,
+                   cross: float = 4.0, min_coverage: float = 0.75,
+                   ambiguity: float = 0.85) -> Match:
+    """Thesis tracking: search a shift along ``direction`` ('x' for pan, 'y' for tilt) up
+    to ``max_shift`` pixels (either sign), with a little slack across it."""
+    dt = _distance(moved)
+    along = np.arange(-max_shift, max_shift + 1, 2.0)
+    across = np.arange(-cross, cross + 1, 1.0)
+    xs, ys = (along, across) if direction == "x" else (across, along)
+    scores = _search(dt, contour.points, xs, ys)
+    offset, best, second = _best_and_second(scores, xs, ys, exclusion=6.0)
+    # refine to half a pixel around the peak
+    fx = np.arange(offset[0] - 1, offset[0] + 1.01, 0.5)
+    fy = np.arange(offset[1] - 1, offset[1] + 1.01, 0.5)
+    fine = _search(dt, contour.points, fx, fy)
+    i, j = np.unravel_index(np.argmax(fine), fine.shape)
+    offset = (float(fx[j]), float(fy[i]))
+    return _finish(moved, contour.points + offset, offset, min_coverage, best, second,
+                   ambiguity)
+
+
+def track_by_prediction(contour: Contour, moved: EdgeMap,
+                        predict: Callable[[np.ndarray], np.ndarray], window: float = 12.0,
+                        min_coverage: float = 0.75, ambiguity: float = 0.85) -> Match:
+    """Predict the contour's points in the moved image, then search +-``window`` pixels
+    around the prediction for the best chamfer score."""
+    predicted = predict(contour.points)
+    dt = _distance(moved)
+    coarse = np.arange(-window, window + 1, 2.0)
+    scores = _search(dt, predicted, coarse, coarse)
+    offset, best, second = _best_and_second(scores, coarse, coarse, exclusion=6.0)
+    fine = np.arange(-2, 2.01, 0.5)
+    fx, fy = offset[0] + fine, offset[1] + fine
+    grid = _search(dt, predicted, fx, fy)
+    i, j = np.unravel_index(np.argmax(grid), grid.shape)
+    offset = (float(fx[j]), float(fy[i]))
+    return _finish(moved, predicted + offset, offset, min_coverage, max(best, grid.max()),
+                   second, ambiguity)
