@@ -475,5 +475,49 @@ def bench_camera(as_json: bool = typer.Option(False, "--json"),
     ], out)
 
 
+def _fmt(value) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, (list, tuple)):
+        return "(" + ", ".join(_fmt(v) for v in value) + ")"
+    return f"{value:.1f}" if isinstance(value, float) else str(value)
+
+
+@bench_app.command("thesis")
+def bench_thesis(as_json: bool = typer.Option(False, "--json"),
+                 trials: int = typer.Option(25, "--trials")) -> None:
+    """Thesis Tables 5.1-5.4 and the noise sweep, ours beside the thesis's."""
+    from rigctl.bench import thesis
+    from rigctl.bench.common import print_table
+
+    result = thesis.run(trials)
+    if as_json:
+        _print_json(result)
+        return
+    print_table("Table 5.1 (no noise, 3 deg)", ["strategy", "points", "true f", "ours",
+                                                 "thesis"],
+                [[r["strategy"], r["points"], _fmt((r["fx"], r["fy"])),
+                  _fmt((r["ours_fx"], r["ours_fy"])), _fmt((r["thesis_fx"], r["thesis_fy"]))]
+                 for r in result["table_5_1"]], out)
+    print_table("noise sweep, % focal error (fx, fy = 400, 600)",
+                ["sigma", "A ours", "A thesis", "B ours", "B thesis"],
+                [[r["sigma"], _fmt(r["A_median_err_pct"]), _fmt(r["thesis_A_pct"]),
+                  _fmt(r["B_median_err_pct"]), _fmt(r["thesis_B_pct"])]
+                 for r in result["noise_sweep"]], out)
+    print_table("Table 5.2 Strategy C centre (true 10, 20)",
+                ["roll", "s0 ours", "s0 thesis", "s5 ours", "s5 thesis", "s10 ours",
+                 "s10 thesis"],
+                [[r["roll_deg"]] + [_fmt(r[f"sigma{s}"][k]) for s in (0, 5, 10)
+                                    for k in ("ours", "thesis")]
+                 for r in result["table_5_2"]], out)
+    print_table("Table 5.3 Strategy D centre", ["sigma", "ours", "thesis"],
+                [[r["sigma"], _fmt(r["ours"]), _fmt(r["thesis"])]
+                 for r in result["table_5_3"]], out)
+    print_table("Table 5.4 focal lengths (true 400, 600)",
+                ["sigma", "C ours", "C thesis", "D ours", "D thesis"],
+                [[r["sigma"], _fmt(r["C_ours"]), _fmt(r["C_thesis"]), _fmt(r["D_ours"]),
+                  _fmt(r["D_thesis"])] for r in result["table_5_4"]], out)
+
+
 if __name__ == "__main__":  # pragma: no cover
     app()
