@@ -519,5 +519,34 @@ def bench_thesis(as_json: bool = typer.Option(False, "--json"),
                   _fmt(r["D_thesis"])] for r in result["table_5_4"]], out)
 
 
+@bench_app.command("active")
+def bench_active(as_json: bool = typer.Option(False, "--json"),
+                 trials: int = typer.Option(200, "--trials"),
+                 plot: Path = typer.Option(Path("bench-active.png"), "--plot")) -> None:
+    """Monte Carlo of strategies A-D, the refinement and calibrateCamera against truth."""
+    from rigctl.bench import active
+    from rigctl.bench.common import print_table
+
+    result = active.run(trials, plot=plot)
+    if as_json:
+        _print_json(result)
+        return
+    rows = []
+    for case in result["cases"]:
+        for method in active.METHODS:
+            m = case[method]
+            rows.append([case["sigma_px"], case["pan_tilt_deg"], case["roll_axis_tilt_deg"],
+                         method, m["focal_pct_median"], m["focal_pct_p95"], m["pp_px_median"],
+                         m["pp_px_p95"], m["failed"]])
+    for case in result["calibrateCamera"]:
+        rows.append([case["sigma_px"], "-", "-", f"calibrateCamera {case['views']} views",
+                     case["focal_pct_median"], case["focal_pct_p95"], case["pp_px_median"],
+                     case["pp_px_p95"], case["failed"]])
+    print_table(f"bench active ({result['trials']} trials per row)",
+                ["sigma", "pan/tilt", "axis tilt", "method", "f% med", "f% p95", "pp med",
+                 "pp p95", "failed"], rows, out)
+    out.print(f"targets: {result['targets']}; plot: {result.get('plot')}")
+
+
 if __name__ == "__main__":  # pragma: no cover
     app()
