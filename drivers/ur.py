@@ -9,8 +9,9 @@
 - Never unlocks a protective stop by itself: ``unlock_protective_stop()`` is an explicit
   operator action (``rigctl arm unlock``).
 - Teardown: ``disconnect()`` of the control interface sleeps ~0.5 s in ur_rtde; the cost
-  is measured and kept in ``describe()["teardown_s"]``. Teardown of a dead connection
-  runs in a thread bounded by ``TEARDOWN_TIMEOUT_S``.
+  is measured and kept in ``describe()["teardown_s"]``. On a dead connection only
+  ``disconnect()`` is called: ur_rtde's ``stopScript()`` would retry the link for a long
+  time, and a thread abandoned inside the C++ library has crashed the process.
 """
 
 from __future__ import annotations
@@ -114,18 +115,22 @@ class URArm(Arm):
                 self.move_joints(home).wait(self.cfg.move_timeout_s)
         finally:
             t0 = time.perf_counter()
+            alive = self._alive()
             self._monitor_stop.set()
             control, receive = self.control, self.receive
             self.control = self.receive = None
+            # On a dead link ur_rtde's stopScript() retries the connection for a long time
+            # (and a thread abandoned inside it has crashed the process): only disconnect.
             if control is not None:
                 try:
-                    _bounded(lambda: (control.stopScript(), control.disconnect()),
-                             TEARDOWN_TIMEOUT_S, "control disconnect")
+                    if alive:
+                        _bounded(control.stopScript, TEARDOWN_TIMEOUT_S, "control stopScript")
+                    control.disconnect()
                 except Exception as exc:
                     log.warning("arm: control teardown: %s", exc)
             if receive is not None:
                 try:
-                    _bounded(receive.disconnect, TEARDOWN_TIMEOUT_S, "receive disconnect")
+                    receive.disconnect()
                 except Exception as exc:
                     log.warning("arm: receive teardown: %s", exc)
             self.teardown_s = time.perf_counter() - t0

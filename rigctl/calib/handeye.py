@@ -1,0 +1,165 @@
+"""Hand-eye calibration: ``X = T_flange_cam`` (and ``W = T_base_target``) from arm poses
+``F_k = T_base_flange`` and camera measurements ``C_k = T_cam_target``, with
+``W = F_k X C_k`` for every sample k.
+
+- ``closed_form``: OpenCV ``calibrateHandEye``, every method, on samples ordered by
+  ``order_samples`` (large, non-parallel relative rotations; independent of input order).
+- ``refine_pixels``: joint least squares of X and W on board-corner reprojection error.
+- ``refine_poses``: the same on pose residuals weighted by rotation/translation sigmas
+  (for pose-level noise models such as OpenCV's own tests).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from rigctl.errors import SolveError
+from rigctl.geometry.transforms import R_to_rotvec, inv_T, make_T, rotation_angle, rotvec_to_R
+
+METHODS = {"tsai": cv2.CALIB_HAND_EYE_TSAI, "park": cv2.CALIB_HAND_EYE_PARK,
+           "horaud": cv2.CALIB_HAND_EYE_HORAUD, "andreff": cv2.CALIB_HAND_EYE_ANDREFF,
+           "daniilidis": cv2.CALIB_HAND_EYE_DANIILIDIS}
+MIN_PAIR_ANGLE = np.radians(5.0)
+MAX_AXIS_COS = np.cos(np.radians(15.0))
+
+
+def _relative_axis(Ta: np.ndarray, Tb: np.ndarray) -> tuple[float, np.ndarray]:
+    R = Ta[:3, :3].T @ Tb[:3, :3]
+    rv = R_to_rotvec(R)
+    angle = float(np.linalg.norm(rv))
+    return angle, (rv / angle if angle > 1e-12 else np.zeros(3))
+
+
+def order_samples(F: list[np.ndarray]) -> list[int]:
+    """A deterministic order of the samples in which consecutive motions rotate by at
+    least 5 deg about axes at least 15 deg apart from the previous motion's: start from
+    the canonically smallest pose, then greedily take the largest admissible rotation.
+    Samples that never qualify are appended at the end. The order depends only on the
+    poses, so the result does not depend on the order the samples came in."""
+    n = len(F)
+    if n < 3:
+        raise SolveError(f"hand-eye: {n} samples; need at least 3")
+    keys = [tuple(np.round(T[:3, 3], 6)) + tuple(np.round(T[:3, :3].ravel(), 6)) for T in F]
+    current = min(range(n), key=lambda i: keys[i])
+    order, left, last_axis = [current], set(range(n)) - {current}, None
+    while left:
+        best, best_angle = None, -1.0
+        for j in sorted(left, key=lambda i: keys[i]):
+            angle, axis = _relative_axis(F[current], F[j])
+            if angle < MIN_PAIR_ANGLE:
+                continue
+            if last_axis is not None and abs(float(axis @ last_axis)) > MAX_AXIS_COS:
+                continue
+            if angle > best_angle:
+                best, best_angle = j, angle
+        if best is None:
+            break
+        last_axis = _relative_axis(F[current], F[best])[1]
+        order.append(best)
+        left.remove(best)
+        current = best
+    return order + sorted(left, key=lambda i: keys[i])
+
+
+def closed_form(F: list[np.ndarray], C: list[np.ndarray]) -> dict[str, np.ndarray]:
+    """X by every OpenCV method (``calibrateHandEye``), on ordered samples."""
+    idx = order_samples(F)
+    R_g2b = [F[i][:3, :3] for i in idx]
+    t_g2b = [F[i][:3, 3] for i in idx]
+    R_t2c = [C[i][:3, :3] for i in idx]
+    t_t2c = [C[i][:3, 3] for i in idx]
+    out = {}
+    for name, method in METHODS.items():
+        R, t = cv2.calibrateHandEye(R_g2b, t_g2b, R_t2c, t_t2c, method=method)
+        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+            continue
+        out[name] = make_T(R, t.ravel())
+    if not out:
+        raise SolveError("hand-eye: every closed-form method failed (degenerate motions)")
+    return out
+
+
+def average_W(F, C, X) -> np.ndarray:
+    """Mean of ``F_k X C_k`` (rotations by chordal mean, translations by mean)."""
+    Ts = [F_k @ X @ C_k for F_k, C_k in zip(F, C, strict=True)]
+    R = Rotation.from_matrix(np.array([T[:3, :3] for T in Ts])).mean().as_matrix()
+    return make_T(R, np.mean([T[:3, 3] for T in Ts], axis=0))
+
+
+def _params(X, W):
+    return np.r_[R_to_rotvec(X[:3, :3]), X[:3, 3], R_to_rotvec(W[:3, :3]), W[:3, 3]]
+
+
+def _unpack(p):
+    return make_T(rotvec_to_R(p[:3]), p[3:6]), make_T(rotvec_to_R(p[6:9]), p[9:12])
+
+
+@dataclass
+class HandEyeResult:
+    X: np.ndarray
+    W: np.ndarray
+    rms: float
+    sigma: np.ndarray  # 1-sigma of (rotvec X, t X, rotvec W, t W)
+
+
+def refine_poses(F, C, X0, sigma_rot: float = 0.002, sigma_t: float = 0.005,
+                 W0: np.ndarray | None = None) -> HandEyeResult:
+    """Least squares of X and W on the loop residual ``log(W^-1 F_k X C_k)``, rotation and
+    translation parts divided by their sigmas."""
+    W0 = average_W(F, C, X0) if W0 is None else W0
+
+    def fun(p):
+        X, W = _unpack(p)
+        Winv = inv_T(W)
+        res = []
+        for F_k, C_k in zip(F, C, strict=True):
+            E = Winv @ F_k @ X @ C_k
+            res.append(np.r_[R_to_rotvec(E[:3, :3]) / sigma_rot, E[:3, 3] / sigma_t])
+        return np.concatenate(res)
+
+    sol = least_squares(fun, _params(X0, W0), method="lm")
+    X, W = _unpack(sol.x)
+    J = sol.jac
+    dof = max(len(sol.fun) - 12, 1)
+    cov = np.linalg.pinv(J.T @ J) * float(np.sum(sol.fun ** 2) / dof)
+    return HandEyeResult(X, W, float(np.sqrt(np.mean(sol.fun ** 2))),
+                         np.sqrt(np.clip(np.diag(cov), 0, None)))
+
+
+def refine_pixels(F, corners: list[np.ndarray], obj: np.ndarray, K, dist, X0,
+                  W0: np.ndarray | None = None, C: list[np.ndarray] | None = None
+                  ) -> HandEyeResult:
+    """Least squares of X and W on board-corner reprojection error over every sample."""
+    if W0 is None:
+        if C is None:
+            raise SolveError("hand-eye refinement: give W0 or the camera poses C")
+        W0 = average_W(F, C, X0)
+    dist = np.zeros(5) if dist is None else np.asarray(dist, float)
+
+    def fun(p):
+        X, W = _unpack(p)
+        res = []
+        for F_k, px in zip(F, corners, strict=True):
+            T_cam_target = inv_T(F_k @ X) @ W
+            rv = R_to_rotvec(T_cam_target[:3, :3])
+            proj, _ = cv2.projectPoints(obj.reshape(-1, 1, 3), rv, T_cam_target[:3, 3], K, dist)
+            res.append((proj.reshape(-1, 2) - px).ravel())
+        return np.concatenate(res)
+
+    sol = least_squares(fun, _params(X0, W0), loss="soft_l1", f_scale=1.0, x_scale="jac")
+    X, W = _unpack(sol.x)
+    dof = max(len(sol.fun) - 12, 1)
+    cov = np.linalg.pinv(sol.jac.T @ sol.jac) * float(np.sum(sol.fun ** 2) / dof)
+    return HandEyeResult(X, W, float(np.sqrt(np.mean(sol.fun ** 2))),
+                         np.sqrt(np.clip(np.diag(cov), 0, None)))
+
+
+def transform_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
+    """(rotation error deg, translation error mm)."""
+    return (float(np.degrees(rotation_angle(T_est[:3, :3].T @ T_true[:3, :3]))),
+            float(1000 * np.linalg.norm(T_est[:3, 3] - T_true[:3, 3])))
