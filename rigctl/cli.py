@@ -548,5 +548,29 @@ def bench_active(as_json: bool = typer.Option(False, "--json"),
     out.print(f"targets: {result['targets']}; plot: {result.get('plot')}")
 
 
+@bench_app.command("handeye")
+def bench_handeye(as_json: bool = typer.Option(False, "--json"),
+                  trials: int = typer.Option(100, "--trials")) -> None:
+    """OpenCV calibrateHandEye methods against our joint refinement, 10 and 30 poses."""
+    from rigctl.bench import handeye
+    from rigctl.bench.common import print_table
+
+    result = handeye.run(trials)
+    if as_json:
+        _print_json(result)
+        return
+    for key in ("opencv_noise_model", "pixel_noise_model"):
+        block = result[key]
+        rows = []
+        for case in block["cases"]:
+            for method, m in case.items():
+                if isinstance(m, dict):
+                    rows.append([case["poses"], method, m["rot_deg_median"], m["t_mm_median"],
+                                 m["t_mm_p95"]])
+        print_table(block["model"], ["poses", "method", "rot deg med", "t mm med", "t mm p95"],
+                    rows, out)
+    out.print(f"targets: {result['targets']}")
+
+
 if __name__ == "__main__":  # pragma: no cover
     app()

@@ -24,7 +24,8 @@ MIN_TILT_DEG = 3.0
 class PoseEstimate:
     T_cam_target: np.ndarray
     rms_px: float
-    closed_form: np.ndarray  # the closed-form (Tsai) pose before refinement
+    closed_form: np.ndarray  # the closed-form pose before refinement
+    method: str = "tsai"     # tsai, or ippe where Tsai refused a fronto-parallel view
 
 
 def _normalised(pixels: np.ndarray, K: np.ndarray, dist) -> np.ndarray:
@@ -128,9 +129,23 @@ def refine_pose(T0: np.ndarray, obj: np.ndarray, pixels: np.ndarray, K: np.ndarr
     return make_T(rotvec_to_R(sol.x[:3]), sol.x[3:]), float(np.sqrt(np.mean(r ** 2)) * math.sqrt(2))
 
 
-def estimate_pose(obj: np.ndarray, pixels: np.ndarray, K: np.ndarray, dist=None
-                  ) -> PoseEstimate:
-    """Tsai's closed form, refined by LM. ``rms_px`` is the RMS corner distance."""
-    T0 = tsai_planar(obj, pixels, K, dist)
+def estimate_pose(obj: np.ndarray, pixels: np.ndarray, K: np.ndarray, dist=None,
+                  fallback: bool = True) -> PoseEstimate:
+    """Tsai's closed form, refined by LM. ``rms_px`` is the RMS corner distance. Where
+    Tsai refuses a fronto-parallel view, OpenCV's planar IPPE solver starts the LM
+    instead (``fallback``); the estimate records which method it came from."""
+    method = "tsai"
+    try:
+        T0 = tsai_planar(obj, pixels, K, dist)
+    except SolveError as exc:
+        if not fallback or "fronto-parallel" not in str(exc):
+            raise
+        ok, rvec, tvec = cv2.solvePnP(obj.astype(np.float64), pixels.astype(np.float64), K,
+                                      None if dist is None else np.asarray(dist, float),
+                                      flags=cv2.SOLVEPNP_IPPE)
+        if not ok:
+            raise SolveError("extrinsic: IPPE failed on a fronto-parallel view") from None
+        T0 = make_T(cv2.Rodrigues(rvec)[0], tvec.ravel())
+        method = "ippe"
     T, rms = refine_pose(T0, obj, pixels, K, dist)
-    return PoseEstimate(T, rms, T0)
+    return PoseEstimate(T, rms, T0, method)
