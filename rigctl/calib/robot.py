@@ -1,0 +1,374 @@
+"""Robot kinematic calibration with an eye-in-hand camera (thesis 4.3), generalised.
+
+Measurement model: the target is fixed, so for every capture k with joints q_k
+
+    W = T_base_target = FK(q_k) X C_k,   X = T_flange_cam,  C_k = T_cam_target
+
+**Link-by-link (4.11)-(4.35), for n links.** Moving joint i alone between captures 0
+and 1 gives (4.12)/(4.30)
+
+    A_i(theta_1)^-1 A_i(theta_0) = S C_1 C_0^-1 S^-1,   S = A_{i+1} ... A_n X
+
+whose left side is a rotation about joint i's axis expressed in frame i: direction
+``Ry(-beta) Rx(-alpha) z``, through ``(-a, 0, 0)`` (for DH, the line meets the x axis at a
+right angle, at x = -a). ``S`` is known from the links calibrated before (n first),
+except the offset and d of link i+1: ``A_{i+1} = Rz(theta_off) Tz(d) [...]``. Requiring the
+measured axis to have that form fixes theta_off_{i+1} and d_{i+1} (so an encoder offset
+becomes observable one step later in the chain, erratum 11) and then gives a_i, alpha_i
+(4.27)-(4.28) with the quadrant of (4.28) from atan2 (erratum 10). For (nearly) parallel
+consecutive axes (alpha_i = 0) d_{i+1} is unobservable and Hayati's beta_i replaces it
+(erratum 12). The base link's offset and d_1 follow from (4.35) when ``W`` is known.
+
+**Joint refinement.** Least squares over every capture of an identifiable parameter set
+(``identifiable_mask``): redundant parameters are absorbed into ``X`` and ``W``; parameter
+estimates come with 1-sigma, the condition number of the scaled identification Jacobian,
+and errors on held-out captures.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+
+from rigctl.errors import SolveError
+from rigctl.geometry.kinematics import LINK_KEYS, KinematicModel, link_transform
+from rigctl.geometry.transforms import R_to_rotvec, inv_T, make_T, rotvec_to_R
+
+PARALLEL_ALPHA = math.radians(5.0)
+
+
+def screw_axis(M: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Axis of a rigid motion: unit direction u, the axis point closest to the origin,
+    and the rotation angle (rad, about u, right-handed)."""
+    rv = R_to_rotvec(M[:3, :3])
+    angle = float(np.linalg.norm(rv))
+    if angle < math.radians(0.5):
+        raise SolveError(f"robot: a joint motion of {math.degrees(angle):.2f} deg is too "
+                         "small to locate its axis")
+    u = rv / angle
+    t = M[:3, 3]
+    # points p on the axis satisfy (I - R) p = t - (u.t) u ; least squares, min norm
+    A = np.eye(3) - M[:3, :3]
+    p, *_ = np.linalg.lstsq(A, t - (u @ t) * u, rcond=None)
+    p = p - (p @ u) * u
+    return u, p, angle
+
+
+def average_axis(axes: list[tuple[np.ndarray, np.ndarray, float]]):
+    """Mean line of several measurements of one axis (weights: rotation angle)."""
+    us, ps, ws = [], [], []
+    for u, p, angle in axes:
+        us.append(u)
+        ps.append(p)
+        ws.append(angle)
+    w = np.array(ws) / np.sum(ws)
+    u = np.sum(np.array(us) * w[:, None], axis=0)
+    u /= np.linalg.norm(u)
+    # point: least-squares closest point to all lines, then made perpendicular to u
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    for ui, pi, wi in zip(us, ps, w, strict=True):
+        P = np.eye(3) - np.outer(ui, ui)
+        A += wi * P
+        b += wi * P @ pi
+    A += 1e-9 * np.eye(3)
+    p = np.linalg.solve(A, b)
+    return u, p - (p @ u) * u
+
+
+@dataclass
+class Sweep:
+    """Captures of one joint moving alone (0-based ``joint``): joints and camera poses."""
+
+    joint: int
+    q: list[np.ndarray]
+    C: list[np.ndarray]  # T_cam_target
+
+
+def _motions(sweep: Sweep, S: np.ndarray, min_angle: float = math.radians(5.0)):
+    """Screw axes (in the frame after the moving link) of every pair of captures whose
+    joint angles differ by at least ``min_angle``; the largest differences first."""
+    Sinv = inv_T(S)
+    pairs = []
+    k = len(sweep.q)
+    for a in range(k):
+        for b in range(a + 1, k):
+            dq = sweep.q[b][sweep.joint] - sweep.q[a][sweep.joint]
+            if abs(dq) >= min_angle:
+                pairs.append((abs(dq), a, b))
+    if not pairs:
+        raise SolveError(f"robot: joint {sweep.joint + 1} moved less than "
+                         f"{math.degrees(min_angle):.0f} deg in its sweep")
+    pairs.sort(reverse=True)
+    out = []
+    for _, a, b in pairs:
+        M = S @ sweep.C[b] @ inv_T(sweep.C[a]) @ Sinv  # A_i(q_b)^-1 A_i(q_a), (4.12)
+        u, p, angle = screw_axis(M)
+        # M rotates by q_a - q_b about the joint axis: orient u along the axis's +z
+        if sweep.q[b][sweep.joint] > sweep.q[a][sweep.joint]:
+            u = -u
+        out.append((u, p, angle))
+    return out
+
+
+def _wrap(angle: float) -> float:
+    return (angle + math.pi) % (2 * math.pi) - math.pi
+
+
+@dataclass
+class LinkByLink:
+    model: KinematicModel
+    identified: dict[str, list[str]] = field(default_factory=dict)  # link -> parameters
+    notes: list[str] = field(default_factory=list)
+
+
+def link_by_link(sweeps: dict[int, Sweep], X: np.ndarray, nominal: KinematicModel,
+                 W: np.ndarray | None = None) -> LinkByLink:
+    """The thesis's incremental calibration, last joint first (algorithm 4.3.2), with
+    ``X = T_flange_cam`` known. Returns the model with every parameter the sweeps can
+    determine; the others keep their nominal values (listed in ``notes``)."""
+    model = nominal.copy()
+    n = model.n
+    identified: dict[str, list[str]] = {f"link{i + 1}": [] for i in range(n)}
+    notes: list[str] = []
+    missing = [i + 1 for i in range(n) if i not in sweeps]
+    if missing:
+        raise SolveError(f"link-by-link: no sweep for joint(s) {missing}")
+    for i in range(n - 1, -1, -1):
+        sweep = sweeps[i]
+        qbar = sweep.q[0]
+        # S0 = [Rz(q) Tx(a) Rx(alpha) Ry(beta)]_{i+1} A_{i+2} ... A_n X, without link i+1's
+        # unknown offset and d (they form G = Rz(theta_off) Tz(d), solved below).
+        S0 = X.copy()
+        for j in range(n - 1, i + 1, -1):
+            S0 = model.link(j, qbar[j]) @ S0
+        if i + 1 < n:
+            j = i + 1
+            S0 = link_transform(qbar[j], 0.0, model.a[j], model.alpha[j], model.beta[j]) @ S0
+        u0, p0 = average_axis(_motions(sweep, S0))
+        parallel = abs(_wrap(nominal.alpha[i])) < PARALLEL_ALPHA or \
+            abs(abs(_wrap(nominal.alpha[i])) - math.pi) < PARALLEL_ALPHA
+        if i + 1 < n:
+            if not parallel:
+                # rotate about z so the axis direction has no x component (two branches:
+                # take the offset nearest zero)
+                base = math.atan2(u0[0], u0[1])
+                off = min((_wrap(base), _wrap(base + math.pi)), key=abs)
+            else:
+                # the axis is ~parallel to z: rotate so it crosses the plane z = 0 on the
+                # x axis (the line lies in the x-z plane)
+                t = -p0[2] / u0[2]
+                q0 = p0 + t * u0
+                base = -math.atan2(q0[1], q0[0])
+                off = min((_wrap(base), _wrap(base + math.pi)),
+                          key=lambda v: abs(_wrap(v - nominal.theta_offset[i + 1])))
+            Rz = np.array([[math.cos(off), -math.sin(off), 0], [math.sin(off), math.cos(off), 0],
+                           [0, 0, 1.0]])
+            u, p = Rz @ u0, Rz @ p0
+            model.theta_offset[i + 1] = off
+            identified[f"link{i + 2}"].append("theta_offset")
+        else:
+            u, p = u0, p0
+        if not parallel:
+            if abs(u[1]) < 1e-9:
+                raise SolveError(f"link-by-link: joint {i + 1} axis is parallel to the next")
+            t = -p[1] / u[1]
+            d_next = -(p[2] + t * u[2])
+            a_i = -(p[0] + t * u[0])
+            alpha_i = math.atan2(u[1], u[2])
+            if i + 1 < n:
+                model.d[i + 1] = d_next
+                identified[f"link{i + 2}"].append("d")
+            model.a[i], model.alpha[i], model.beta[i] = a_i, alpha_i, 0.0
+            identified[f"link{i + 1}"] += ["a", "alpha"]
+        else:
+            # direction (-sin b cos al, sin al, cos b cos al), line through x = -a/cos b
+            beta = math.atan2(-u[0], u[2])
+            alpha_i = math.atan2(u[1], math.hypot(u[0], u[2]))
+            t = -p[2] / u[2]
+            x_cross = p[0] + t * u[0]
+            model.a[i] = -x_cross * math.cos(beta)
+            model.alpha[i], model.beta[i] = alpha_i, beta
+            identified[f"link{i + 1}"] += ["a", "alpha", "beta"]
+            if i + 1 < n:
+                notes.append(f"link{i + 2}.d: unobservable from joint {i + 1}'s sweep "
+                             f"(axes {i} and {i + 1} parallel); kept at {model.d[i + 1]:.4f}")
+    if W is not None:
+        _base_from_target(sweeps[0], X, W, model)
+        identified["link1"] += ["theta_offset", "d"]
+    else:
+        notes.append("link1.theta_offset, link1.d: absorbed into T_base_target (W unknown)")
+    return LinkByLink(model, identified, notes)
+
+
+def _base_from_target(sweep: Sweep, X, W, model: KinematicModel) -> None:
+    """Eq. (4.35): with W known, link 1's offset and d_1 from ``W = A_1 ... A_n X C``."""
+
+    def residual(p):
+        model.theta_offset[0], model.d[0] = p
+        out = []
+        for q, C in zip(sweep.q, sweep.C, strict=True):
+            E = inv_T(W) @ model.fk(q) @ X @ C
+            out.append(np.r_[R_to_rotvec(E[:3, :3]), E[:3, 3]])
+        return np.concatenate(out)
+
+    sol = least_squares(residual, [model.theta_offset[0], model.d[0]])
+    model.theta_offset[0], model.d[0] = sol.x
+
+
+# -- joint refinement -------------------------------------------------------------------
+
+
+def identifiable_mask(nominal: KinematicModel, absorb: bool = True) -> dict[str, np.ndarray]:
+    """Which link parameters are estimated. With ``absorb`` (X and W unknown): link 1's
+    offset and d go into W, the last link's parameters into X; Hayati's beta replaces d
+    for (nearly) parallel consecutive axes. Without ``absorb`` (X, W known), all but d or
+    beta by that rule."""
+    n = nominal.n
+    mask = {k: np.ones(n, bool) for k in LINK_KEYS}
+    for i in range(n):
+        parallel = abs(_wrap(nominal.alpha[i])) < PARALLEL_ALPHA or \
+            abs(abs(_wrap(nominal.alpha[i])) - math.pi) < PARALLEL_ALPHA
+        mask["beta"][i] = parallel
+        mask["d"][i] = not parallel
+    if absorb:
+        mask["theta_offset"][0] = mask["d"][0] = False
+        for k in LINK_KEYS:
+            mask[k][n - 1] = False
+    return mask
+
+
+def dh_mask(nominal: KinematicModel, absorb: bool = True) -> dict[str, np.ndarray]:
+    """Plain D-H (no beta): d everywhere, to show the rank deficiency of parallel axes."""
+    mask = identifiable_mask(nominal, absorb)
+    n = nominal.n
+    mask["beta"] = np.zeros(n, bool)
+    mask["d"] = np.ones(n, bool)
+    if absorb:
+        mask["d"][0] = False
+        mask["d"][n - 1] = False
+    return mask
+
+
+@dataclass
+class Measurements:
+    """Captures for the refinement: joints, and either camera poses (with sigmas) or board
+    corners (pixels) with the board points, K and distortion."""
+
+    q: list[np.ndarray]
+    C: list[np.ndarray] | None = None
+    corners: list[np.ndarray] | None = None
+    obj: np.ndarray | None = None
+    K: np.ndarray | None = None
+    dist: np.ndarray | None = None
+    sigma_rot: float = 0.001
+    sigma_t: float = 0.001
+
+    def subset(self, idx) -> Measurements:
+        pick = lambda v: None if v is None else [v[i] for i in idx]  # noqa: E731
+        return Measurements([self.q[i] for i in idx], pick(self.C), pick(self.corners),
+                            self.obj, self.K, self.dist, self.sigma_rot, self.sigma_t)
+
+
+@dataclass
+class RefineResult:
+    model: KinematicModel
+    X: np.ndarray
+    W: np.ndarray
+    names: list[str]
+    values: np.ndarray
+    sigma: np.ndarray
+    condition: float
+    singular_values: np.ndarray
+    rms: float
+
+
+def _pack(model, X, W, mask, free_XW):
+    vals, names = [], []
+    for k in LINK_KEYS:
+        for i in np.flatnonzero(mask[k]):
+            vals.append(getattr(model, k)[i])
+            names.append(f"link{i + 1}.{k}")
+    if free_XW:
+        vals += list(np.r_[R_to_rotvec(X[:3, :3]), X[:3, 3], R_to_rotvec(W[:3, :3]), W[:3, 3]])
+        names += [f"X.{c}" for c in ("rx", "ry", "rz", "x", "y", "z")]
+        names += [f"W.{c}" for c in ("rx", "ry", "rz", "x", "y", "z")]
+    return np.array(vals, float), names
+
+
+def _unpack(p, model0, X0, W0, mask, free_XW):
+    model = model0.copy()
+    k0 = 0
+    for k in LINK_KEYS:
+        idx = np.flatnonzero(mask[k])
+        getattr(model, k)[idx] = p[k0:k0 + len(idx)]
+        k0 += len(idx)
+    if free_XW:
+        X = make_T(rotvec_to_R(p[k0:k0 + 3]), p[k0 + 3:k0 + 6])
+        W = make_T(rotvec_to_R(p[k0 + 6:k0 + 9]), p[k0 + 9:k0 + 12])
+    else:
+        X, W = X0, W0
+    return model, X, W
+
+
+def residuals(model, X, W, meas: Measurements) -> np.ndarray:
+    """Pose residuals (scaled by the sigmas) or pixel residuals for every capture."""
+    out = []
+    Winv = inv_T(W)
+    for k, q in enumerate(meas.q):
+        T_base_cam = model.fk(q) @ X
+        if meas.corners is not None:
+            T = inv_T(T_base_cam) @ W
+            proj, _ = cv2.projectPoints(meas.obj.reshape(-1, 1, 3), R_to_rotvec(T[:3, :3]),
+                                        T[:3, 3], meas.K, meas.dist)
+            out.append((proj.reshape(-1, 2) - meas.corners[k]).ravel())
+        else:
+            E = Winv @ T_base_cam @ meas.C[k]
+            out.append(np.r_[R_to_rotvec(E[:3, :3]) / meas.sigma_rot, E[:3, 3] / meas.sigma_t])
+    return np.concatenate(out)
+
+
+def refine(model0: KinematicModel, X0, W0, meas: Measurements, mask=None,
+           free_XW: bool = True, robust: bool = True) -> RefineResult:
+    """Least squares of the masked link parameters (and X, W) over every capture."""
+    mask = mask or identifiable_mask(model0, absorb=free_XW)
+    p0, names = _pack(model0, X0, W0, mask, free_XW)
+    if len(meas.q) * 6 < len(p0):
+        raise SolveError(f"robot refinement: {len(meas.q)} captures cannot determine "
+                         f"{len(p0)} parameters")
+
+    def fun(p):
+        return residuals(*_unpack(p, model0, X0, W0, mask, free_XW), meas)
+
+    sol = least_squares(fun, p0, loss="soft_l1" if robust else "linear", f_scale=3.0,
+                        x_scale="jac", max_nfev=200)
+    sol = least_squares(fun, sol.x, loss="linear", x_scale="jac", max_nfev=100)
+    model, X, W = _unpack(sol.x, model0, X0, W0, mask, free_XW)
+    J = sol.jac
+    scale = np.linalg.norm(J, axis=0)
+    scale[scale == 0] = 1.0
+    sv = np.linalg.svd(J / scale, compute_uv=False)
+    condition = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
+    dof = max(len(sol.fun) - len(p0), 1)
+    s2 = float(np.sum(sol.fun ** 2) / dof)
+    cov = np.linalg.pinv(J.T @ J) * s2
+    sigma = np.sqrt(np.clip(np.diag(cov), 0, None))
+    return RefineResult(model, X, W, names, sol.x, sigma, condition, sv,
+                        float(np.sqrt(np.mean(sol.fun ** 2))))
+
+
+def pose_errors(model, X, W, q_list, truth_fn) -> tuple[float, float]:
+    """RMS position (m) and rotation (rad) error of predicted camera poses in the target
+    frame, ``W^-1 FK(q) X``, against ``truth_fn(q)`` (a 4x4 of the same)."""
+    pos, rot = [], []
+    Winv = inv_T(W)
+    for q in q_list:
+        T = Winv @ model.fk(q) @ X
+        T_true = truth_fn(q)
+        pos.append(np.linalg.norm(T[:3, 3] - T_true[:3, 3]))
+        rot.append(np.linalg.norm(R_to_rotvec(T[:3, :3].T @ T_true[:3, :3])))
+    return float(np.sqrt(np.mean(np.square(pos)))), float(np.sqrt(np.mean(np.square(rot))))
