@@ -572,5 +572,30 @@ def bench_handeye(as_json: bool = typer.Option(False, "--json"),
     out.print(f"targets: {result['targets']}")
 
 
+@bench_app.command("thesis-robot")
+def bench_thesis_robot(as_json: bool = typer.Option(False, "--json"),
+                       trials: int = typer.Option(20, "--trials")) -> None:
+    """Table 5.6 (3-link PUMA) beside the thesis, and the camera-error sweeps."""
+    from rigctl.bench import thesis_robot
+    from rigctl.bench.common import print_table
+
+    result = thesis_robot.run(trials)
+    if as_json:
+        _print_json(result)
+        return
+    print_table("Table 5.6: errors without noise (ours / thesis)",
+                ["link", "dl mm", "dalpha deg", "dd mm", "dtheta deg"],
+                [[r["link"]] + [f"{r['ours'][k]:.1e} / {r['thesis'][k]:.1e}"
+                                for k in ("dl_mm", "dalpha_deg", "dd_mm", "dtheta_deg")]
+                 for r in result["table_5_6"]], out)
+    print_table("Figs 5.30-5.35: median error in l (mm), link 1/2/3",
+                ["camera error", "sigma", "link-by-link", "refined"],
+                [[r["error"], f"{r['sigma']} {r['unit']}",
+                  " / ".join(f"{v:.3f}" for v in r["link_by_link_dl_mm"]),
+                  " / ".join(f"{v:.3f}" for v in r["refined_dl_mm"])]
+                 for r in result["sweeps"]], out)
+    out.print(f"targets: {result['targets']}")
+
+
 if __name__ == "__main__":  # pragma: no cover
     app()
