@@ -13,6 +13,9 @@ _MODULES = {
     "arm-sweep": "procedures.arm_sweep",
     "capture-survey": "procedures.capture_survey",
     "active-camera": "procedures.active_camera",
+    "hand-eye": "procedures.hand_eye",
+    "robot-kinematics": "procedures.robot_kinematics",
+    "validate-arm": "procedures.validate_arm",
 }
 
 

@@ -271,7 +271,8 @@ def export(run: str = typer.Argument(..., help="Run directory, or run id with --
             config = load_rig(rig)
             run_path = Path(RecordIndex(config.database_url()).get(run)["run_dir"])
         run_dir = RunDirectory(run_path)
-        suffix = {"json": ".json", "opencv": ".opencv.yaml", "ros": ".camera_info.yaml"}
+        suffix = {"json": ".json", "opencv": ".opencv.yaml", "ros": ".camera_info.yaml",
+                  "ur": ".ur_calibration.yaml"}
         target = output or run_dir.path / f"export{suffix.get(fmt, '.out')}"
         path = export_result(run_dir.result(), fmt, target, run_dir.run_id)
     except RigError as exc:

@@ -11,7 +11,7 @@ import yaml
 
 from rigctl.errors import ConfigError, RigError
 
-FORMATS = ("json", "opencv", "ros")
+FORMATS = ("json", "opencv", "ros", "ur")
 
 
 def _intrinsics(result: dict[str, Any], run_id: str) -> tuple[np.ndarray, np.ndarray, int, int]:
@@ -57,13 +57,38 @@ def export_ros(result: dict[str, Any], path: Path, run_id: str,
     path.write_text(yaml.safe_dump(doc, sort_keys=False))
 
 
+def export_ur(result: dict[str, Any], path: Path, run_id: str) -> None:
+    """UR-style DH deltas relative to the nominal model (delta_theta, delta_a, delta_d,
+    delta_alpha; radians and metres) with Hayati beta alongside."""
+    from rigctl.geometry.kinematics import nominal_ur
+
+    if "links" not in result or "arm_model" not in result:
+        raise RigError(f"run {run_id}: result has no arm kinematics to export")
+    nominal = nominal_ur(result["arm_model"])
+    links = result["links"]
+    doc = {"model": result["arm_model"], "run_id": run_id,
+           "delta_theta": [lk["theta_offset"] for lk in links],
+           "delta_a": [lk["a"] - nominal.a[i] for i, lk in enumerate(links)],
+           "delta_d": [lk["d"] - nominal.d[i] for i, lk in enumerate(links)],
+           "delta_alpha": [lk["alpha"] - nominal.alpha[i] for i, lk in enumerate(links)],
+           "beta": [lk["beta"] for lk in links],
+           "note": "T_base_link0 and T_flange_cam carry what the minimal parameter set "
+                   "absorbs (link 1 offset and d, the last link's parameters)"}
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+
+
 def export_result(result: dict[str, Any], fmt: str, path: Path, run_id: str) -> Path:
     if fmt == "json":
-        path.write_text(json.dumps(result.get("export", result), indent=2) + "\n")
+        keys = ("convention", "units", "links", "T_base_link0", "T_flange_cam",
+                "T_base_target", "uncertainty", "heldout")
+        doc = {k: result[k] for k in keys if k in result} if "convention" in result else result
+        path.write_text(json.dumps(doc, indent=2) + "\n")
     elif fmt == "opencv":
         export_opencv(result, path, run_id)
     elif fmt == "ros":
         export_ros(result, path, run_id)
+    elif fmt == "ur":
+        export_ur(result, path, run_id)
     else:
         raise ConfigError(f"--format: unknown export format {fmt!r}; known: {', '.join(FORMATS)}")
     return path

@@ -152,6 +152,22 @@ class RecordIndex:
             rows = [dict(r._mapping) for r in conn.execute(query)]
         return self._refresh_interrupted(rows)
 
+    def latest(self, procedure: str, rig_name: str | None = None) -> dict[str, Any] | None:
+        """The latest accepted run of ``procedure``; failing that, the latest succeeded one
+        not rejected."""
+        query = select(runs_table).where(runs_table.c.procedure == procedure,
+                                         runs_table.c.status == "succeeded")
+        if rig_name:
+            query = query.where(runs_table.c.rig_name == rig_name)
+        query = query.order_by(runs_table.c.started_at.desc())
+        with self.engine.connect() as conn:
+            rows = [dict(r._mapping) for r in conn.execute(query)]
+        accepted = [r for r in rows if r["decision"] == "accepted"]
+        if accepted:
+            return accepted[0]
+        usable = [r for r in rows if r["decision"] not in ("rejected", "drift")]
+        return usable[0] if usable else None
+
     def get(self, run_id: str) -> dict[str, Any]:
         with self.engine.connect() as conn:
             rows = [dict(r._mapping) for r in conn.execute(

@@ -1,0 +1,86 @@
+"""``hand-eye``: T_flange_cam and T_base_target from N diverse views of the target (head
+held at home): OpenCV ``calibrateHandEye`` (every method), then a joint refinement of both
+transforms on pixel reprojection error, with the nominal arm model."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from pydantic import Field
+
+from rigctl.calib import handeye
+from rigctl.calib.board import board_points
+from rigctl.errors import SolveError
+from rigctl.geometry.kinematics import nominal_ur
+
+from .base import (
+    CaptureStep,
+    MoveArmJoints,
+    MoveHead,
+    Note,
+    Params,
+    Procedure,
+    Settle,
+    SolveContext,
+)
+from .planning import plan_target_views
+from .robot_common import board_observations, camera_matrix, intrinsics_from
+
+
+class HandEyeParams(Params):
+    intrinsics: dict[str, Any] | None = None
+    poses: int = Field(12, ge=3, le=100)
+    view_distance_m: float = Field(0.45, gt=0.2, le=1.0)
+    max_tilt_deg: float = Field(30.0, ge=0, le=50)
+    settle_s: float = Field(0.2, ge=0)
+    seed: int = 10
+
+
+class HandEye(Procedure):
+    name = "hand-eye"
+    summary = "T_flange_cam by OpenCV calibrateHandEye (all methods) and joint refinement."
+    params_model = HandEyeParams
+    devices = ("arm", "camera")
+    optional_devices = ("head",)
+
+    def plan(self, params: HandEyeParams, config) -> list:
+        steps: list = []
+        if config.devices.head is not None:
+            steps.append(MoveHead(0.0, 0.0, 0.0, "head home"))
+        poses, notes = plan_target_views(config, params.poses, params.view_distance_m,
+                                         params.max_tilt_deg, params.seed)
+        steps += [Note(n) for n in notes]
+        for k, q in enumerate(poses):
+            steps += [MoveArmJoints(tuple(float(v) for v in q), f"view {k + 1}"),
+                      Settle(params.settle_s), CaptureStep(f"view {k + 1}", extra={"kind": "view"})]
+        steps.append(MoveArmJoints(tuple(math.radians(v) for v in config.devices.arm.home_deg),
+                                   "arm home"))
+        return steps
+
+    def solve(self, ctx: SolveContext) -> dict[str, Any]:
+        params: HandEyeParams = ctx.params
+        intr = intrinsics_from(ctx.config, params.intrinsics)
+        K, dist = camera_matrix(intr)
+        found = [o for o in board_observations(ctx, intr) if o["found"]]
+        if len(found) < 3:
+            raise SolveError(f"hand-eye: the board was found in {len(found)} views (need 3)")
+        nominal = nominal_ur(ctx.config.devices.arm.model)
+        F = [nominal.fk(o["q"]) for o in found]
+        C = [o["C"] for o in found]
+        tg = ctx.config.target
+        obj = board_points(tg.rows, tg.cols, tg.square_mm / 1000.0)
+        closed = handeye.closed_form(F, C)
+        refined = handeye.refine_pixels(F, [o["corners"] for o in found], obj, K, dist,
+                                        closed["park"], C=C)
+        spread = {name: handeye.transform_error(X, refined.X) for name, X in closed.items()}
+        summary = {"views": len(found), "residual_rms_px": refined.rms,
+                   "t_mm": (1000 * refined.X[:3, 3]).tolist()}
+        return {"T_flange_cam": refined.X.tolist(), "T_base_target": refined.W.tolist(),
+                "sigma": refined.sigma.tolist(), "residual_rms_px": refined.rms,
+                "closed_form": {k: v.tolist() for k, v in closed.items()},
+                "closed_form_vs_refined_deg_mm": spread, "intrinsics": intr,
+                "order": handeye.order_samples(F), "summary": summary}
+
+
+PROCEDURE = HandEye()

@@ -1,0 +1,209 @@
+"""``robot-kinematics``: link-by-link robot calibration with the eye-in-hand camera
+(thesis 4.3) and a joint refinement of every identifiable parameter.
+
+Sequence (head held at home): a base view of the target; single-joint sweeps, last joint
+first, in 10-degree steps up to 60 where reach and visibility allow; random views for the
+refinement; held-out views for validation. Poses are planned with the nominal model.
+
+Solve: board poses (Tsai + LM) with the intrinsics of the latest accepted active-camera
+run (or a parameter); hand-eye (OpenCV closed forms, then a joint refinement of X and W
+on pixels) with the nominal model; link-by-link from the sweeps; the joint refinement
+over all training captures on pixels; errors on the held-out views before and after.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from pydantic import Field
+
+from rigctl.calib import handeye, robot
+from rigctl.calib.board import board_points
+from rigctl.errors import SolveError
+from rigctl.geometry.kinematics import nominal_ur
+from rigctl.geometry.transforms import R_to_rotvec, inv_T
+
+from .base import (
+    CaptureStep,
+    MoveArmJoint,
+    MoveArmJoints,
+    MoveHead,
+    Note,
+    Params,
+    Procedure,
+    Settle,
+    SolveContext,
+)
+from .planning import plan_target_views
+from .robot_common import (
+    board_observations,
+    camera_matrix,
+    export_model,
+    intrinsics_from,
+    plan_sweeps,
+    planning_K,
+)
+
+
+class RobotKinematicsParams(Params):
+    intrinsics: dict[str, Any] | None = None
+    sweep_steps: int = Field(4, ge=2, le=6)
+    random_poses: int = Field(20, ge=0, le=200)
+    heldout_poses: int = Field(6, ge=1, le=100)
+    view_distance_m: float = Field(0.45, gt=0.2, le=1.0)
+    sweep_distance_m: float = Field(0.7, gt=0.2, le=1.2)
+    max_tilt_deg: float = Field(30.0, ge=0, le=50)
+    settle_s: float = Field(0.2, ge=0)
+    seed: int = 0
+
+
+class RobotKinematics(Procedure):
+    name = "robot-kinematics"
+    summary = "UR kinematic calibration: sweeps (link-by-link) + joint refinement."
+    params_model = RobotKinematicsParams
+    devices = ("arm", "camera")
+    optional_devices = ("head",)
+
+    def plan(self, params: RobotKinematicsParams, config) -> list:
+        steps: list = []
+        if config.devices.head is not None:
+            steps.append(MoveHead(0.0, 0.0, 0.0, "head home"))
+        # the sweeps start from a farther view, so the board stays in sight longer
+        base, notes = plan_target_views(config, 1, params.sweep_distance_m, 0.0, params.seed)
+        if not base:
+            raise SolveError("robot-kinematics: no reachable view of the target")
+        q_base = base[0]
+        K = planning_K(config, params.intrinsics)
+        sweeps, sweep_notes = plan_sweeps(config, q_base, K, params.sweep_steps)
+        steps += [Note(n) for n in notes + sweep_notes]
+
+        def capture(label, **extra):
+            return [Settle(params.settle_s), CaptureStep(label, extra=extra)]
+
+        steps.append(MoveArmJoints(tuple(q_base), "base view"))
+        steps += capture("base view", kind="sweep", joint=None)
+        for j, offsets in sweeps.items():
+            for off in offsets:
+                label = f"joint {j + 1} {off:+g} deg"
+                steps.append(MoveArmJoint(j, float(q_base[j] + math.radians(off)), label))
+                steps += capture(label, kind="sweep", joint=j)
+            steps.append(MoveArmJoint(j, float(q_base[j]), f"joint {j + 1} back"))
+        for kind, n, seed in (("train", params.random_poses, params.seed + 1),
+                              ("heldout", params.heldout_poses, params.seed + 1000)):
+            if n == 0:
+                continue
+            poses, more = plan_target_views(config, n, params.view_distance_m,
+                                            params.max_tilt_deg, seed)
+            steps += [Note(m) for m in more]
+            for k, q in enumerate(poses):
+                steps.append(MoveArmJoints(tuple(float(v) for v in q), f"{kind} {k + 1}"))
+                steps += capture(f"{kind} {k + 1}", kind=kind)
+        steps.append(MoveArmJoints(tuple(math.radians(v) for v in config.devices.arm.home_deg),
+                                   "arm home"))
+        return steps
+
+    def solve(self, ctx: SolveContext) -> dict[str, Any]:
+        params: RobotKinematicsParams = ctx.params
+        intr = intrinsics_from(ctx.config, params.intrinsics)
+        K, dist = camera_matrix(intr)
+        obs = board_observations(ctx, intr)
+        lost = [o["label"] for o in obs if not o["found"]]
+        found = [o for o in obs if o["found"]]
+        train = [o for o in found if o["kind"] in ("sweep", "train")]
+        held = [o for o in found if o["kind"] == "heldout"]
+        if len(train) < 8:
+            raise SolveError(f"robot-kinematics: only {len(train)} training views with the "
+                             "board found (need 8)")
+        nominal = nominal_ur(ctx.config.devices.arm.model)
+        tg = ctx.config.target
+        obj = board_points(tg.rows, tg.cols, tg.square_mm / 1000.0)
+        meas = robot.Measurements([o["q"] for o in train], C=[o["C"] for o in train],
+                                  corners=[o["corners"] for o in train], obj=obj, K=K, dist=dist)
+
+        # hand-eye with the nominal model: the "before calibration" state
+        F = [nominal.fk(o["q"]) for o in train]
+        closed = handeye.closed_form(F, [o["C"] for o in train])
+        he = handeye.refine_pixels(F, meas.corners, obj, K, dist, closed["park"],
+                                   C=[o["C"] for o in train])
+
+        # link-by-link from the sweeps (X from the hand-eye)
+        base = [o for o in train if o["kind"] == "sweep" and o["joint"] is None]
+        sweeps = {}
+        for j in range(6):
+            members = base + [o for o in train if o["kind"] == "sweep" and o["joint"] == j]
+            if len(members) >= 3:
+                sweeps[j] = robot.Sweep(j, [o["q"] for o in members], [o["C"] for o in members])
+        lbl, lbl_error = None, None
+        try:
+            lbl = robot.link_by_link(sweeps, he.X, nominal)
+        except SolveError as exc:
+            lbl_error = str(exc)
+        start = lbl.model if lbl is not None else nominal
+        W_start = handeye.average_W([start.fk(o["q"]) for o in train], [o["C"] for o in train],
+                                    he.X)
+        ref = robot.refine(start, he.X, W_start, meas)
+        dh = robot.refine(start, he.X, W_start, meas, mask=robot.dh_mask(nominal))
+
+        def heldout_errors(model, X, W):
+            if not held:
+                return None
+            pos, rot = [], []
+            for o in held:
+                T_pred = inv_T(W) @ model.fk(o["q"]) @ X
+                T_meas = inv_T(o["C"])
+                pos.append(np.linalg.norm(T_pred[:3, 3] - T_meas[:3, 3]))
+                rot.append(np.linalg.norm(R_to_rotvec(T_pred[:3, :3].T @ T_meas[:3, :3])))
+            return {"position_rms_m": float(np.sqrt(np.mean(np.square(pos)))),
+                    "rotation_rms_rad": float(np.sqrt(np.mean(np.square(rot)))),
+                    "views": len(held)}
+
+        before = heldout_errors(nominal, he.X, he.W)
+        after = heldout_errors(ref.model, ref.X, ref.W)
+        lbl_err = None
+        if lbl is not None:
+            W_lbl = handeye.average_W([lbl.model.fk(o["q"]) for o in train],
+                                      [o["C"] for o in train], he.X)
+            lbl_err = heldout_errors(lbl.model, he.X, W_lbl)
+        uncertainty = {"parameters": dict(zip(ref.names, ref.sigma.tolist(), strict=True)),
+                       "condition_number": ref.condition,
+                       "plain_dh_smallest_singular_values": dh.singular_values[-3:].tolist(),
+                       "plain_dh_condition_number": dh.condition,
+                       "residual_rms_px": ref.rms}
+        export = export_model(ref.model, ref.X, ref.W, uncertainty, after or {})
+        summary = {"training_views": len(train), "heldout_views": len(held),
+                   "heldout_mm_before": None if before is None else
+                   1000 * before["position_rms_m"],
+                   "heldout_mm_after": None if after is None else 1000 * after["position_rms_m"],
+                   "condition_number": ref.condition, "residual_rms_px": ref.rms}
+        _plot(ctx, ref, meas)
+        return {**export, "arm_model": ctx.config.devices.arm.model,
+                "intrinsics": intr, "summary": summary,
+                "before": {"heldout": before, "T_flange_cam": he.X.tolist(),
+                           "T_base_target": he.W.tolist()},
+                "link_by_link": {"heldout": lbl_err, "error": lbl_error,
+                                 "links": lbl.model.links() if lbl else None,
+                                 "identified": lbl.identified if lbl else None,
+                                 "notes": lbl.notes if lbl else None},
+                "hand_eye_closed_form": {k: v.tolist() for k, v in closed.items()},
+                "lost_views": lost}
+
+
+def _plot(ctx, ref, meas) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    r = robot.residuals(ref.model, ref.X, ref.W, meas)
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    ax.hist(r, bins=60)
+    ax.set(xlabel="corner reprojection residual (px)", ylabel="count",
+           title=f"robot-kinematics residuals (RMS {ref.rms:.3f} px)")
+    fig.tight_layout()
+    fig.savefig(ctx.plots_dir / "residuals.png", dpi=80)
+    plt.close(fig)
+
+
+PROCEDURE = RobotKinematics()
