@@ -277,6 +277,9 @@ def export(run: str = typer.Argument(..., help="Run directory, or run id with --
         path = export_result(run_dir.result(), fmt, target, run_dir.run_id)
     except RigError as exc:
         _fail(exc, False, EXIT_FAILED)
+    except (OSError, ValueError, TypeError) as exc:
+        _fail(RigError(f"export {run} --format {fmt}: {type(exc).__name__}: {exc}"), False,
+              EXIT_FAILED)
     err.print(f"wrote {path}", highlight=False)
 
 

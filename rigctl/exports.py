@@ -68,9 +68,9 @@ def export_ur(result: dict[str, Any], path: Path, run_id: str) -> None:
     links = result["links"]
     doc = {"model": result["arm_model"], "run_id": run_id,
            "delta_theta": [lk["theta_offset"] for lk in links],
-           "delta_a": [lk["a"] - nominal.a[i] for i, lk in enumerate(links)],
-           "delta_d": [lk["d"] - nominal.d[i] for i, lk in enumerate(links)],
-           "delta_alpha": [lk["alpha"] - nominal.alpha[i] for i, lk in enumerate(links)],
+           "delta_a": [float(lk["a"] - nominal.a[i]) for i, lk in enumerate(links)],
+           "delta_d": [float(lk["d"] - nominal.d[i]) for i, lk in enumerate(links)],
+           "delta_alpha": [float(lk["alpha"] - nominal.alpha[i]) for i, lk in enumerate(links)],
            "beta": [lk["beta"] for lk in links],
            "note": "T_base_link0 and T_flange_cam carry what the minimal parameter set "
                    "absorbs (link 1 offset and d, the last link's parameters)"}

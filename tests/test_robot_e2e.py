@@ -1,0 +1,79 @@
+"""The robot pipeline end to end on the simulated rig (default world: mm-level arm
+errors): active-camera, then robot-kinematics through the CLI; the exported model is
+checked against the world's truth, which the solvers never see."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import yaml
+
+from mocks.world import load_world
+from procedures.planning import plan_target_views
+from rigctl.config import load_rig
+from rigctl.geometry.kinematics import KinematicModel
+from rigctl.geometry.transforms import inv_T
+from tests.mockproc import ROOT
+from tests.simrig import SimRig
+
+pytestmark = pytest.mark.integration
+
+
+def rigctl(*args, timeout=400):
+    return subprocess.run([sys.executable, "-m", "rigctl.cli", *args], capture_output=True,
+                          text=True, timeout=timeout, cwd=ROOT)
+
+
+def test_robot_kinematics_end_to_end(tmp_path):
+    rig = SimRig(tmp_path, world="default", host="127.0.0.14", port=18084)
+    try:
+        cam = rigctl("run", "active-camera", "--rig", str(rig.rig_path), "--json",
+                     "--param", "pan_deg=10", "--param", "tilt_deg=10")
+        assert cam.returncode == 0, cam.stderr[-2000:]
+        result = rigctl("run", "robot-kinematics", "--rig", str(rig.rig_path), "--json",
+                        "--param", "random_poses=12", "--param", "heldout_poses=5",
+                        "--param", "sweep_steps=3")
+    finally:
+        rig.stop()
+    assert result.returncode == 0, result.stderr[-3000:]
+    out = json.loads(result.stdout)
+    for key in ("convention", "units", "links", "T_base_link0", "T_flange_cam",
+                "T_base_target", "uncertainty", "heldout"):
+        assert key in out, key
+    assert out["intrinsics"]["source"].startswith("run ")  # from the active-camera run
+    summary = out["summary"]
+    assert summary["heldout_mm_before"] > 1.5          # several mm before ...
+    assert summary["heldout_mm_after"] <= 0.5          # ... at most 0.5 mm after
+    assert out["uncertainty"]["condition_number"] > 1
+    assert min(out["uncertainty"]["plain_dh_smallest_singular_values"]) < 1e-3
+
+    # The exported model against the truth, over views the calibration never saw
+    world = load_world(ROOT / "mocks/worlds/default.yaml")
+    links = out["links"]
+    model = KinematicModel(*(np.array([lk[k] for lk in links]) for k in ("d", "a", "alpha")),
+                           beta=np.array([lk["beta"] for lk in links]),
+                           theta_offset=np.array([lk["theta_offset"] for lk in links]))
+    X, W = np.array(out["T_flange_cam"]), np.array(out["T_base_target"])
+    config = load_rig(rig.rig_path)
+    views, _ = plan_target_views(config, 15, 0.5, 35.0, seed=4242)
+    rng = np.random.default_rng(0)
+    errors = []
+    for q in views:
+        for _ in range(3):
+            qq = np.array(q) + np.r_[np.zeros(3), rng.normal(0, 0.2, 3)]
+            est = inv_T(W) @ model.fk(qq) @ X
+            true = inv_T(world.T_base_target) @ world.T_base_cam(qq, (0.0, 0.0, 0.0))
+            errors.append(np.linalg.norm(est[:3, 3] - true[:3, 3]))
+    assert 1000 * np.sqrt(np.mean(np.square(errors))) < 0.5
+    # exports
+    run_dir = next((tmp_path / "records").glob("*robot-kinematics*"))
+    assert rigctl("export", str(run_dir), "--format", "json").returncode == 0
+    exported = json.loads((run_dir / "export.json").read_text())
+    assert exported["links"] == out["links"] and "summary" not in exported
+    assert rigctl("export", str(run_dir), "--format", "ur").returncode == 0
+    ur = yaml.safe_load((run_dir / "export.ur_calibration.yaml").read_text())
+    assert len(ur["delta_theta"]) == 6 and len(ur["beta"]) == 6
