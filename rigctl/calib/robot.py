@@ -319,6 +319,15 @@ def residuals(model, X, W, meas: Measurements) -> np.ndarray:
     """Pose residuals (scaled by the sigmas) or pixel residuals for every capture."""
     out = []
     Winv = inv_T(W)
+    if meas.corners is None:  # batched: every pose at once
+        from scipy.spatial.transform import Rotation
+
+        if not hasattr(meas, "_Q"):
+            meas._Q = np.array(meas.q)
+            meas._C = np.array(meas.C)
+        E = Winv @ model.fk_batch(meas._Q) @ X @ meas._C
+        rv = Rotation.from_matrix(E[:, :3, :3]).as_rotvec()
+        return np.c_[rv / meas.sigma_rot, E[:, :3, 3] / meas.sigma_t].ravel()
     for k, q in enumerate(meas.q):
         T_base_cam = model.fk(q) @ X
         if meas.corners is not None:

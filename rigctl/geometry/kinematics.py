@@ -86,6 +86,26 @@ class KinematicModel:
         """``T_base_tool = T_base_link0 A_1 ... A_n T_flange_tool``."""
         return self.frames(q)[-1] @ self.T_flange_tool
 
+    def fk_batch(self, Q: np.ndarray) -> np.ndarray:
+        """``fk`` for many joint vectors at once: (N, n) -> (N, 4, 4)."""
+        Q = np.atleast_2d(np.asarray(Q, float))
+        N = len(Q)
+        T = np.broadcast_to(self.T_base_link0, (N, 4, 4)).copy()
+        for i in range(self.n):
+            th = Q[:, i] + self.theta_offset[i]
+            ct, st = np.cos(th), np.sin(th)
+            ca, sa = np.cos(self.alpha[i]), np.sin(self.alpha[i])
+            A = np.zeros((N, 4, 4))
+            A[:, 0, 0], A[:, 0, 1], A[:, 0, 2], A[:, 0, 3] = ct, -st * ca, st * sa, self.a[i] * ct
+            A[:, 1, 0], A[:, 1, 1], A[:, 1, 2], A[:, 1, 3] = st, ct * ca, -ct * sa, self.a[i] * st
+            A[:, 2, 1], A[:, 2, 2], A[:, 2, 3] = sa, ca, self.d[i]
+            A[:, 3, 3] = 1.0
+            if self.beta[i] != 0.0:
+                cb, sb = np.cos(self.beta[i]), np.sin(self.beta[i])
+                A = A @ np.array([[cb, 0, sb, 0], [0, 1, 0, 0], [-sb, 0, cb, 0], [0, 0, 0, 1.0]])
+            T = T @ A
+        return T @ self.T_flange_tool
+
     def ik(self, T_target: np.ndarray, q_seed, iterations: int = 200, tol: float = 1e-10
            ) -> np.ndarray:
         """Joints reaching ``T_target`` near ``q_seed``, by damped Gauss-Newton on the pose
