@@ -32,7 +32,8 @@ Q0 = np.radians([0.0, -100.0, -100.0, -70.0, 90.0, 0.0])
 
 
 def _noisy(T, rng, s_mm, s_deg):
-    return make_T(rotvec_to_R(np.radians(rng.normal(0, s_deg, 3))), rng.normal(0, s_mm / 1000, 3)) @ T
+    R = rotvec_to_R(np.radians(rng.normal(0, s_deg, 3)))
+    return make_T(R, rng.normal(0, s_mm / 1000, 3)) @ T
 
 
 def trial(args) -> dict:
@@ -45,7 +46,8 @@ def trial(args) -> dict:
     true.theta_offset += np.radians(rng.normal(0, 0.1, 6))
     true.alpha += np.radians(rng.normal(0, 0.1, 6))
     true.beta[1:3] = np.radians(rng.normal(0, 0.1, 2))
-    X = make_T(rotvec_to_R(rng.normal(0, 0.05, 3)), [0.0, 0.0, 0.05] + rng.normal(0, 0.005, 3))
+    X = make_T(rotvec_to_R(rng.normal(0, 0.05, 3)),
+               np.array([0.0, 0.0, 0.05]) + rng.normal(0, 0.005, 3))
     W = make_T(np.diag([1.0, -1, -1]), [0.5, 0.0, 0.0])
 
     def measure(q):
