@@ -91,7 +91,7 @@ def rig_text(world_path: Path, host: str, workdir: Path, camera_url: str, record
 
 
 def up(world_file: str, rig_out: str, host: str = "127.0.0.1", records: str = "records",
-       port: int = 18080, ready_out=None) -> int:
+       port: int = 18080, ready_out=None, workdir: str | None = None) -> int:
     world_path = Path(world_file).resolve()
     world = load_world(world_path)
     if not host.startswith("127."):
@@ -104,7 +104,9 @@ def up(world_file: str, rig_out: str, host: str = "127.0.0.1", records: str = "r
                               " stop it with `rigctl sim down`")
         except ProcessLookupError:
             state_path(host).unlink()
-    workdir = Path(tempfile.mkdtemp(prefix=f"rigctl-sim-{host}-"))
+    own_dir = workdir is None
+    workdir = Path(tempfile.mkdtemp(prefix=f"rigctl-sim-{host}-")) if own_dir else Path(workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
     children: list[Child] = []
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
@@ -142,7 +144,11 @@ def up(world_file: str, rig_out: str, host: str = "127.0.0.1", records: str = "r
     finally:
         for child in reversed(children):
             child.stop()
-        shutil.rmtree(workdir, ignore_errors=True)
+        if own_dir:
+            shutil.rmtree(workdir, ignore_errors=True)
+        else:  # a given workdir is kept; only what the stand-ins made goes
+            for name in ("dxl", "dxl.sock", "ur.sock", "camera.sock"):
+                (workdir / name).unlink(missing_ok=True)
         state_path(host).unlink(missing_ok=True)
     return 0
 

@@ -419,13 +419,18 @@ def sim_up(world: Path = typer.Option(Path("mocks/worlds/default.yaml"), "--worl
            rig_out: Path = typer.Option(Path("sim-rig.yaml"), "--rig-out"),
            host: str = typer.Option("127.0.0.1", "--host"),
            records: str = typer.Option("records", "--records"),
-           port: int = typer.Option(18080, "--camera-port")) -> None:
+           port: int = typer.Option(18080, "--camera-port"),
+           workdir: Path | None = typer.Option(None, "--workdir",
+                                               help="fixed folder for the pty link and "
+                                                    "sockets (default: a new temp folder)")
+           ) -> None:
     """Start head bus, arm controller and camera on one world; write a rig file; run
     until SIGTERM (or `rigctl sim down`)."""
     from mocks import sim
 
     try:
-        raise typer.Exit(sim.up(str(world), str(rig_out), host, records, port))
+        raise typer.Exit(sim.up(str(world), str(rig_out), host, records, port,
+                                workdir=str(workdir) if workdir else None))
     except RigError as exc:
         _fail(exc, False)
 
@@ -620,6 +625,23 @@ def bench_robot(as_json: bool = typer.Option(False, "--json"),
                   f"{r['dh_smallest_sv_rel']:.1e} / {r['dh_second_sv_rel']:.1e}"]
                  for r in result["rows"]], out)
     out.print(f"targets: {result['targets']}")
+
+
+@app.command()
+def serve(rig: Path = typer.Option(..., "--rig"),
+          host: str | None = typer.Option(None, "--host", help="default: service.bind"),
+          port: int | None = typer.Option(None, "--port", help="default: service.port")) -> None:
+    """HTTP API, run queue, scheduled recalibration and status page for the rig."""
+    from rigctl import service
+
+    try:
+        config = load_rig(rig)
+        service.check_bind(config, host or config.service.bind)
+    except RigError as exc:
+        _fail(exc, False)
+    err.print(f"rigctl serve: rig {config.name} on http://{host or config.service.bind}:"
+              f"{port or config.service.port}/", highlight=False)
+    service.serve(config, host, port)
 
 
 if __name__ == "__main__":  # pragma: no cover

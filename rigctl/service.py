@@ -1,0 +1,568 @@
+"""``rigctl serve``: HTTP API, a FIFO run queue with the rig's one lock, scheduled
+recalibration, drift checks and a status page (FastAPI + uvicorn + APScheduler).
+
+Runs execute in one worker thread through the same ``Runner`` as the CLI, under the same
+per-rig ``flock``: a CLI run while the service holds the rig fails with "busy, held by
+run X", and the other way round. Mutating endpoints need the bearer token when one is
+set (rig file ``service.token`` or ``RIGCTL_TOKEN``); binding anything but loopback
+requires one. No endpoint runs code or reads a path it was given: captures are
+addressed by run id and index.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import datetime as dt
+import io
+import json
+import logging
+import os
+import re
+import socket
+import threading
+import urllib.request
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from fastapi import Depends, FastAPI, Header, HTTPException, Request
+from fastapi.responses import FileResponse, HTMLResponse, Response, StreamingResponse
+from pydantic import BaseModel, Field
+
+import procedures
+from rigctl import __version__, drift
+from rigctl.config import RigConfig
+from rigctl.errors import BusyError, ConfigError, RigError
+from rigctl.locks import RigLock
+from rigctl.records import RecordIndex, RunDirectory, new_run_id, utcnow
+from rigctl.runner import Runner
+
+log = logging.getLogger("rigctl.service")
+LOOPBACK = ("127.0.0.1", "localhost", "::1")
+
+
+def service_token(config: RigConfig) -> str | None:
+    return config.service.token or os.environ.get("RIGCTL_TOKEN") or None
+
+
+def check_bind(config: RigConfig, host: str) -> None:
+    """Refuse a non-loopback bind without a token."""
+    loopback = host in LOOPBACK or host.startswith("127.")
+    if not loopback and not service_token(config):
+        raise ConfigError(f"service.bind {host}: binding beyond loopback requires a bearer "
+                          "token (service.token in the rig file, or RIGCTL_TOKEN)")
+
+
+def parse_duration(text: str) -> int:
+    """'1h', '30m', '45s', '2h30m' -> seconds (max_delay of a schedule)."""
+    total, pos = 0, 0
+    for m in re.finditer(r"(\d+)\s*([hms])", text):
+        if m.start() != pos:
+            break
+        total += int(m.group(1)) * {"h": 3600, "m": 60, "s": 1}[m.group(2)]
+        pos = m.end()
+    if pos != len(text.strip()) or total <= 0:
+        raise ConfigError(f"service.schedules.max_delay: cannot read duration {text!r} "
+                          "(use e.g. 1h, 30m, 45s)")
+    return total
+
+
+class EventBus:
+    """Fan-out of runner events (from the worker thread) to SSE subscribers (asyncio)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._subscribers: list[tuple[asyncio.AbstractEventLoop, asyncio.Queue]] = []
+        self.recent: deque[dict] = deque(maxlen=200)
+        self._seq = 0
+
+    def publish(self, event: dict) -> None:
+        with self._lock:
+            self._seq += 1
+            event = {"seq": self._seq, "time": utcnow().isoformat(), **event}
+            self.recent.append(event)
+            subscribers = list(self._subscribers)
+        for loop, queue in subscribers:
+            with contextlib.suppress(RuntimeError):
+                loop.call_soon_threadsafe(queue.put_nowait, event)
+
+    def subscribe(self) -> asyncio.Queue:
+        queue: asyncio.Queue = asyncio.Queue()
+        with self._lock:
+            self._subscribers.append((asyncio.get_running_loop(), queue))
+        return queue
+
+    def unsubscribe(self, queue: asyncio.Queue) -> None:
+        with self._lock:
+            self._subscribers = [(lp, q) for lp, q in self._subscribers if q is not queue]
+
+
+@dataclass
+class Job:
+    run_id: str
+    procedure: str
+    params: dict[str, Any]
+    source: str = "api"
+    operator: str = "service"
+    progress: dict[str, Any] = field(default_factory=dict)
+
+
+class RigService:
+    """The queue, the worker, the scheduler and the drift decisions of one rig."""
+
+    def __init__(self, config: RigConfig, factories: dict | None = None) -> None:
+        self.config = config
+        self.factories = factories
+        self.index = RecordIndex(config.database_url())
+        self.events = EventBus()
+        self.queue: deque[Job] = deque()
+        self.cond = threading.Condition()
+        self.current: Job | None = None
+        self.runner: Runner | None = None
+        self.stopping = False
+        self.worker = threading.Thread(target=self._work, daemon=True, name="rig-worker")
+        self.scheduler = None
+
+    # -- queue ---------------------------------------------------------------------
+
+    def submit(self, procedure: str, params: dict[str, Any], source: str = "api",
+               operator: str = "service") -> Job:
+        """Validate and queue a run; the run id is assigned now."""
+        proc = procedures.get_procedure(procedure)
+        proc.parse_params(self.config, params)  # ConfigError names the parameter
+        job = Job(new_run_id(procedure), procedure, params, source, operator)
+        with self.cond:
+            self.queue.append(job)
+            self.cond.notify_all()
+        self.events.publish({"type": "queued", "run_id": job.run_id, "procedure": procedure,
+                             "source": source})
+        return job
+
+    def busy_reason(self) -> str | None:
+        """Why a scheduled run cannot start now (None if the rig is free)."""
+        with self.cond:
+            if self.current is not None:
+                return f"rig busy: run {self.current.run_id} is running"
+            if self.queue:
+                return f"rig busy: {len(self.queue)} run(s) queued"
+        lock = RigLock(self.config.records_dir() / "locks", self.config.name)
+        try:
+            lock.acquire("probe")
+        except BusyError as exc:
+            return str(exc)
+        lock.release()
+        return None
+
+    def record_without_run(self, procedure: str, status: str, reason: str,
+                           params: dict | None = None) -> str:
+        run_id = new_run_id(procedure)
+        self.index.insert({"run_id": run_id, "procedure": procedure, "status": status,
+                           "reason": reason, "started_at": utcnow(), "ended_at": utcnow(),
+                           "operator": "scheduler", "rig_name": self.config.name,
+                           "config_hash": self.config.config_hash(), "run_dir": "",
+                           "host": socket.gethostname(), "pid": os.getpid(),
+                           "result_summary": {"params": params or {}}})
+        self.events.publish({"type": "finished", "run_id": run_id, "status": status,
+                             "reason": reason})
+        return run_id
+
+    def abort(self, run_id: str) -> str:
+        with self.cond:
+            if self.current is not None and self.current.run_id == run_id:
+                self.runner.abort("aborted via the API")
+                return "aborting"
+            for job in list(self.queue):
+                if job.run_id == run_id:
+                    self.queue.remove(job)
+                    self.record_without_run(job.procedure, "aborted",
+                                            "aborted via the API before it started")
+                    return "removed from the queue"
+        raise HTTPException(404, f"run {run_id} is neither running nor queued")
+
+    def _work(self) -> None:
+        while True:
+            with self.cond:
+                while not self.queue and not self.stopping:
+                    self.cond.wait(0.5)
+                if self.stopping:
+                    return
+                job = self.queue.popleft()
+                self.current = job
+                self.runner = Runner(self.config, factories=self.factories,
+                                     show_progress=False, operator=job.operator,
+                                     on_event=lambda e, j=job: self._on_event(j, e))
+            try:
+                outcome = self.runner.run(job.procedure, job.params, run_id=job.run_id)
+                if outcome.status == "succeeded" and job.procedure in drift.CALIBRATIONS:
+                    self.decide(job.run_id, job.procedure, outcome.result)
+            except RigError as exc:  # refused before anything moved (busy, limits, params)
+                status = "skipped" if job.source == "schedule" else "failed"
+                self.record_without_run(job.procedure, status, f"{type(exc).__name__}: {exc}")
+            except Exception:
+                log.exception("worker: run %s crashed", job.run_id)
+            finally:
+                with self.cond:
+                    self.current = None
+                    self.runner = None
+
+    def _on_event(self, job: Job, event: dict) -> None:
+        if event.get("type") == "step":
+            job.progress = {"index": event.get("index"), "total": event.get("total"),
+                            "step": event.get("step")}
+        self.events.publish(event)
+
+    # -- drift ---------------------------------------------------------------------
+
+    def decide(self, run_id: str, procedure: str, result: dict[str, Any]) -> str:
+        """Compare with the last accepted calibration; mark drift, accept or leave pending."""
+        previous = self._last_accepted(procedure, exclude=run_id)
+        breaches, metrics = [], {}
+        if previous is not None:
+            old = RunDirectory(previous["run_dir"]).result()
+            breaches, metrics = drift.compare(procedure, result, old, self.config.service.drift)
+        if breaches:
+            decision = "drift"
+            self._webhook({"rig": self.config.name, "run_id": run_id, "procedure": procedure,
+                           "drift": breaches, "metrics": metrics,
+                           "compared_with": previous["run_id"]})
+        elif self.config.service.auto_accept:
+            decision = "accepted"
+        else:
+            decision = "pending"
+        self.index.update(run_id, decision=decision)
+        self.events.publish({"type": "decision", "run_id": run_id, "decision": decision,
+                             "drift": breaches, "metrics": metrics})
+        return decision
+
+    def _last_accepted(self, procedure: str, exclude: str | None = None) -> dict | None:
+        rows = [r for r in self.index.list(500, procedure)
+                if r["decision"] == "accepted" and r["run_id"] != exclude]
+        return rows[0] if rows else None
+
+    def _webhook(self, payload: dict) -> None:
+        url = self.config.service.webhook
+        if not url:
+            return
+        request = urllib.request.Request(url, data=json.dumps(payload).encode(),
+                                         headers={"Content-Type": "application/json"})
+        try:
+            urllib.request.urlopen(request, timeout=3).close()
+        except OSError as exc:
+            log.warning("drift webhook %s failed: %s", url, exc)
+
+    # -- scheduler -----------------------------------------------------------------
+
+    def start(self) -> None:
+        self.worker.start()
+        if self.config.service.schedules:
+            from apscheduler.schedulers.background import BackgroundScheduler
+            from apscheduler.triggers.cron import CronTrigger
+            from apscheduler.triggers.interval import IntervalTrigger
+
+            self.scheduler = BackgroundScheduler(timezone="UTC")
+            for k, sched in enumerate(self.config.service.schedules):
+                trigger = (CronTrigger.from_crontab(sched.cron, timezone="UTC") if sched.cron
+                           else IntervalTrigger(seconds=sched.interval_s))
+                self.scheduler.add_job(self._scheduled, trigger, args=[sched], id=f"s{k}",
+                                       misfire_grace_time=parse_duration(sched.max_delay),
+                                       coalesce=True, max_instances=1)
+            self.scheduler.start()
+
+    def _scheduled(self, sched) -> None:
+        reason = self.busy_reason()
+        if reason is not None:
+            self.record_without_run(sched.procedure, "skipped", reason, sched.params)
+            return
+        try:
+            self.submit(sched.procedure, sched.params, source="schedule", operator="scheduler")
+        except RigError as exc:
+            self.record_without_run(sched.procedure, "skipped", str(exc), sched.params)
+
+    def stop(self) -> None:
+        if self.scheduler is not None:
+            self.scheduler.shutdown(wait=False)
+        with self.cond:
+            self.stopping = True
+            if self.runner is not None:
+                self.runner.abort("service shutting down")
+            self.cond.notify_all()
+        self.worker.join(timeout=30)
+
+
+class RunRequest(BaseModel):
+    procedure: str
+    params: dict[str, Any] = Field(default_factory=dict)
+    operator: str | None = None
+
+
+def _row(row: dict) -> dict:
+    return {k: (v.isoformat() if isinstance(v, dt.datetime) else v) for k, v in row.items()
+            if k not in ("pid", "host")}
+
+
+def create_app(service: RigService) -> FastAPI:
+    config = service.config
+    token = service_token(config)
+    app = FastAPI(title="rigctl", version=__version__,
+                  description=f"Rig controller service for rig {config.name!r}")
+
+    def require_token(authorization: str | None = Header(None)) -> None:
+        if token and authorization != f"Bearer {token}":
+            raise HTTPException(401, "missing or wrong bearer token",
+                                headers={"WWW-Authenticate": "Bearer"})
+
+    @app.get("/health")
+    def health() -> dict:
+        return {"status": "ok", "rig": config.name, "version": __version__}
+
+    @app.get("/rig")
+    def rig_state() -> dict:
+        """Device status read without moving anything: configuration, lock holder, the
+        last recorded readings."""
+        lock = RigLock(config.records_dir() / "locks", config.name)
+        last = {}
+        for row in service.index.list(20):
+            if row["run_dir"] and Path(row["run_dir"], "captures").exists():
+                caps = RunDirectory(row["run_dir"]).captures()
+                if caps:
+                    meta = caps[-1].meta
+                    last = {"run_id": row["run_id"], "head": meta.get("head"),
+                            "arm": meta.get("arm"), "time": meta.get("time")}
+                    break
+        devices = {k: (getattr(config.devices, k).model_dump() if getattr(config.devices, k)
+                       else None) for k in ("head", "arm", "camera")}
+        return {"rig": config.name, "busy": service.busy_reason(), "lock": lock.holder(),
+                "devices": devices, "last_readings": last}
+
+    @app.get("/procedures")
+    def list_procedures() -> list[dict]:
+        out = []
+        for name in procedures.procedure_names():
+            proc = procedures.get_procedure(name)
+            out.append({"name": name, "summary": proc.summary, "devices": list(proc.devices),
+                        "params_schema": proc.params_model.model_json_schema()})
+        return out
+
+    @app.post("/runs", status_code=202, dependencies=[Depends(require_token)])
+    def queue_run(request: RunRequest) -> dict:
+        try:
+            job = service.submit(request.procedure, request.params,
+                                 operator=request.operator or "api")
+        except ConfigError as exc:
+            raise HTTPException(422, str(exc)) from None
+        return {"run_id": job.run_id, "status": "queued", "position": len(service.queue)}
+
+    @app.get("/runs")
+    def list_runs(limit: int = 50, procedure: str | None = None) -> list[dict]:
+        queued = [{"run_id": j.run_id, "procedure": j.procedure, "status": "queued"}
+                  for j in list(service.queue)]
+        return queued + [_row(r) for r in service.index.list(limit, procedure)]
+
+    @app.get("/runs/{run_id}")
+    def get_run(run_id: str) -> dict:
+        for job in list(service.queue):
+            if job.run_id == run_id:
+                return {"run_id": run_id, "procedure": job.procedure, "status": "queued"}
+        try:
+            row = _row(service.index.get(run_id))
+        except RigError:
+            raise HTTPException(404, f"no run {run_id}") from None
+        current = service.current
+        if current is not None and current.run_id == row["run_id"]:
+            row["progress"] = current.progress
+        if row["run_dir"] and Path(row["run_dir"], "result.json").exists():
+            row["result"] = RunDirectory(row["run_dir"]).result()
+        return row
+
+    @app.post("/runs/{run_id}/abort", dependencies=[Depends(require_token)])
+    def abort_run(run_id: str) -> dict:
+        return {"run_id": run_id, "status": service.abort(run_id)}
+
+    @app.get("/runs/{run_id}/captures/{n}")
+    def capture_image(run_id: str, n: int) -> FileResponse:
+        try:
+            row = service.index.get(run_id)
+        except RigError:
+            raise HTTPException(404, f"no run {run_id}") from None
+        path = Path(row["run_dir"]) / "captures" / f"{n:03d}.png" if row["run_dir"] else None
+        if n < 0 or path is None or not path.is_file():
+            raise HTTPException(404, f"run {run_id} has no capture {n}")
+        return FileResponse(path, media_type="image/png")
+
+    def calibration_rows(procedure: str | None, limit: int = 200) -> list[dict]:
+        names = [procedure] if procedure else list(drift.CALIBRATIONS)
+        rows = []
+        for name in names:
+            rows += [r for r in service.index.list(limit, name) if r["status"] == "succeeded"]
+        return sorted(rows, key=lambda r: r["started_at"], reverse=True)
+
+    @app.get("/calibrations/latest")
+    def latest_calibration(procedure: str | None = None) -> dict:
+        names = [procedure] if procedure else list(drift.CALIBRATIONS)
+        out = {}
+        for name in names:
+            row = service._last_accepted(name)
+            if row is not None:
+                out[name] = {**_row(row), "result": RunDirectory(row["run_dir"]).result()}
+        if procedure and procedure not in out:
+            raise HTTPException(404, f"no accepted {procedure} calibration")
+        return out
+
+    @app.get("/calibrations/history")
+    def calibration_history(procedure: str | None = None) -> list[dict]:
+        return [_row(r) for r in calibration_rows(procedure)]
+
+    def set_decision(run_id: str, decision: str) -> dict:
+        try:
+            row = service.index.get(run_id)
+        except RigError:
+            raise HTTPException(404, f"no run {run_id}") from None
+        if row["procedure"] not in drift.CALIBRATIONS or row["status"] != "succeeded":
+            raise HTTPException(409, f"run {run_id} is not a finished calibration")
+        service.index.update(row["run_id"], decision=decision)
+        service.events.publish({"type": "decision", "run_id": row["run_id"],
+                                "decision": decision, "by": "operator"})
+        return {"run_id": row["run_id"], "decision": decision}
+
+    @app.post("/calibrations/{run_id}/accept", dependencies=[Depends(require_token)])
+    def accept(run_id: str) -> dict:
+        return set_decision(run_id, "accepted")
+
+    @app.post("/calibrations/{run_id}/reject", dependencies=[Depends(require_token)])
+    def reject(run_id: str) -> dict:
+        return set_decision(run_id, "rejected")
+
+    @app.get("/events")
+    async def events(request: Request) -> StreamingResponse:
+        queue = service.events.subscribe()
+
+        async def stream():
+            try:
+                yield "retry: 2000\n\n"
+                while True:
+                    if await request.is_disconnected():
+                        return
+                    try:
+                        event = await asyncio.wait_for(queue.get(), timeout=1.0)
+                    except TimeoutError:
+                        yield ": keep-alive\n\n"
+                        continue
+                    yield f"event: {event['type']}\ndata: {json.dumps(event, default=str)}\n\n"
+            finally:
+                service.events.unsubscribe(queue)
+
+        return StreamingResponse(stream(), media_type="text/event-stream")
+
+    @app.get("/plots/history.png")
+    def history_plot() -> Response:
+        return Response(_history_png(calibration_rows(None)), media_type="image/png")
+
+    @app.get("/", response_class=HTMLResponse)
+    def status_page() -> str:
+        return STATUS_PAGE.replace("{{rig}}", config.name)
+
+    return app
+
+
+def _history_png(rows: list[dict]) -> bytes:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.2))
+    colours = {"accepted": "tab:green", "drift": "tab:red", "pending": "tab:orange",
+               "rejected": "tab:gray"}
+    cam = [r for r in rows if r["procedure"] == "active-camera" and r["result_summary"]]
+    rob = [r for r in rows if r["procedure"] == "robot-kinematics" and r["result_summary"]]
+    for ax, keys, title in ((axes[0], ("fx", "fy"), "focal lengths (px)"),
+                            (axes[1], ("cx", "cy"), "principal point (px)")):
+        for key in keys:
+            pts = [(r["started_at"], r["result_summary"].get(key)) for r in cam
+                   if r["result_summary"].get(key) is not None]
+            if pts:
+                ax.plot([p[0] for p in pts], [p[1] for p in pts], "-", lw=0.8, label=key)
+                ax.scatter([p[0] for p in pts], [p[1] for p in pts],
+                           c=[colours.get(r["decision"], "k") for r in cam
+                              if r["result_summary"].get(key) is not None], s=16, zorder=3)
+        ax.set_title(title)
+        ax.legend(fontsize=7)
+    pts = [(r["started_at"], r["result_summary"].get("heldout_mm_after")) for r in rob]
+    pts = [p for p in pts if p[1] is not None]
+    if pts:
+        axes[2].plot([p[0] for p in pts], [p[1] for p in pts], "o-")
+    axes[2].set_title("arm: held-out camera error after calibration (mm)")
+    for ax in axes:
+        ax.tick_params(axis="x", labelrotation=30, labelsize=7)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=80)
+    plt.close(fig)
+    return buf.getvalue()
+
+
+STATUS_PAGE = """<!doctype html>
+<html><head><meta charset="utf-8"><title>rigctl: {{rig}}</title>
+<style>
+body{font-family:system-ui,sans-serif;margin:1.5em;color:#222}
+table{border-collapse:collapse;font-size:90%}td,th{padding:3px 8px;border-bottom:1px solid #ddd}
+.succeeded,.accepted{color:#1a7f37}.failed,.drift,.aborted{color:#c62828}
+.running,.pending,.queued{color:#b26a00}
+progress{width:20em}
+</style></head><body>
+<h1>rigctl &middot; {{rig}}</h1>
+<h2>Rig</h2><div id="rig">loading...</div>
+<h2>Current run</h2><div id="current">idle</div>
+<h2>Recent runs</h2><table id="runs"><thead><tr><th>run</th><th>procedure</th>
+<th>status</th><th>decision</th><th>started</th><th>reason</th></tr></thead><tbody></tbody></table>
+<h2>Calibration history</h2><img id="history" src="/plots/history.png" alt="history">
+<script>
+async function refresh(){
+  const rig = await (await fetch('/rig')).json();
+  document.getElementById('rig').textContent =
+    (rig.busy ? 'busy: ' + rig.busy : 'idle') + ' | devices: ' +
+    Object.entries(rig.devices).filter(([k,v])=>v).map(([k])=>k).join(', ');
+  const runs = await (await fetch('/runs?limit=15')).json();
+  const body = document.querySelector('#runs tbody'); body.innerHTML = '';
+  let current = null;
+  for (const r of runs){
+    const tr = document.createElement('tr');
+    for (const v of [r.run_id, r.procedure, r.status, r.decision||'', r.started_at||'',
+                     (r.reason||'').slice(0,80)]){
+      const td = document.createElement('td'); td.textContent = v; tr.appendChild(td);}
+    tr.children[2].className = r.status; tr.children[3].className = r.decision||'';
+    body.appendChild(tr);
+    if (r.status === 'running') current = r;
+  }
+  const cur = document.getElementById('current');
+  if (current){
+    const d = await (await fetch('/runs/' + current.run_id)).json();
+    const p = d.progress || {};
+    cur.innerHTML = '';
+    cur.append(current.run_id + ' ' + (p.step || ''));
+    const bar = document.createElement('progress');
+    bar.max = p.total || 1; bar.value = p.index || 0; cur.append(' ', bar);
+  } else { cur.textContent = 'idle'; }
+  document.getElementById('history').src = '/plots/history.png?t=' + Date.now();
+}
+refresh(); setInterval(refresh, 3000);
+</script></body></html>
+"""
+
+
+def serve(config: RigConfig, host: str | None = None, port: int | None = None) -> None:
+    """Run the service until SIGTERM/SIGINT (uvicorn handles the signals)."""
+    import uvicorn
+
+    host = host or config.service.bind
+    port = port or config.service.port
+    check_bind(config, host)
+    service = RigService(config)
+    service.start()
+    app = create_app(service)
+    try:
+        uvicorn.run(app, host=host, port=port, log_level="warning")
+    finally:
+        service.stop()

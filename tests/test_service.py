@@ -1,0 +1,237 @@
+"""rigctl serve against a real uvicorn server on loopback, driving the simulated rig."""
+
+from __future__ import annotations
+
+import http.server
+import json
+import subprocess
+import sys
+import threading
+import time
+
+import httpx
+import pytest
+import yaml
+
+from tests.mockproc import ROOT, MockProcess
+
+pytestmark = pytest.mark.integration
+
+HOST, PORT, CAMERA_PORT = "127.0.0.16", 18711, 18086
+TOKEN = "s3cret"
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+
+
+class Webhook:
+    def __init__(self) -> None:
+        self.received: list[dict] = []
+        owner = self
+
+        class Handler(http.server.BaseHTTPRequestHandler):
+            def log_message(self, *a):
+                pass
+
+            def do_POST(self):
+                body = self.rfile.read(int(self.headers["Content-Length"]))
+                owner.received.append(json.loads(body))
+                self.send_response(204)
+                self.end_headers()
+
+        self.server = http.server.HTTPServer(("127.0.0.1", 0), Handler)
+        self.url = f"http://127.0.0.1:{self.server.server_port}/hook"
+        threading.Thread(target=self.server.serve_forever, daemon=True).start()
+
+    def close(self):
+        self.server.shutdown()
+        self.server.server_close()
+
+
+def start_sim(tmp, world):
+    return MockProcess(["-m", "rigctl.cli", "sim", "up", "--world",
+                        str(ROOT / "mocks" / "worlds" / f"{world}.yaml"), "--rig-out",
+                        str(tmp / "sim-rig.yaml"), "--host", HOST, "--records",
+                        str(tmp / "records"), "--camera-port", str(CAMERA_PORT), "--workdir",
+                        str(tmp / "simwork")], ready_timeout=40)
+
+
+class Stack:
+    def __init__(self, tmp):
+        self.tmp = tmp
+        self.hook = Webhook()
+        self.sim = start_sim(tmp, "ideal")
+        rig = yaml.safe_load((tmp / "sim-rig.yaml").read_text())
+        rig["service"] = {"bind": "127.0.0.1", "port": PORT, "token": TOKEN,
+                          "webhook": self.hook.url, "auto_accept": False,
+                          "schedules": [{"procedure": "head-sweep", "interval_s": 12,
+                                         "max_delay": "5s",
+                                         "params": {"pan_deg": [0], "tilt_deg": [0],
+                                                    "settle_s": 0}}],
+                          "drift": {"focal_pct": 0.5, "principal_point_px": 3.0}}
+        self.rig = tmp / "service-rig.yaml"
+        self.rig.write_text(yaml.safe_dump(rig))
+        self.server = subprocess.Popen([sys.executable, "-m", "rigctl.cli", "serve", "--rig",
+                                        str(self.rig)], cwd=ROOT, stdout=subprocess.DEVNULL,
+                                       stderr=subprocess.PIPE, text=True)
+        self.base = f"http://127.0.0.1:{PORT}"
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            try:
+                if httpx.get(self.base + "/health", timeout=1).status_code == 200:
+                    return
+            except httpx.HTTPError:
+                time.sleep(0.2)
+        self.stop()
+        raise RuntimeError("service did not start")
+
+    def stop(self):
+        if self.server is not None and self.server.poll() is None:
+            self.server.terminate()
+            try:
+                self.server.wait(20)
+            except subprocess.TimeoutExpired:
+                self.server.kill()
+                self.server.wait(5)
+        if self.sim is not None:
+            self.sim.stop(timeout=20)
+        self.hook.close()
+
+
+@pytest.fixture(scope="module")
+def stack(tmp_path_factory):
+    s = Stack(tmp_path_factory.mktemp("service"))
+    yield s
+    s.stop()
+
+
+def post(stack, path, body=None, auth=True):
+    return httpx.post(stack.base + path, json=body, headers=AUTH if auth else {}, timeout=10)
+
+
+def wait_for(stack, run_id, statuses=("succeeded", "failed", "aborted"), timeout=120):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        r = httpx.get(f"{stack.base}/runs/{run_id}", timeout=5)
+        if r.status_code == 200 and r.json()["status"] in statuses:
+            return r.json()
+        time.sleep(0.3)
+    raise AssertionError(f"run {run_id} did not reach {statuses}")
+
+
+def test_token_and_input_validation(stack):
+    assert httpx.get(stack.base + "/health").json()["status"] == "ok"
+    assert post(stack, "/runs", {"procedure": "head-sweep"}, auth=False).status_code == 401
+    wrong = httpx.post(stack.base + "/runs", json={"procedure": "head-sweep"},
+                       headers={"Authorization": "Bearer nope"})
+    assert wrong.status_code == 401
+    bad = post(stack, "/runs", {"procedure": "head-sweep", "params": {"pan_dgr": [1]}})
+    assert bad.status_code == 422 and "pan_dgr: unknown parameter" in bad.text
+    assert post(stack, "/runs", {"procedure": "rm -rf /"}).status_code == 422
+    schema = httpx.get(stack.base + "/openapi.json").json()
+    assert "/runs/{run_id}/abort" in schema["paths"]
+    procs = {p["name"]: p for p in httpx.get(stack.base + "/procedures").json()}
+    assert "pan_deg" in procs["active-camera"]["params_schema"]["properties"]
+    assert "rigctl" in httpx.get(stack.base + "/").text
+    assert httpx.get(stack.base + "/rig").json()["devices"]["head"] is not None
+
+
+def test_active_camera_with_progress_events_then_accept(stack):
+    events, run_id = [], None
+    with httpx.stream("GET", stack.base + "/events", timeout=180) as stream:
+        r = post(stack, "/runs", {"procedure": "active-camera",
+                                  "params": {"pan_deg": 5, "tilt_deg": 5}})
+        assert r.status_code == 202
+        run_id = r.json()["run_id"]
+        for line in stream.iter_lines():
+            if line.startswith("data: "):
+                event = json.loads(line[6:])
+                if event.get("run_id") == run_id:
+                    events.append(event)
+                    if event["type"] == "decision":
+                        break
+    kinds = [e["type"] for e in events]
+    assert kinds[0] == "queued" and "started" in kinds and "finished" in kinds
+    steps = [e for e in events if e["type"] == "step"]
+    assert len(steps) > 10 and steps[-1]["index"] >= steps[0]["index"]
+    assert events[-1]["decision"] == "pending"  # the first calibration waits for an operator
+    run = httpx.get(f"{stack.base}/runs/{run_id}").json()
+    assert run["status"] == "succeeded"
+    assert abs(run["result"]["fx"] / 900.0 - 1) < 0.005
+    assert post(stack, f"/calibrations/{run_id}/accept", auth=False).status_code == 401
+    assert post(stack, f"/calibrations/{run_id}/accept").json()["decision"] == "accepted"
+    latest = httpx.get(stack.base + "/calibrations/latest?procedure=active-camera").json()
+    assert latest["active-camera"]["run_id"] == run_id
+    image = httpx.get(f"{stack.base}/runs/{run_id}/captures/0")
+    assert image.status_code == 200 and image.content[:4] == b"\x89PNG"
+    assert httpx.get(f"{stack.base}/runs/{run_id}/captures/99").status_code == 404
+    assert httpx.get(f"{stack.base}/plots/history.png").content[:4] == b"\x89PNG"
+
+
+def test_two_requests_run_one_after_the_other(stack):
+    params = {"pan_deg": [-5, 5], "tilt_deg": [0], "settle_s": 0.2}
+    a = post(stack, "/runs", {"procedure": "head-sweep", "params": params}).json()["run_id"]
+    b = post(stack, "/runs", {"procedure": "head-sweep", "params": params}).json()["run_id"]
+    ra, rb = wait_for(stack, a), wait_for(stack, b)
+    assert ra["status"] == rb["status"] == "succeeded"
+    assert ra["ended_at"] <= rb["started_at"]  # FIFO, never together
+
+
+def test_abort_mid_run_and_cli_sees_the_rig_busy(stack):
+    params = {"pan_deg": [-20, 20, -20, 20, -20, 20], "tilt_deg": [0, 5], "settle_s": 0.5,
+              "image": True}
+    run_id = post(stack, "/runs", {"procedure": "head-sweep", "params": params}).json()["run_id"]
+    wait_for(stack, run_id, statuses=("running",), timeout=60)
+    deadline = time.monotonic() + 30
+    while httpx.get(f"{stack.base}/runs/{run_id}/captures/0").status_code != 200:
+        assert time.monotonic() < deadline
+        time.sleep(0.2)
+    cli = subprocess.run([sys.executable, "-m", "rigctl.cli", "run", "head-sweep", "--rig",
+                          str(stack.rig)], capture_output=True, text=True, timeout=60, cwd=ROOT)
+    assert cli.returncode == 2 and f"busy, held by run {run_id}" in cli.stderr
+    assert post(stack, f"/runs/{run_id}/abort", auth=False).status_code == 401
+    assert post(stack, f"/runs/{run_id}/abort").json()["status"] == "aborting"
+    run = wait_for(stack, run_id)
+    assert run["status"] == "aborted" and "aborted via the API" in run["reason"]
+    assert httpx.get(f"{stack.base}/runs/{run_id}/captures/0").status_code == 200
+
+
+def test_schedule_fires_and_records_its_run(stack):
+    deadline = time.monotonic() + 40
+    while time.monotonic() < deadline:
+        runs = httpx.get(stack.base + "/runs?limit=200&procedure=head-sweep").json()
+        scheduled = [r for r in runs if r.get("operator") == "scheduler"]
+        if any(r["status"] in ("succeeded", "skipped") for r in scheduled):
+            break
+        time.sleep(1)
+    else:
+        raise AssertionError("no scheduled run was recorded")
+    skipped = [r for r in scheduled if r["status"] == "skipped"]
+    assert all("busy" in (r["reason"] or "") for r in skipped)
+
+
+def test_drifted_intrinsics_are_flagged_and_wait(stack):
+    stack.sim.stop(timeout=20)
+    stack.sim = start_sim(stack.tmp, "drift")  # same devices, refocused lens
+    run_id = post(stack, "/runs", {"procedure": "active-camera",
+                                   "params": {"pan_deg": 5, "tilt_deg": 5}}).json()["run_id"]
+    run = wait_for(stack, run_id, timeout=180)
+    assert run["status"] == "succeeded", run.get("reason")
+    deadline = time.monotonic() + 10
+    while httpx.get(f"{stack.base}/runs/{run_id}").json()["decision"] is None:
+        assert time.monotonic() < deadline
+        time.sleep(0.2)
+    assert httpx.get(f"{stack.base}/runs/{run_id}").json()["decision"] == "drift"
+    assert stack.hook.received and stack.hook.received[-1]["run_id"] == run_id
+    assert any("focal length changed" in d for d in stack.hook.received[-1]["drift"])
+    latest = httpx.get(stack.base + "/calibrations/latest?procedure=active-camera").json()
+    assert latest["active-camera"]["run_id"] != run_id  # still the old accepted one
+    history = httpx.get(stack.base + "/calibrations/history?procedure=active-camera").json()
+    assert {h["decision"] for h in history} >= {"accepted", "drift"}
+
+
+def test_non_loopback_bind_requires_a_token(tmp_path):
+    rig = tmp_path / "rig.yaml"
+    rig.write_text("devices: {}\nservice: {bind: 0.0.0.0}\n")
+    result = subprocess.run([sys.executable, "-m", "rigctl.cli", "serve", "--rig", str(rig)],
+                            capture_output=True, text=True, timeout=30, cwd=ROOT,
+                            env={"PATH": "/usr/bin:/bin"})
+    assert result.returncode == 2 and "requires a bearer token" in result.stderr
