@@ -9,10 +9,8 @@ from __future__ import annotations
 
 import json
 import os
-import selectors
 import shutil
 import signal
-import subprocess
 import sys
 import tempfile
 import threading
@@ -22,9 +20,9 @@ from pathlib import Path
 import yaml
 
 from mocks.world import load_world
+from rigctl.childproc import ChildProcess
 from rigctl.errors import ConfigError, DeviceError
 
-ROOT = Path(__file__).resolve().parents[1]
 STATE_DIR = Path(tempfile.gettempdir())
 
 
@@ -32,35 +30,11 @@ def state_path(host: str) -> Path:
     return STATE_DIR / f"rigctl-sim-{host}.json"
 
 
-class Child:
-    def __init__(self, name: str, args: list[str], timeout: float = 20.0) -> None:
-        env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH",
-                                                                                 "")}
-        self.name = name
-        self.proc = subprocess.Popen([sys.executable, "-m", *args], stdout=subprocess.PIPE,
-                                     text=True, env=env, start_new_session=True)
-        sel = selectors.DefaultSelector()
-        sel.register(self.proc.stdout, selectors.EVENT_READ)
-        deadline = time.monotonic() + timeout
-        self.ready = None
-        while time.monotonic() < deadline and self.proc.poll() is None:
-            if sel.select(0.1):
-                self.ready = json.loads(self.proc.stdout.readline())
-                break
-        if self.ready is None or "error" in self.ready:
-            self.stop()
-            raise DeviceError(f"sim: {name} stand-in did not start: {self.ready}")
-
-    def stop(self) -> None:
-        if self.proc.poll() is None:
-            os.kill(self.proc.pid, signal.SIGTERM)
-            try:
-                self.proc.wait(10)
-            except subprocess.TimeoutExpired:
-                os.killpg(self.proc.pid, signal.SIGKILL)
-                self.proc.wait(5)
-        if self.proc.stdout:
-            self.proc.stdout.close()
+def _child(name: str, args: list[str]) -> ChildProcess:
+    try:
+        return ChildProcess(["-m", *args], timeout=20.0, name=f"sim {name}")
+    except RuntimeError as exc:
+        raise DeviceError(f"sim: {name} stand-in did not start: {exc}") from None
 
 
 def rig_text(world_path: Path, host: str, workdir: Path, camera_url: str, records: str,
@@ -107,18 +81,18 @@ def up(world_file: str, rig_out: str, host: str = "127.0.0.1", records: str = "r
     own_dir = workdir is None
     workdir = Path(tempfile.mkdtemp(prefix=f"rigctl-sim-{host}-")) if own_dir else Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
-    children: list[Child] = []
+    children: list[ChildProcess] = []
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     try:
         noise_pulses = world.spec.head.encoder_noise_deg * 4096 / 360
-        children.append(Child("head", ["mocks.dynamixel_bus", "--link", str(workdir / "dxl"),
+        children.append(_child("head", ["mocks.dynamixel_bus", "--link", str(workdir / "dxl"),
                                        "--control", str(workdir / "dxl.sock"),
                                        "--position-noise", str(noise_pulses)]))
-        children.append(Child("arm", ["mocks.ur_controller", "--host", host, "--world",
+        children.append(_child("arm", ["mocks.ur_controller", "--host", host, "--world",
                                       str(world_path), "--control", str(workdir / "ur.sock")]))
-        children.append(Child("camera", ["mocks.camera_server", "--world", str(world_path),
+        children.append(_child("camera", ["mocks.camera_server", "--world", str(world_path),
                                          "--host", host, "--port", str(port),
                                          "--head-control", str(workdir / "dxl.sock"),
                                          "--arm-control", str(workdir / "ur.sock"),

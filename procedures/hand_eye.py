@@ -4,7 +4,6 @@ transforms on pixel reprojection error, with the nominal arm model."""
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 from pydantic import Field
@@ -14,17 +13,8 @@ from rigctl.calib.board import board_points
 from rigctl.errors import SolveError
 from rigctl.geometry.kinematics import nominal_ur
 
-from .base import (
-    CaptureStep,
-    MoveArmJoints,
-    MoveHead,
-    Note,
-    Params,
-    Procedure,
-    Settle,
-    SolveContext,
-)
-from .planning import plan_target_views
+from .base import Params, Procedure, SolveContext
+from .planning import view_steps
 from .robot_common import board_observations, camera_matrix, intrinsics_from
 
 
@@ -45,18 +35,8 @@ class HandEye(Procedure):
     optional_devices = ("head",)
 
     def plan(self, params: HandEyeParams, config) -> list:
-        steps: list = []
-        if config.devices.head is not None:
-            steps.append(MoveHead(0.0, 0.0, 0.0, "head home"))
-        poses, notes = plan_target_views(config, params.poses, params.view_distance_m,
-                                         params.max_tilt_deg, params.seed)
-        steps += [Note(n) for n in notes]
-        for k, q in enumerate(poses):
-            steps += [MoveArmJoints(tuple(float(v) for v in q), f"view {k + 1}"),
-                      Settle(params.settle_s), CaptureStep(f"view {k + 1}", extra={"kind": "view"})]
-        steps.append(MoveArmJoints(tuple(math.radians(v) for v in config.devices.arm.home_deg),
-                                   "arm home"))
-        return steps
+        return view_steps(config, params.poses, params.view_distance_m, params.max_tilt_deg,
+                          params.seed, "view", "view", params.settle_s)
 
     def solve(self, ctx: SolveContext) -> dict[str, Any]:
         params: HandEyeParams = ctx.params

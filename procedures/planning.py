@@ -84,3 +84,24 @@ def plan_target_views(config: RigConfig, n: int, distance_m: float = 0.45,
         poses.append(q)
         previous = q
     return poses, notes
+
+
+def view_steps(config: RigConfig, count: int, distance_m: float, max_tilt_deg: float,
+               seed: int, label: str, kind: str, settle_s: float) -> list:
+    """Steps visiting ``count`` planned views of the target (head at home first when there
+    is a head), each settled and captured, then back to the arm's home; skipped views are
+    reported as notes."""
+    from .base import CaptureStep, MoveArmJoints, MoveHead, Note, Settle
+
+    steps: list = []
+    if config.devices.head is not None:
+        steps.append(MoveHead(0.0, 0.0, 0.0, "head home"))
+    poses, notes = plan_target_views(config, count, distance_m, max_tilt_deg, seed)
+    steps += [Note(n) for n in notes]
+    for k, q in enumerate(poses):
+        name = f"{label} {k + 1}"
+        steps += [MoveArmJoints(tuple(float(v) for v in q), name), Settle(settle_s),
+                  CaptureStep(name, extra={"kind": kind})]
+    steps.append(MoveArmJoints(tuple(math.radians(v) for v in config.devices.arm.home_deg),
+                               "arm home"))
+    return steps

@@ -14,17 +14,8 @@ from rigctl.geometry.kinematics import KinematicModel, nominal_ur
 from rigctl.geometry.transforms import R_to_rotvec, inv_T
 from rigctl.records import RecordIndex, RunDirectory
 
-from .base import (
-    CaptureStep,
-    MoveArmJoints,
-    MoveHead,
-    Note,
-    Params,
-    Procedure,
-    Settle,
-    SolveContext,
-)
-from .planning import plan_target_views
+from .base import Params, Procedure, SolveContext
+from .planning import view_steps
 from .robot_common import board_observations, intrinsics_from
 
 
@@ -46,19 +37,8 @@ class ValidateArm(Procedure):
     optional_devices = ("head",)
 
     def plan(self, params: ValidateArmParams, config) -> list:
-        steps: list = []
-        if config.devices.head is not None:
-            steps.append(MoveHead(0.0, 0.0, 0.0, "head home"))
-        poses, notes = plan_target_views(config, params.poses, params.view_distance_m,
-                                         params.max_tilt_deg, params.seed)
-        steps += [Note(n) for n in notes]
-        for k, q in enumerate(poses):
-            steps += [MoveArmJoints(tuple(float(v) for v in q), f"check {k + 1}"),
-                      Settle(params.settle_s),
-                      CaptureStep(f"check {k + 1}", extra={"kind": "heldout"})]
-        steps.append(MoveArmJoints(tuple(math.radians(v) for v in config.devices.arm.home_deg),
-                                   "arm home"))
-        return steps
+        return view_steps(config, params.poses, params.view_distance_m, params.max_tilt_deg,
+                          params.seed, "check", "heldout", params.settle_s)
 
     def solve(self, ctx: SolveContext) -> dict[str, Any]:
         params: ValidateArmParams = ctx.params

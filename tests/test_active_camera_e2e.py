@@ -17,6 +17,7 @@ from tests.simrig import SimRig
 pytestmark = pytest.mark.integration
 
 
+@pytest.mark.timeout(300)
 def test_active_camera_on_default_world(tmp_path):
     rig = SimRig(tmp_path, world="default", host="127.0.0.11", port=18083)
     try:

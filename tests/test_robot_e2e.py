@@ -28,6 +28,7 @@ def rigctl(*args, timeout=400):
                           text=True, timeout=timeout, cwd=ROOT)
 
 
+@pytest.mark.timeout(600)  # two calibrations on the simulated rig: ~2 min, more under load
 def test_robot_kinematics_end_to_end(tmp_path):
     rig = SimRig(tmp_path, world="default", host="127.0.0.14", port=18084)
     try:

@@ -134,6 +134,7 @@ def test_token_and_input_validation(stack):
     assert httpx.get(stack.base + "/rig").json()["devices"]["head"] is not None
 
 
+@pytest.mark.timeout(300)
 def test_active_camera_with_progress_events_then_accept(stack):
     events, run_id = [], None
     with httpx.stream("GET", stack.base + "/events", timeout=180) as stream:
@@ -208,6 +209,7 @@ def test_schedule_fires_and_records_its_run(stack):
     assert all("busy" in (r["reason"] or "") for r in skipped)
 
 
+@pytest.mark.timeout(300)
 def test_drifted_intrinsics_are_flagged_and_wait(stack):
     stack.sim.stop(timeout=20)
     stack.sim = start_sim(stack.tmp, "drift")  # same devices, refocused lens

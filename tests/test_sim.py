@@ -112,7 +112,7 @@ def test_sim_truth_json():
     assert (truth["fx"], truth["cy"]) == (900.0, 371.8)
     assert truth["roll_axis_in_cam"][1] == pytest.approx(-math.sin(math.radians(0.3)))
     assert len(truth["arm"]["links"]) == 6
-    assert truth["arm"]["links"][1]["a"] == pytest.approx(-0.425 + 0.0012)
+    assert truth["arm"]["links"][1]["a"] == pytest.approx(-0.425 + 0.0024)  # a_mm[1] = 2.4
     assert np.allclose(np.array(truth["T_flange_cam"])[:3, 3], [0, 0, 0.05])
 
 

@@ -1,0 +1,81 @@
+"""A child process that prints one JSON ready line, stopped by PID (stand-ins, sim up)."""
+
+from __future__ import annotations
+
+import json
+import os
+import selectors
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+class ChildProcess:
+    """``python <args>`` in its own session; ``ready`` is its first stdout line (JSON)."""
+
+    def __init__(self, args: list[str], timeout: float = 20.0, name: str = "",
+                 capture_stderr: bool = False) -> None:
+        env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH",
+                                                                                 "")}
+        self.name = name or " ".join(args[:2])
+        # stderr to a file, never an unread pipe (a full pipe would block the child)
+        self._stderr = (tempfile.TemporaryFile(mode="w+")  # noqa: SIM115 - closed in stop()
+                        if capture_stderr else None)
+        self.proc = subprocess.Popen([sys.executable, *args], stdout=subprocess.PIPE,
+                                     stderr=self._stderr, text=True, env=env, cwd=ROOT,
+                                     start_new_session=True)
+        self.pid = self.proc.pid
+        self.ready = self._read_ready(timeout)
+
+    def _read_ready(self, timeout: float) -> dict:
+        sel = selectors.DefaultSelector()
+        sel.register(self.proc.stdout, selectors.EVENT_READ)
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline and self.proc.poll() is None:
+            if sel.select(0.1):
+                line = self.proc.stdout.readline()
+                if line:
+                    ready = json.loads(line)
+                    if "error" not in ready:
+                        return ready
+                    break
+        stderr = self.stderr_text()
+        self.stop()
+        raise RuntimeError(f"{self.name}: did not become ready {stderr[-2000:]}")
+
+    def stop(self, timeout: float = 10.0) -> int | None:
+        if self.proc.poll() is None:
+            os.kill(self.pid, signal.SIGTERM)
+            try:
+                self.proc.wait(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                os.killpg(self.pid, signal.SIGKILL)
+                self.proc.wait(timeout=5)
+        if self.proc.stdout:
+            self.proc.stdout.close()
+        if self._stderr is not None:
+            self._stderr.close()
+            self._stderr = None
+        return self.proc.returncode
+
+    def stderr_text(self) -> str:
+        if self._stderr is None:
+            return ""
+        self._stderr.seek(0)
+        return self._stderr.read()
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            os.killpg(self.pid, signal.SIGKILL)
+            self.proc.wait(timeout=5)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
