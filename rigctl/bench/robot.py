@@ -78,7 +78,7 @@ def trial(args) -> dict:
     out["refined"] = robot.pose_errors(ref.model, ref.X, ref.W, held, truth)[0]
     out["condition"] = ref.condition
     dh = robot.refine(nominal, X, handeye.average_W([nominal.fk(q) for q in train], meas.C, X),
-                      meas, mask=robot.dh_mask(nominal))
+                      meas, mask=robot.dh_mask(nominal), max_nfev=20)
     out["plain_dh"] = robot.pose_errors(dh.model, dh.X, dh.W, held, truth)[0]
     out["dh_smallest_sv"] = float(dh.singular_values[-1] / dh.singular_values[0])
     out["dh_second_sv"] = float(dh.singular_values[-2] / dh.singular_values[0])

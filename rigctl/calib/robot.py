@@ -342,8 +342,10 @@ def residuals(model, X, W, meas: Measurements) -> np.ndarray:
 
 
 def refine(model0: KinematicModel, X0, W0, meas: Measurements, mask=None,
-           free_XW: bool = True, robust: bool = True) -> RefineResult:
-    """Least squares of the masked link parameters (and X, W) over every capture."""
+           free_XW: bool = True, robust: bool = True, max_nfev: int = 60) -> RefineResult:
+    """Least squares of the masked link parameters (and X, W) over every capture.
+    ``max_nfev`` bounds the iterations: a well-posed set converges in about ten, and a
+    rank-deficient one (plain D-H on parallel joints) would otherwise run on."""
     mask = mask or identifiable_mask(model0, absorb=free_XW)
     p0, names = _pack(model0, X0, W0, mask, free_XW)
     if len(meas.q) * 6 < len(p0):
@@ -354,8 +356,8 @@ def refine(model0: KinematicModel, X0, W0, meas: Measurements, mask=None,
         return residuals(*_unpack(p, model0, X0, W0, mask, free_XW), meas)
 
     sol = least_squares(fun, p0, loss="soft_l1" if robust else "linear", f_scale=3.0,
-                        x_scale="jac", max_nfev=200)
-    sol = least_squares(fun, sol.x, loss="linear", x_scale="jac", max_nfev=100)
+                        x_scale="jac", max_nfev=max_nfev)
+    sol = least_squares(fun, sol.x, loss="linear", x_scale="jac", max_nfev=max_nfev // 2)
     model, X, W = _unpack(sol.x, model0, X0, W0, mask, free_XW)
     J = sol.jac
     scale = np.linalg.norm(J, axis=0)
