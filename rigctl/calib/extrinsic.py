@@ -86,7 +86,7 @@ def tsai_planar(obj: np.ndarray, pixels: np.ndarray, K: np.ndarray, dist=None) -
                          f"{MIN_TILT_DEG} deg): the rotation's sign is undetermined")
     if r11 * r21 + r12 * r22 > 0:
         r23 = -r23
-    best = None
+    candidates = []
     for sign in (1.0, -1.0):
         row1 = np.array([r11, r12, sign * r13])
         row2 = np.array([r21, r22, sign * r23])
@@ -96,13 +96,13 @@ def tsai_planar(obj: np.ndarray, pixels: np.ndarray, K: np.ndarray, dist=None) -
         # f_x and Tz from (4.1) by least squares: x (r31 X + r32 Y + Tz) = f (r11 X + ...)
         num = R[0, 0] * X + R[0, 1] * Y + Tx
         M = np.c_[num, -x]
-        (f_est, Tz), *_ = np.linalg.lstsq(M, x * (R[2, 0] * X + R[2, 1] * Y), rcond=None)
-        if f_est > 0:
-            best = (R, Tz)
-            break
-    if best is None:
+        rhs = x * (R[2, 0] * X + R[2, 1] * Y)
+        (f_est, tz_est), *_ = np.linalg.lstsq(M, rhs, rcond=None)
+        if f_est > 0 and tz_est > 0:  # the thesis's test on the sign of theta
+            candidates.append((float(np.sum((M @ [f_est, tz_est] - rhs) ** 2)), R))
+    if not candidates:
         raise SolveError("extrinsic: no rotation gives a positive focal length")
-    R, _ = best
+    R = min(candidates, key=lambda c: c[0])[1]
     # Tz by least squares from (4.1) and (4.2) with the known focal lengths
     den = R[2, 0] * X + R[2, 1] * Y
     num_x = fx * (R[0, 0] * X + R[0, 1] * Y + Tx)
@@ -132,13 +132,14 @@ def refine_pose(T0: np.ndarray, obj: np.ndarray, pixels: np.ndarray, K: np.ndarr
 def estimate_pose(obj: np.ndarray, pixels: np.ndarray, K: np.ndarray, dist=None,
                   fallback: bool = True) -> PoseEstimate:
     """Tsai's closed form, refined by LM. ``rms_px`` is the RMS corner distance. Where
-    Tsai refuses a fronto-parallel view, OpenCV's planar IPPE solver starts the LM
-    instead (``fallback``); the estimate records which method it came from."""
+    Tsai refuses the view (fronto-parallel, or no consistent sign), OpenCV's planar IPPE
+    solver starts the LM instead (``fallback``); the estimate records which method."""
     method = "tsai"
     try:
         T0 = tsai_planar(obj, pixels, K, dist)
     except SolveError as exc:
-        if not fallback or "fronto-parallel" not in str(exc):
+        bad_input = any(k in str(exc) for k in ("collinear", "need at least", "plane Z"))
+        if not fallback or bad_input:
             raise
         ok, rvec, tvec = cv2.solvePnP(obj.astype(np.float64), pixels.astype(np.float64), K,
                                       None if dist is None else np.asarray(dist, float),
