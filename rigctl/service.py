@@ -156,8 +156,10 @@ class RigService:
         return None
 
     def record_without_run(self, procedure: str, status: str, reason: str,
-                           params: dict | None = None) -> str:
-        run_id = new_run_id(procedure)
+                           params: dict | None = None, run_id: str | None = None) -> str:
+        """Index a run that never started (refused, skipped, aborted in the queue); a
+        queued job keeps the id the API returned for it."""
+        run_id = run_id or new_run_id(procedure)
         self.index.insert({"run_id": run_id, "procedure": procedure, "status": status,
                            "reason": reason, "started_at": utcnow(), "ended_at": utcnow(),
                            "operator": "scheduler", "rig_name": self.config.name,
@@ -177,7 +179,8 @@ class RigService:
                 if job.run_id == run_id:
                     self.queue.remove(job)
                     self.record_without_run(job.procedure, "aborted",
-                                            "aborted via the API before it started")
+                                            "aborted via the API before it started",
+                                            job.params, job.run_id)
                     return "removed from the queue"
         raise HTTPException(404, f"run {run_id} is neither running nor queued")
 
@@ -199,7 +202,8 @@ class RigService:
                     self.decide(job.run_id, job.procedure, outcome.result)
             except RigError as exc:  # refused before anything moved (busy, limits, params)
                 status = "skipped" if job.source == "schedule" else "failed"
-                self.record_without_run(job.procedure, status, f"{type(exc).__name__}: {exc}")
+                self.record_without_run(job.procedure, status, f"{type(exc).__name__}: {exc}",
+                                        job.params, job.run_id)
             except Exception:
                 log.exception("worker: run %s crashed", job.run_id)
             finally:

@@ -195,6 +195,34 @@ def test_abort_mid_run_and_cli_sees_the_rig_busy(stack):
     assert httpx.get(f"{stack.base}/runs/{run_id}/captures/0").status_code == 200
 
 
+def test_service_run_while_cli_holds_the_rig_fails_busy(stack):
+    cli = subprocess.Popen([sys.executable, "-m", "rigctl.cli", "run", "head-sweep", "--rig",
+                            str(stack.rig), "--param", "pan_deg=[-20, 20, -20, 20]",
+                            "--param", "settle_s=0.5"], cwd=ROOT, stdout=subprocess.DEVNULL,
+                           stderr=subprocess.DEVNULL)
+    try:
+        lock = stack.tmp / "records" / "locks"
+        deadline = time.monotonic() + 20
+        holder = {}
+        while time.monotonic() < deadline:
+            files = list(lock.glob("*.lock"))
+            text = files[0].read_text() if files else ""
+            if text:
+                holder = json.loads(text)
+                if holder.get("pid") == cli.pid:
+                    break
+            time.sleep(0.1)
+        assert holder.get("pid") == cli.pid, "the CLI run never took the rig"
+        body = {"procedure": "head-sweep", "params": {"pan_deg": [0], "tilt_deg": [0]}}
+        run_id = post(stack, "/runs", body).json()["run_id"]
+        run = wait_for(stack, run_id, timeout=20)  # the id the API returned stays valid
+        assert run["status"] == "failed"
+        assert f"busy, held by run {holder['run_id']} (pid {cli.pid})" in run["reason"]
+    finally:
+        cli.wait(timeout=60)
+    assert cli.returncode == 0
+
+
 def test_schedule_fires_and_records_its_run(stack):
     deadline = time.monotonic() + 40
     while time.monotonic() < deadline:
