@@ -13,7 +13,7 @@ plots, and OpenCV / ROS exports.
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import Field
@@ -37,7 +37,10 @@ class ActiveCameraParams(Params):
     settle_s: float = Field(0.3, ge=0)
     window: float = Field(0.8, gt=0.1, le=0.95, description="central window for contours")
     min_points: int = Field(40, ge=10)
-    distortion_terms: int = Field(2, ge=0, le=2, description="radial terms to estimate")
+    # k1, k2 by default: from rotations alone the tangential terms are nearly degenerate
+    # with the principal point (on the default world, 4 terms moved cx by -1.5 px).
+    distortion_terms: Literal[0, 1, 2, 4] = Field(
+        2, description="0; 1: k1; 2: k1, k2; 4: k1, k2, p1, p2 (tangential)")
     assumed_centre: list[float] | None = Field(None, description="default: image centre")
 
 
@@ -203,7 +206,7 @@ class ActiveCamera(Procedure):
             "fx": refined.fx, "fy": refined.fy, "cx": refined.cx, "cy": refined.cy,
             "sigma": {k: refined.sigma[k] for k in ("fx", "fy", "cx", "cy")},
             "width": w, "height": h,
-            "distortion": [refined.k1, refined.k2, 0.0, 0.0, 0.0],
+            "distortion": [refined.k1, refined.k2, refined.p1, refined.p2, 0.0],
             "roll_axis_in_cam": refined.roll_axis.tolist(),
             "assumed_centre": centre.tolist(),
             "strategies": strategies, "tracking": tracking,

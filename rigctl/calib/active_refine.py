@@ -27,7 +27,8 @@ from scipy.spatial import cKDTree
 from rigctl.calib.synthetic import rot_axis, rot_x, rot_y
 from rigctl.errors import SolveError
 
-PARAM_NAMES = ["fx", "fy", "cx", "cy", "n_x", "n_y", "n_z", "a_x", "a_y", "k1", "k2"]
+PARAM_NAMES = ["fx", "fy", "cx", "cy", "n_x", "n_y", "n_z", "a_x", "a_y", "k1", "k2", "p1",
+               "p2"]
 
 
 @dataclass
@@ -61,7 +62,7 @@ def _unpack(x: np.ndarray, n_dist: int):
     fx, fy, cx, cy = x[:4]
     N = rot_axis(x[4:7], np.linalg.norm(x[4:7])) if np.linalg.norm(x[4:7]) > 0 else np.eye(3)
     a = rot_x(x[7]) @ rot_y(x[8]) @ np.array([0.0, 0.0, 1.0])
-    k = np.zeros(2)
+    k = np.zeros(4)  # k1, k2, p1, p2 (OpenCV's convention)
     k[:n_dist] = x[9:9 + n_dist]
     return fx, fy, cx, cy, N, a, k
 
@@ -70,13 +71,24 @@ def _radial(r2, k):
     return 1 + k[0] * r2 + k[1] * r2 * r2
 
 
+def _distort(xn, k):
+    """OpenCV's radial (k1, k2) and tangential (p1, p2) model on normalised points."""
+    x, y = xn[:, :1], xn[:, 1:2]
+    r2 = x * x + y * y
+    radial = _radial(r2, k)
+    dx = 2 * k[2] * x * y + k[3] * (r2 + 2 * x * x)
+    dy = k[2] * (r2 + 2 * y * y) + 2 * k[3] * x * y
+    return np.c_[x * radial + dx, y * radial + dy]
+
+
 def _undistort(pts, fx, fy, cx, cy, k):
     xn = np.c_[(pts[:, 0] - cx) / fx, (pts[:, 1] - cy) / fy]
     if not np.any(k):
         return xn
     und = xn.copy()
     for _ in range(10):
-        und = xn / _radial(np.sum(und ** 2, axis=1, keepdims=True), k)
+        shifted = _distort(und, k) - und * _radial(np.sum(und ** 2, axis=1, keepdims=True), k)
+        und = (xn - shifted) / _radial(np.sum(und ** 2, axis=1, keepdims=True), k)
     return und
 
 
@@ -90,7 +102,7 @@ def predict(motion: Motion, x: np.ndarray, n_dist: int) -> np.ndarray:
     # large) so the optimiser backs off instead of failing.
     xn = moved[:, :2] / np.maximum(moved[:, 2:3], 1e-3)
     if n_dist:
-        xn = xn * _radial(np.sum(xn ** 2, axis=1, keepdims=True), k)
+        xn = _distort(xn, k)
     return np.c_[fx * xn[:, 0] + cx, fy * xn[:, 1] + cy]
 
 
@@ -102,6 +114,8 @@ class RefineResult:
     cy: float
     k1: float
     k2: float
+    p1: float
+    p2: float
     mount_rotvec: np.ndarray
     roll_axis: np.ndarray
     sigma: dict[str, float]
@@ -112,7 +126,7 @@ class RefineResult:
 
     def as_dict(self) -> dict:
         return {"fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy, "k1": self.k1,
-                "k2": self.k2,
+                "k2": self.k2, "p1": self.p1, "p2": self.p2,
                 "mount_rotvec": self.mount_rotvec.tolist(), "roll_axis": self.roll_axis.tolist(),
                 "sigma": self.sigma, "rms_px": self.rms_px, "inliers": self.inliers,
                 "outliers": self.outliers, "residuals_by_motion": self.residuals_by_motion}
@@ -136,16 +150,16 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
            outlier_sigmas: float = 3.0, outer_iterations: int = 4,
            prior_deg: float = 5.0) -> RefineResult:
     """Joint refinement of fx, fy, cx, cy, the mounting rotation and the roll axis
-    (and ``n_dist`` radial terms k1, k2) over all motions, from ``initial`` (fx, fy, cx,
-    cy; e.g. Strategy D), with a soft-L1 robust loss, then 3-sigma outlier rejection.
-    1-sigma uncertainties come from the Jacobian at the solution, scaled by the residual
-    variance."""
+    (and ``n_dist`` distortion terms: k1; k1, k2; or k1, k2, p1, p2) over all motions,
+    from ``initial`` (fx, fy, cx, cy; e.g. Strategy D), with a soft-L1 robust loss,
+    then 3-sigma outlier rejection. 1-sigma uncertainties come from the Jacobian at the
+    solution, scaled by the residual variance."""
     if len(motions) < 2:
         raise SolveError("refinement: needs at least two motions")
     if sum(len(m.ref_points) for m in motions) < 20:
         raise SolveError("refinement: too few contour points")
-    if n_dist not in (0, 1, 2):
-        raise SolveError(f"refinement: n_dist must be 0, 1 or 2, got {n_dist}")
+    if n_dist not in (0, 1, 2, 4):
+        raise SolveError(f"refinement: n_dist must be 0, 1, 2 or 4, got {n_dist}")
     n_params = 9 + n_dist
     x = np.zeros(n_params)
     x[:4] = [initial["fx"], initial["fy"], initial["cx"], initial["cy"]]
@@ -216,6 +230,6 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
     total = sum(len(m.ref_points) for m in motions)
     inliers = int(sum(mk.sum() for mk in masks))
     return RefineResult(float(fx), float(fy), float(cx), float(cy), float(k[0]), float(k[1]),
-                        x[4:7].copy(),
+                        float(k[2]), float(k[3]), x[4:7].copy(),
                         a, {name: float(s) for name, s in zip(PARAM_NAMES, sig, strict=False)},
                         float(np.sqrt(np.mean(r ** 2))), inliers, total - inliers, by_motion)
