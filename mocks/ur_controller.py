@@ -697,7 +697,6 @@ class Server:
         self.forget(sock)
 
     def on_dashboard(self, sock: socket.socket) -> None:
-        ctrl = self.ctrl
         try:
             sock.sendall(b"Connected: Universal Robots Dashboard Server\n")
             buf = b""
@@ -715,7 +714,6 @@ class Server:
         except (OSError, ConnectionError):
             pass
         self.forget(sock)
-        del ctrl
 
     def dashboard(self, command: str) -> str:
         ctrl = self.ctrl

@@ -12,7 +12,7 @@ from rigctl.calib.extrinsic import estimate_pose
 from rigctl.config import RigConfig
 from rigctl.errors import SolveError
 from rigctl.geometry.kinematics import KinematicModel, nominal_ur
-from rigctl.geometry.transforms import inv_T, make_T
+from rigctl.geometry.transforms import inv_T
 from rigctl.records import RecordIndex, RunDirectory
 
 from .planning import nominal_flange_cam, target_centre
@@ -132,6 +132,3 @@ def export_model(model: KinematicModel, X, W, uncertainty: dict, heldout: dict) 
             "T_base_target": np.asarray(W).tolist(), "uncertainty": uncertainty,
             "heldout": heldout}
 
-
-def identity() -> np.ndarray:
-    return make_T()

@@ -11,7 +11,6 @@ import contextlib
 import json
 import os
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
@@ -308,11 +307,6 @@ def doctor(rig: Path = typer.Option(..., "--rig"),
                           row["message"], latency)
         out.print(table)
     raise typer.Exit(0 if all(r["state"] in ("ok", "missing") for r in report) else EXIT_FAILED)
-
-
-def wait_forever() -> None:  # pragma: no cover - used by long-running commands
-    while True:
-        time.sleep(3600)
 
 
 

@@ -330,6 +330,3 @@ def load_rig(path: str | Path) -> RigConfig:
         raise ConfigError(f"{path}: cannot read rig file: {exc.strerror}") from None
     return parse_rig(text, name=path.name, path=path.resolve())
 
-
-def procedure_defaults(config: RigConfig, procedure: str) -> dict[str, Any]:
-    return dict(config.procedures.get(procedure, {}))

@@ -66,9 +66,6 @@ runs_table = Table(
     Column("decision", String(16), nullable=True),  # accepted | rejected | drift | pending
 )
 
-TERMINAL = ("succeeded", "failed", "aborted", "interrupted", "skipped")
-
-
 def utcnow() -> dt.datetime:
     return dt.datetime.now(dt.UTC)
 

@@ -328,13 +328,13 @@ def create_app(service: RigService) -> FastAPI:
         lock = RigLock(config.records_dir() / "locks", config.name)
         last = {}
         for row in service.index.list(20):
-            if row["run_dir"] and Path(row["run_dir"], "captures").exists():
-                caps = RunDirectory(row["run_dir"]).captures()
-                if caps:
-                    meta = caps[-1].meta
-                    last = {"run_id": row["run_id"], "head": meta.get("head"),
-                            "arm": meta.get("arm"), "time": meta.get("time")}
-                    break
+            sidecars = sorted(Path(row["run_dir"], "captures").glob("[0-9][0-9][0-9].json")) \
+                if row["run_dir"] else []
+            if sidecars:  # the newest only: the status page polls this every few seconds
+                meta = json.loads(sidecars[-1].read_text())
+                last = {"run_id": row["run_id"], "head": meta.get("head"),
+                        "arm": meta.get("arm"), "time": meta.get("time")}
+                break
         devices = {k: (getattr(config.devices, k).model_dump() if getattr(config.devices, k)
                        else None) for k in ("head", "arm", "camera")}
         return {"rig": config.name, "busy": service.busy_reason(), "lock": lock.holder(),
