@@ -143,7 +143,7 @@ class RobotKinematics(Procedure):
         start = lbl.model if lbl is not None else nominal
         W_start = handeye.average_W([start.fk(o["q"]) for o in train], [o["C"] for o in train],
                                     he.X)
-        ref = robot.refine(start, he.X, W_start, meas)
+        ref = robot.refine(start, he.X, W_start, meas, extra_starts=[(nominal, he.X, he.W)])
         dh = robot.refine(start, he.X, W_start, meas, mask=robot.dh_mask(nominal))
 
         def heldout_errors(model, X, W):

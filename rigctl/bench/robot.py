@@ -74,16 +74,15 @@ def trial(args) -> dict:
     meas = robot.Measurements(train, C=[measure(q) for q in train],
                               sigma_rot=math.radians(s_deg), sigma_t=s_mm / 1000)
     W0 = handeye.average_W([lbl.fk(q) for q in train], meas.C, X)
-    ref = robot.refine(lbl, X, W0, meas)
+    W_nom = handeye.average_W([nominal.fk(q) for q in train], meas.C, X)
+    ref = robot.refine(lbl, X, W0, meas, extra_starts=[(nominal, X, W_nom)])
     out["refined"] = robot.pose_errors(ref.model, ref.X, ref.W, held, truth)[0]
     out["condition"] = ref.condition
-    dh = robot.refine(nominal, X, handeye.average_W([nominal.fk(q) for q in train], meas.C, X),
-                      meas, mask=robot.dh_mask(nominal), max_nfev=20)
+    dh = robot.refine(nominal, X, W_nom, meas, mask=robot.dh_mask(nominal), max_nfev=20)
     out["plain_dh"] = robot.pose_errors(dh.model, dh.X, dh.W, held, truth)[0]
     out["dh_smallest_sv"] = float(dh.singular_values[-1] / dh.singular_values[0])
     out["dh_second_sv"] = float(dh.singular_values[-2] / dh.singular_values[0])
-    out["nominal"] = robot.pose_errors(nominal, X, handeye.average_W(
-        [nominal.fk(q) for q in train], meas.C, X), held, truth)[0]
+    out["nominal"] = robot.pose_errors(nominal, X, W_nom, held, truth)[0]
     return out
 
 

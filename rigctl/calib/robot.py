@@ -28,6 +28,7 @@ and errors on held-out captures.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import cv2
@@ -265,8 +266,8 @@ class Measurements:
     obj: np.ndarray | None = None
     K: np.ndarray | None = None
     dist: np.ndarray | None = None
-    sigma_rot: float = 0.001
-    sigma_t: float = 0.001
+    sigma_rot: float | np.ndarray = 0.001  # rad; scalar, or per camera axis
+    sigma_t: float | np.ndarray = 0.001  # m; scalar, or per camera axis
 
     def subset(self, idx) -> Measurements:
         pick = lambda v: None if v is None else [v[i] for i in idx]  # noqa: E731
@@ -316,7 +317,12 @@ def _unpack(p, model0, X0, W0, mask, free_XW):
 
 
 def residuals(model, X, W, meas: Measurements) -> np.ndarray:
-    """Pose residuals (scaled by the sigmas) or pixel residuals for every capture."""
+    """Pose residuals (scaled by the sigmas) or pixel residuals for every capture. A pose
+    residual is ``log(C_k W^-1 FK(q_k) X)``: measured times predicted-inverse, in the
+    camera frame, where a camera's pose error lives (the loop of (4.11) closed at the
+    camera). Taken in
+    the target frame instead, a rotation error would leak into translation times the
+    camera-to-target distance and the sigmas would weight it wrongly."""
     out = []
     Winv = inv_T(W)
     if meas.corners is None:  # batched: every pose at once
@@ -325,7 +331,7 @@ def residuals(model, X, W, meas: Measurements) -> np.ndarray:
         if not hasattr(meas, "_Q"):
             meas._Q = np.array(meas.q)
             meas._C = np.array(meas.C)
-        E = Winv @ model.fk_batch(meas._Q) @ X @ meas._C
+        E = meas._C @ Winv @ model.fk_batch(meas._Q) @ X
         rv = Rotation.from_matrix(E[:, :3, :3]).as_rotvec()
         return np.c_[rv / meas.sigma_rot, E[:, :3, 3] / meas.sigma_t].ravel()
     for k, q in enumerate(meas.q):
@@ -336,29 +342,39 @@ def residuals(model, X, W, meas: Measurements) -> np.ndarray:
                                         T[:3, 3], meas.K, meas.dist)
             out.append((proj.reshape(-1, 2) - meas.corners[k]).ravel())
         else:
-            E = Winv @ T_base_cam @ meas.C[k]
+            E = meas.C[k] @ Winv @ T_base_cam
             out.append(np.r_[R_to_rotvec(E[:3, :3]) / meas.sigma_rot, E[:3, 3] / meas.sigma_t])
     return np.concatenate(out)
 
 
 def refine(model0: KinematicModel, X0, W0, meas: Measurements, mask=None,
-           free_XW: bool = True, robust: bool = True, max_nfev: int = 60) -> RefineResult:
+           free_XW: bool = True, robust: bool = True, max_nfev: int = 60,
+           extra_starts: Sequence[tuple[KinematicModel, np.ndarray, np.ndarray]] = ()
+           ) -> RefineResult:
     """Least squares of the masked link parameters (and X, W) over every capture.
     ``max_nfev`` bounds the iterations: a well-posed set converges in about ten, and a
-    rank-deficient one (plain D-H on parallel joints) would otherwise run on."""
+    rank-deficient one (plain D-H on parallel joints) would otherwise run on.
+    ``extra_starts`` (model, X, W) are solved from as well and the lowest cost wins: a
+    link-by-link start that noisy sweeps threw degrees off can fall into a local minimum
+    that the nominal model's start avoids."""
     mask = mask or identifiable_mask(model0, absorb=free_XW)
     p0, names = _pack(model0, X0, W0, mask, free_XW)
     if len(meas.q) * 6 < len(p0):
         raise SolveError(f"robot refinement: {len(meas.q)} captures cannot determine "
                          f"{len(p0)} parameters")
 
-    def fun(p):
-        return residuals(*_unpack(p, model0, X0, W0, mask, free_XW), meas)
+    def solve(base, X_base, W_base):
+        def fun(p):
+            return residuals(*_unpack(p, base, X_base, W_base, mask, free_XW), meas)
 
-    sol = least_squares(fun, p0, loss="soft_l1" if robust else "linear", f_scale=3.0,
-                        x_scale="jac", max_nfev=max_nfev)
-    sol = least_squares(fun, sol.x, loss="linear", x_scale="jac", max_nfev=max_nfev // 2)
-    model, X, W = _unpack(sol.x, model0, X0, W0, mask, free_XW)
+        sol = least_squares(fun, _pack(base, X_base, W_base, mask, free_XW)[0],
+                            loss="soft_l1" if robust else "linear", f_scale=3.0,
+                            x_scale="jac", max_nfev=max_nfev)
+        sol = least_squares(fun, sol.x, loss="linear", x_scale="jac", max_nfev=max_nfev // 2)
+        return sol, _unpack(sol.x, base, X_base, W_base, mask, free_XW)
+
+    sol, (model, X, W) = min((solve(*start) for start in [(model0, X0, W0), *extra_starts]),
+                             key=lambda found: found[0].cost)
     J = sol.jac
     scale = np.linalg.norm(J, axis=0)
     scale[scale == 0] = 1.0
