@@ -320,9 +320,9 @@ def residuals(model, X, W, meas: Measurements) -> np.ndarray:
     """Pose residuals (scaled by the sigmas) or pixel residuals for every capture. A pose
     residual is ``log(C_k W^-1 FK(q_k) X)``: measured times predicted-inverse, in the
     camera frame, where a camera's pose error lives (the loop of (4.11) closed at the
-    camera). Taken in
-    the target frame instead, a rotation error would leak into translation times the
-    camera-to-target distance and the sigmas would weight it wrongly."""
+    camera). Taken in the target frame instead, a rotation error would leak into
+    translation times the camera-to-target distance and the sigmas would weight it
+    wrongly."""
     out = []
     Winv = inv_T(W)
     if meas.corners is None:  # batched: every pose at once
