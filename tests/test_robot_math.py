@@ -85,6 +85,20 @@ def test_hand_eye_closed_forms_refinement_and_order_independence():
         assert np.allclose(closed[name], closed2[name], atol=1e-9)
 
 
+def test_hand_eye_pose_refinement_on_opencv_noise_model_beats_closed_forms():
+    """OpenCV's own test draws (bench handeye), 10 poses, 12 fixed seeds: the maximum-
+    likelihood refinement (camera poses compared in the camera frame, arm poses as errors
+    in variables) beats the best closed form's median translation error by over 25 %."""
+    from rigctl.bench.handeye import trial
+
+    rows = [trial(10, 7 + 10_000 + k) for k in range(12)]
+    closed = [m for m in rows[0] if m != "refined"]
+    best = min(np.median([r[m][1] for r in rows]) for m in closed)
+    refined = np.median([r["refined"][1] for r in rows])
+    assert 5.0 < best < 25.0  # the anchor: ~11 mm at 10 poses
+    assert refined < 0.75 * best
+
+
 def test_table_5_6_without_noise_beats_1e_6():
     for row in table_5_6():
         assert row["ours"]["dl_mm"] <= 1e-6 and row["ours"]["dd_mm"] <= 1e-6

@@ -8,32 +8,48 @@ from __future__ import annotations
 import numpy as np
 
 from rigctl.calib.handeye import closed_form, refine_poses, transform_error
-from rigctl.geometry.transforms import inv_T, make_T, rotvec_to_R
+from rigctl.geometry.transforms import R_to_rotvec, inv_T, make_T, rotvec_to_R
 
 
-def _noisy(T, rng, sigma_rot, sigma_t):
-    return make_T(rotvec_to_R(rng.normal(0, sigma_rot, 3)) @ T[:3, :3],
+def _opencv_pose(rng, theta_deg, t_range):
+    """A pose drawn as OpenCV's hand-eye test draws one: rotation vector theta * axis with
+    theta uniform in ``theta_deg`` and axis components uniform in [-1, 1]; each translation
+    component uniform in ``t_range`` (m); random signs on theta and on each component."""
+    sign = lambda: rng.choice([-1.0, 1.0])  # noqa: E731
+    theta = np.radians(rng.uniform(*theta_deg)) * sign()
+    rv = theta * rng.uniform(-1.0, 1.0, 3)
+    t = np.array([rng.uniform(*t_range) * sign() for _ in range(3)])
+    return make_T(rotvec_to_R(rv), t)
+
+
+def _opencv_noisy(T, rng, sigma_rot, sigma_t):
+    """OpenCV's test noise: Gaussian added to each rotation-vector and translation
+    component."""
+    return make_T(rotvec_to_R(R_to_rotvec(T[:3, :3]) + rng.normal(0, sigma_rot, 3)),
                   T[:3, 3] + rng.normal(0, sigma_t, 3))
 
 
 def trial(n: int, seed: int) -> dict[str, tuple[float, float]]:
+    """One draw of OpenCV's own hand-eye test (test_calibration_hand_eye.cpp):
+    camera-to-gripper 10-50 deg / 0.05-0.5 m per axis, target 5-85 deg / 0.5-3.5 m,
+    gripper 5-45 deg / 0.5-1.5 m; noise 0.002 rad / 5 mm on target-to-camera and
+    0.001 rad / 1 mm on gripper-to-base."""
     rng = np.random.default_rng(seed)
-    X = make_T(rotvec_to_R(rng.normal(size=3) * 0.5), rng.uniform(-0.1, 0.1, 3))
-    W = make_T(rotvec_to_R(rng.normal(size=3)), rng.uniform(-0.5, 0.5, 3))
+    X = _opencv_pose(rng, (10, 50), (0.05, 0.5))
+    W = _opencv_pose(rng, (5, 85), (0.5, 3.5))
     F, C = [], []
     for _ in range(n):
-        Fk = make_T(rotvec_to_R(rng.normal(size=3) * 0.6), rng.uniform(-0.3, 0.3, 3))
+        Fk = _opencv_pose(rng, (5, 45), (0.5, 1.5))
         Ck = inv_T(Fk @ X) @ W
-        F.append(_noisy(Fk, rng, 0.001, 0.001))
-        C.append(_noisy(Ck, rng, 0.002, 0.005))
+        C.append(_opencv_noisy(Ck, rng, 0.002, 0.005))
+        F.append(_opencv_noisy(Fk, rng, 0.001, 0.001))
     out = {}
     estimates = closed_form(F, C)
     for name, Xe in estimates.items():
         out[name] = transform_error(Xe, X)
-    best = min(estimates.values(), key=lambda Xe: transform_error(Xe, X)[1])  # oracle best
-    start = estimates.get("park", best)
-    refined = refine_poses(F, C, start, sigma_rot=np.hypot(0.002, 0.001),
-                           sigma_t=np.hypot(0.005, 0.001))
+    refined = refine_poses(F, C, estimates.get("park", next(iter(estimates.values()))),
+                           sigma_rot=0.002, sigma_t=0.005,
+                           sigma_rot_arm=0.001, sigma_t_arm=0.001)
     out["refined"] = transform_error(refined.X, X)
     return out
 
@@ -71,7 +87,7 @@ def pixel_trial(n: int, seed: int, sigma_px: float = 0.3, arm_sigma: float = 3e-
             continue
         px = px + rng.normal(0, sigma_px, px.shape)
         Fk = T_base_cam @ inv_T(X)
-        F.append(_noisy(Fk, rng, arm_sigma, arm_sigma))  # UR repeatability ~0.03 mm
+        F.append(_opencv_noisy(Fk, rng, arm_sigma, arm_sigma))  # UR repeatability ~0.03 mm
         C.append(estimate_pose(obj, px, K).T_cam_target)
         corners.append(px)
     out = {}

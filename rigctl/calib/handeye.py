@@ -5,8 +5,9 @@
 - ``closed_form``: OpenCV ``calibrateHandEye``, every method, on samples ordered by
   ``order_samples`` (large, non-parallel relative rotations; independent of input order).
 - ``refine_pixels``: joint least squares of X and W on board-corner reprojection error.
-- ``refine_poses``: the same on pose residuals weighted by rotation/translation sigmas
-  (for pose-level noise models such as OpenCV's own tests).
+- ``refine_poses``: maximum likelihood on pose measurements, camera poses compared in the
+  camera frame and, optionally, noisy arm poses as errors in variables (for pose-level
+  noise models such as OpenCV's own tests).
 """
 
 from __future__ import annotations
@@ -108,27 +109,57 @@ class HandEyeResult:
 
 
 def refine_poses(F, C, X0, sigma_rot: float = 0.002, sigma_t: float = 0.005,
-                 W0: np.ndarray | None = None) -> HandEyeResult:
-    """Least squares of X and W on the loop residual ``log(W^-1 F_k X C_k)``, rotation and
-    translation parts divided by their sigmas."""
+                 W0: np.ndarray | None = None, sigma_rot_arm: float = 0.0,
+                 sigma_t_arm: float = 0.0) -> HandEyeResult:
+    """Maximum-likelihood X and W from pose measurements (the loop ``W = F_k X C_k``).
+
+    Each camera pose is compared where its error lives: the predicted
+    ``C_k = (F_k X)^-1 W`` against the measured one, rotation as ``log(R_pred R_meas^T)``
+    over ``sigma_rot`` and the target's position in the camera frame over ``sigma_t``.
+    With arm sigmas, the arm poses are noisy too (errors in variables): each ``F_k`` gets
+    a correction (rotation vector and position in the base frame) with a prior of those
+    sigmas, solved jointly with X and W on a sparse Jacobian. A residual on the whole loop
+    ``W^-1 F_k X C_k`` would instead mix camera rotation error, times the target
+    distance, into translation and weight it as if it were translation noise."""
     W0 = average_W(F, C, X0) if W0 is None else W0
+    n = len(F)
+    eiv = sigma_rot_arm > 0 and sigma_t_arm > 0
+    rv_F = Rotation.from_matrix(np.array([T[:3, :3] for T in F])).as_rotvec()
+    t_F = np.array([T[:3, 3] for T in F])
+    R_C = np.array([T[:3, :3] for T in C])
+    t_C = np.array([T[:3, 3] for T in C])
 
     def fun(p):
-        X, W = _unpack(p)
-        Winv = inv_T(W)
-        res = []
-        for F_k, C_k in zip(F, C, strict=True):
-            E = Winv @ F_k @ X @ C_k
-            res.append(np.r_[R_to_rotvec(E[:3, :3]) / sigma_rot, E[:3, 3] / sigma_t])
-        return np.concatenate(res)
+        X, W = _unpack(p[:12])
+        d = p[12:].reshape(n, 6) if eiv else np.zeros((n, 6))
+        R_F = Rotation.from_rotvec(rv_F + d[:, :3]).as_matrix()
+        tF = t_F + d[:, 3:]
+        # C_pred = X^-1 F^-1 W
+        R_FX = R_F @ X[:3, :3]
+        t_FX = np.einsum("kij,j->ki", R_F, X[:3, 3]) + tF
+        R_pred = np.transpose(R_FX, (0, 2, 1)) @ W[:3, :3]
+        t_pred = np.einsum("kji,kj->ki", R_FX, W[:3, 3] - t_FX)
+        rot = Rotation.from_matrix(R_pred @ np.transpose(R_C, (0, 2, 1))).as_rotvec()
+        res = np.c_[rot / sigma_rot, (t_pred - t_C) / sigma_t]
+        if eiv:
+            res = np.c_[res, d[:, :3] / sigma_rot_arm, d[:, 3:] / sigma_t_arm]
+        return res.ravel()
 
-    sol = least_squares(fun, _params(X0, W0), method="lm")
-    X, W = _unpack(sol.x)
-    J = sol.jac
-    dof = max(len(sol.fun) - 12, 1)
+    p0 = _params(X0, W0)
+    sparsity = None
+    if eiv:
+        p0 = np.r_[p0, np.zeros(6 * n)]
+        sparsity = np.zeros((12 * n, 12 + 6 * n), bool)
+        for k in range(n):
+            sparsity[12 * k:12 * k + 6, :12] = True
+            sparsity[12 * k:12 * k + 12, 12 + 6 * k:18 + 6 * k] = True
+    sol = least_squares(fun, p0, method="trf", jac_sparsity=sparsity, x_scale="jac")
+    X, W = _unpack(sol.x[:12])
+    J = sol.jac.toarray() if hasattr(sol.jac, "toarray") else sol.jac
+    dof = max(len(sol.fun) - len(p0), 1)
     cov = np.linalg.pinv(J.T @ J) * float(np.sum(sol.fun ** 2) / dof)
     return HandEyeResult(X, W, float(np.sqrt(np.mean(sol.fun ** 2))),
-                         np.sqrt(np.clip(np.diag(cov), 0, None)))
+                         np.sqrt(np.clip(np.diag(cov)[:12], 0, None)))
 
 
 def refine_pixels(F, corners: list[np.ndarray], obj: np.ndarray, K, dist, X0,
