@@ -572,6 +572,15 @@ def bench_handeye(as_json: bool = typer.Option(False, "--json"),
                                  m["t_mm_p95"]])
         print_table(block["model"], ["poses", "method", "rot deg med", "t mm med", "t mm p95"],
                     rows, out)
+        for case in block["cases"]:
+            line = (f"{case['poses']} poses: refined vs best closed form "
+                    f"({case['best_closed_form']}) {case['refined_vs_best_t_pct']:+.1f} % "
+                    "(median translation)")
+            if "crlb_t_mm_rms" in case:
+                line += (f"; Cramer-Rao bound {case['crlb_t_mm_rms']:.2f} mm RMS, refined "
+                         f"{case['refined']['t_mm_rms']:.2f}, best closed form "
+                         f"{case[case['best_closed_form']]['t_mm_rms']:.2f}")
+            out.print(line)
     out.print(f"targets: {result['targets']}")
 
 

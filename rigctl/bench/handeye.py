@@ -51,6 +51,8 @@ def trial(n: int, seed: int) -> dict[str, tuple[float, float]]:
                            sigma_rot=0.002, sigma_t=0.005,
                            sigma_rot_arm=0.001, sigma_t_arm=0.001)
     out["refined"] = transform_error(refined.X, X)
+    # translation of X: what an efficient (unbiased) estimator's RMS error would be
+    out["_crlb_t_mm"] = 1000 * float(np.sqrt(np.trace(refined.cov_model[3:6, 3:6])))
     return out
 
 
@@ -100,7 +102,7 @@ def pixel_trial(n: int, seed: int, sigma_px: float = 0.3, arm_sigma: float = 3e-
 
 
 def _summarise(rows: list[dict], n: int) -> dict:
-    methods = list(rows[0])
+    methods = [m for m in rows[0] if not m.startswith("_")]
     case = {"poses": n}
     for m in methods:
         rot = [r[m][0] for r in rows if m in r]
@@ -110,6 +112,14 @@ def _summarise(rows: list[dict], n: int) -> dict:
     closed = [m for m in methods if m != "refined"]
     best = min(closed, key=lambda m: case[m]["t_mm_median"])
     case["best_closed_form"] = best
+    for m in (best, "refined"):
+        case[m]["t_mm_rms"] = float(np.sqrt(np.mean([r[m][1] ** 2 for r in rows])))
+    if "_crlb_t_mm" in rows[0]:
+        # the Cramer-Rao bound on the RMS translation error: no unbiased estimator beats
+        # it, so the best closed form cannot be beaten by more than 1 - bound / its RMS
+        bound = float(np.sqrt(np.mean([r["_crlb_t_mm"] ** 2 for r in rows])))
+        case["crlb_t_mm_rms"] = bound
+        case["max_possible_gain_vs_best_pct"] = 100 * (1 - bound / case[best]["t_mm_rms"])
     case["refined_vs_best_t_pct"] = 100 * (1 - case["refined"]["t_mm_median"] /
                                            case[best]["t_mm_median"])
     return case

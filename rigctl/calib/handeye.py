@@ -105,7 +105,8 @@ class HandEyeResult:
     X: np.ndarray
     W: np.ndarray
     rms: float
-    sigma: np.ndarray  # 1-sigma of (rotvec X, t X, rotvec W, t W)
+    sigma: np.ndarray  # 1-sigma of (rotvec X, t X, rotvec W, t W), residual-scaled
+    cov_model: np.ndarray | None = None  # 12x12 covariance from the stated sigmas alone
 
 
 def refine_poses(F, C, X0, sigma_rot: float = 0.002, sigma_t: float = 0.005,
@@ -157,9 +158,10 @@ def refine_poses(F, C, X0, sigma_rot: float = 0.002, sigma_t: float = 0.005,
     X, W = _unpack(sol.x[:12])
     J = sol.jac.toarray() if hasattr(sol.jac, "toarray") else sol.jac
     dof = max(len(sol.fun) - len(p0), 1)
-    cov = np.linalg.pinv(J.T @ J) * float(np.sum(sol.fun ** 2) / dof)
+    cov_model = np.linalg.pinv(J.T @ J)  # the Cramer-Rao bound when the sigmas are right
+    cov = cov_model * float(np.sum(sol.fun ** 2) / dof)
     return HandEyeResult(X, W, float(np.sqrt(np.mean(sol.fun ** 2))),
-                         np.sqrt(np.clip(np.diag(cov)[:12], 0, None)))
+                         np.sqrt(np.clip(np.diag(cov)[:12], 0, None)), cov_model[:12, :12])
 
 
 def refine_pixels(F, corners: list[np.ndarray], obj: np.ndarray, K, dist, X0,
