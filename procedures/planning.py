@@ -105,3 +105,55 @@ def view_steps(config: RigConfig, count: int, distance_m: float, max_tilt_deg: f
     steps.append(MoveArmJoints(tuple(math.radians(v) for v in config.devices.arm.home_deg),
                                "arm home"))
     return steps
+
+
+def informative_views(config: RigConfig, params, K: np.ndarray, planned_q: list, n: int,
+                      seed: int) -> tuple[list[np.ndarray], list[str]]:
+    """``n`` training views chosen for observability (``rigctl.calib.pose_selection``):
+    candidates at 0.8, 1 and 1.25 times ``params.view_distance_m``, tilted up to
+    ``params.max_tilt_deg``, every one reachable, inside the soft limits and with the whole
+    board in view; the D-optimal subset together with the views already planned
+    (``planned_q``), ordered for short travel. Notes report the predicted condition
+    number against that of plain random views."""
+    from rigctl.calib import pose_selection
+
+    from .robot_common import board_visible
+
+    model = nominal_ur(config.devices.arm.model)
+    X = nominal_flange_cam(config)
+    W, _ = target_centre(config)
+    candidates, notes = [], []
+    for k, factor in enumerate((0.8, 1.0, 1.25)):
+        qs, _ = plan_target_views(config, 3 * n, params.view_distance_m * factor,
+                                  params.max_tilt_deg, seed + 17 * k)
+        candidates += [q for q in qs if board_visible(config, model, q, K)]
+    if len(candidates) < n:
+        notes.append(f"pose selection: only {len(candidates)} candidate views; using "
+                     "random views")
+        poses, more = plan_target_views(config, n, params.view_distance_m,
+                                        params.max_tilt_deg, seed)
+        return poses, notes + more
+    from rigctl.calib.board import board_points
+
+    tg = config.target
+    obj = board_points(tg.rows, tg.cols, tg.square_mm / 1000.0)
+
+    def jacobians(qs):
+        return pose_selection.view_jacobians(model, X, W, qs, obj=obj, K=K)
+
+    J_fixed = jacobians(planned_q)
+    J_fixed = J_fixed.reshape(-1, J_fixed.shape[2])
+    J_cand = jacobians(candidates)
+    chosen = pose_selection.select_informative(J_cand, n, J_fixed)
+    random_q, _ = plan_target_views(config, n, params.view_distance_m, params.max_tilt_deg,
+                                    seed)
+    p = J_fixed.shape[1]
+    cond_chosen = pose_selection.scaled_condition(np.r_[J_fixed, J_cand[chosen].reshape(-1, p)])
+    cond_random = pose_selection.scaled_condition(np.r_[J_fixed,
+                                                        jacobians(random_q).reshape(-1, p)])
+    notes.append(f"pose selection: {n} of {len(candidates)} candidate views (D-optimal); "
+                 f"predicted condition number {cond_chosen:.0f} (random views: "
+                 f"{cond_random:.0f})")
+    poses = [candidates[i] for i in chosen]
+    start = planned_q[-1] if planned_q else poses[0]
+    return [poses[i] for i in pose_selection.order_by_travel(poses, start)], notes

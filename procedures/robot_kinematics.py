@@ -14,7 +14,7 @@ over all training captures on pixels; errors on the held-out views before and af
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import Field
@@ -36,7 +36,7 @@ from .base import (
     Settle,
     SolveContext,
 )
-from .planning import plan_target_views
+from .planning import informative_views, plan_target_views
 from .robot_common import (
     board_observations,
     camera_matrix,
@@ -54,7 +54,9 @@ class RobotKinematicsParams(Params):
     heldout_poses: int = Field(6, ge=1, le=100)
     view_distance_m: float = Field(0.45, gt=0.2, le=1.0)
     sweep_distance_m: float = Field(0.7, gt=0.2, le=1.2)
-    max_tilt_deg: float = Field(30.0, ge=0, le=50)
+    max_tilt_deg: float = Field(45.0, ge=0, le=50)
+    # training views: the most informative of many candidates, or plain random ones
+    pose_selection: Literal["d-optimal", "random"] = "d-optimal"
     settle_s: float = Field(0.2, ge=0)
     seed: int = 0
 
@@ -90,12 +92,17 @@ class RobotKinematics(Procedure):
                 steps.append(MoveArmJoint(j, float(q_base[j] + math.radians(off)), label))
                 steps += capture(label, kind="sweep", joint=j)
             steps.append(MoveArmJoint(j, float(q_base[j]), f"joint {j + 1} back"))
+        sweep_q = [q_base] + [q_base + np.eye(6)[j] * math.radians(off)
+                              for j, offsets in sweeps.items() for off in offsets]
         for kind, n, seed in (("train", params.random_poses, params.seed + 1),
                               ("heldout", params.heldout_poses, params.seed + 1000)):
             if n == 0:
                 continue
-            poses, more = plan_target_views(config, n, params.view_distance_m,
-                                            params.max_tilt_deg, seed)
+            if kind == "train" and params.pose_selection == "d-optimal":
+                poses, more = informative_views(config, params, K, sweep_q, n, seed)
+            else:
+                poses, more = plan_target_views(config, n, params.view_distance_m,
+                                                params.max_tilt_deg, seed)
             steps += [Note(m) for m in more]
             for k, q in enumerate(poses):
                 steps.append(MoveArmJoints(tuple(float(v) for v in q), f"{kind} {k + 1}"))

@@ -49,6 +49,7 @@ def test_robot_kinematics_end_to_end(tmp_path):
     summary = out["summary"]
     assert summary["heldout_mm_before"] > 1.5          # several mm before ...
     assert summary["heldout_mm_after"] <= 0.5          # ... at most 0.5 mm after
+    print("robot e2e summary", summary)
     assert out["uncertainty"]["condition_number"] > 1
     assert min(out["uncertainty"]["plain_dh_smallest_singular_values"]) < 1e-3
 

@@ -200,3 +200,24 @@ def test_pose_residuals_live_in_the_camera_frame_and_a_bad_start_is_escaped():
     assert np.max(np.abs(alone.model.a - true.a)) > 5e-3
     assert np.max(np.abs(both.model.a - true.a)) < 1e-3
     assert both.rms < alone.rms / 5
+
+
+def test_d_optimal_pose_selection_improves_conditioning():
+    """Choosing 15 of 120 random UR5e configurations for the largest log det(J^T J)
+    conditions the 30-parameter identification far better than taking 15 at random."""
+    from rigctl.calib import pose_selection
+
+    nominal, _, X, W, rng = ur_truth(5)
+    q0 = np.radians([0, -100, -100, -70, 90, 0])
+    candidates = [q0 + rng.normal(0, 0.3, 6) for _ in range(120)]
+    J = pose_selection.view_jacobians(nominal, X, W, candidates)
+    assert J.shape == (120, 6, 30)
+    chosen = pose_selection.select_informative(J, 15)
+    assert len(set(chosen)) == 15
+    picked = pose_selection.scaled_condition(J[chosen].reshape(-1, 30))
+    first = pose_selection.scaled_condition(J[:15].reshape(-1, 30))
+    assert picked < first / 1.5
+    order = pose_selection.order_by_travel([candidates[i] for i in chosen], q0)
+    assert sorted(order) == list(range(15))
+    with pytest.raises(SolveError):
+        pose_selection.select_informative(J[:5], 6)
