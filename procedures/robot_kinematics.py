@@ -175,6 +175,7 @@ class RobotKinematics(Procedure):
             lbl_err = heldout_errors(lbl.model, he.X, W_lbl)
         uncertainty = {"parameters": dict(zip(ref.names, ref.sigma.tolist(), strict=True)),
                        "condition_number": ref.condition,
+                       "condition_number_kinematic": ref.condition_kinematic,
                        "plain_dh_smallest_singular_values": dh.singular_values[-3:].tolist(),
                        "plain_dh_condition_number": dh.condition,
                        "residual_rms_px": ref.rms}
@@ -183,7 +184,9 @@ class RobotKinematics(Procedure):
                    "heldout_mm_before": None if before is None else
                    1000 * before["position_rms_m"],
                    "heldout_mm_after": None if after is None else 1000 * after["position_rms_m"],
-                   "condition_number": ref.condition, "residual_rms_px": ref.rms}
+                   "condition_number": ref.condition,
+                   "condition_number_kinematic": ref.condition_kinematic,
+                   "residual_rms_px": ref.rms}
         _plot(ctx, ref, meas)
         return {**export, "arm_model": ctx.config.devices.arm.model,
                 "intrinsics": intr, "summary": summary,

@@ -101,7 +101,8 @@ def main() -> int:
                 s = outcome.result["summary"]
                 console.print(f"held-out camera position RMS: before {s['heldout_mm_before']:.2f}"
                               f" mm, after {s['heldout_mm_after']:.3f} mm; condition number "
-                              f"{s['condition_number']:.0f}")
+                              f"{s['condition_number']:.0f} (link parameters alone, X and W "
+                              f"projected out: {s['condition_number_kinematic']:.0f})")
             else:
                 r = outcome.result
                 console.print(f"validate-arm ({r['views']} new views): before "

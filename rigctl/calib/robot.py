@@ -286,6 +286,7 @@ class RefineResult:
     condition: float
     singular_values: np.ndarray
     rms: float
+    condition_kinematic: float = float("nan")  # link parameters only, X and W projected out
 
 
 def _pack(model, X, W, mask, free_XW):
@@ -385,7 +386,22 @@ def refine(model0: KinematicModel, X0, W0, meas: Measurements, mask=None,
     cov = np.linalg.pinv(J.T @ J) * s2
     sigma = np.sqrt(np.clip(np.diag(cov), 0, None))
     return RefineResult(model, X, W, names, sol.x, sigma, condition, sv,
-                        float(np.sqrt(np.mean(sol.fun ** 2))))
+                        float(np.sqrt(np.mean(sol.fun ** 2))),
+                        _kinematic_condition(J / scale, 12 if free_XW else 0))
+
+
+def _kinematic_condition(Js: np.ndarray, n_nuisance: int) -> float:
+    """Condition number of the link-parameter columns once the last ``n_nuisance``
+    columns (X, W) are projected out: the identification Jacobian proper, which Schroer's
+    guideline (below 100) is about."""
+    A = Js[:, :Js.shape[1] - n_nuisance]
+    if n_nuisance:
+        Q, _ = np.linalg.qr(Js[:, -n_nuisance:])
+        A = A - Q @ (Q.T @ A)
+    norms = np.linalg.norm(A, axis=0)
+    norms[norms == 0] = 1.0
+    sv = np.linalg.svd(A / norms, compute_uv=False)
+    return float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
 
 
 def pose_errors(model, X, W, q_list, truth_fn) -> tuple[float, float]:
