@@ -622,9 +622,10 @@ def bench_robot(as_json: bool = typer.Option(False, "--json"),
         return
     print_table(f"bench robot: held-out position RMS, mm (median of {trials} trials)",
                 ["noise", "poses", "anchor", "nominal", "link-by-link", "refined", "plain DH",
-                 "cond", "DH sv min/2nd"],
+                 "cond", "z rms", "DH sv min/2nd"],
                 [[r["noise"], r["poses"], r["anchor_mm"], r["nominal_mm"], r["link_by_link_mm"],
                   r["refined_mm"], r["plain_dh_mm"], r["condition_median"],
+                  r["uncertainty_z_rms_median"],
                   f"{r['dh_smallest_sv_rel']:.1e} / {r['dh_second_sv_rel']:.1e}"]
                  for r in result["rows"]], out)
     out.print(f"targets: {result['targets']}")
