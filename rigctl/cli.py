@@ -579,7 +579,9 @@ def bench_handeye(as_json: bool = typer.Option(False, "--json"),
             if "crlb_t_mm_rms" in case:
                 line += (f"; Cramer-Rao bound {case['crlb_t_mm_rms']:.2f} mm RMS, refined "
                          f"{case['refined']['t_mm_rms']:.2f}, best closed form "
-                         f"{case[case['best_closed_form']]['t_mm_rms']:.2f}")
+                         f"{case[case['best_closed_form']]['t_mm_rms']:.2f}; an efficient "
+                         f"estimator's median {case['crlb_t_mm_median']:.2f} mm, at most "
+                         f"{case['max_possible_median_gain_vs_best_pct']:+.1f} %")
             out.print(line)
     out.print(f"targets: {result['targets']}")
 
