@@ -8,15 +8,12 @@ import json
 import subprocess
 import sys
 
-import numpy as np
 import pytest
 import yaml
 
 from mocks.world import load_world
-from procedures.planning import plan_target_views
 from rigctl.config import load_rig
-from rigctl.geometry.kinematics import KinematicModel
-from rigctl.geometry.transforms import inv_T
+from rigctl.demo import model_against_truth
 from tests.mockproc import ROOT
 from tests.simrig import SimRig
 
@@ -49,29 +46,14 @@ def test_robot_kinematics_end_to_end(tmp_path):
     summary = out["summary"]
     assert summary["heldout_mm_before"] > 1.5          # several mm before ...
     assert summary["heldout_mm_after"] <= 0.5          # ... at most 0.5 mm after
-    print("robot e2e summary", summary)
     # D-optimal training views: Schroer's guideline (below 100) for the link parameters
     assert 1 < out["uncertainty"]["condition_number_kinematic"] < 100
     assert min(out["uncertainty"]["plain_dh_smallest_singular_values"]) < 1e-3
 
     # The exported model against the truth, over views the calibration never saw
-    world = load_world(ROOT / "mocks/worlds/default.yaml")
-    links = out["links"]
-    model = KinematicModel(*(np.array([lk[k] for lk in links]) for k in ("d", "a", "alpha")),
-                           beta=np.array([lk["beta"] for lk in links]),
-                           theta_offset=np.array([lk["theta_offset"] for lk in links]))
-    X, W = np.array(out["T_flange_cam"]), np.array(out["T_base_target"])
-    config = load_rig(rig.rig_path)
-    views, _ = plan_target_views(config, 15, 0.5, 35.0, seed=4242)
-    rng = np.random.default_rng(0)
-    errors = []
-    for q in views:
-        for _ in range(3):
-            qq = np.array(q) + np.r_[np.zeros(3), rng.normal(0, 0.2, 3)]
-            est = inv_T(W) @ model.fk(qq) @ X
-            true = inv_T(world.T_base_target) @ world.T_base_cam(qq, (0.0, 0.0, 0.0))
-            errors.append(np.linalg.norm(est[:3, 3] - true[:3, 3]))
-    assert 1000 * np.sqrt(np.mean(np.square(errors))) < 0.5
+    rms, _, count = model_against_truth(out, load_rig(rig.rig_path),
+                                        load_world(ROOT / "mocks/worlds/default.yaml"))
+    assert count > 60 and rms < 0.5
     # exports
     run_dir = next((tmp_path / "records").glob("*robot-kinematics*"))
     assert rigctl("export", str(run_dir), "--format", "json").returncode == 0
