@@ -14,7 +14,6 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
-from scipy.optimize._numdiff import approx_derivative
 
 from rigctl.errors import SolveError
 from rigctl.geometry.kinematics import KinematicModel
@@ -33,22 +32,34 @@ def view_jacobians(model: KinematicModel, X, W, qs: Sequence[np.ndarray], mask=N
     camera-frame pose residuals over the given sigmas (rows = 6)."""
     mask = mask or robot.identifiable_mask(model)
     p0, _ = robot._pack(model, X, W, mask, True)
-    qs = [np.asarray(q, float) for q in qs]
-    C = [inv_T(model.fk(q) @ X) @ W for q in qs]
+    Q = np.array([np.asarray(q, float) for q in qs])
     if obj is not None and K is not None:
-        corners = []
-        for Ck in C:
-            cam = (Ck[:3, :3] @ obj.T).T + Ck[:3, 3]
-            px = (K @ cam.T).T
-            corners.append(px[:, :2] / px[:, 2:3])
-        meas = robot.Measurements(qs, C=C, corners=corners, obj=obj, K=K, dist=np.zeros(5))
+        def fun(p):  # the corners' pixels of every view at once (no distortion)
+            m, X_p, W_p = robot._unpack(p, model, X, W, mask, True)
+            T_cam_target = np.linalg.inv(m.fk_batch(Q) @ X_p) @ W_p
+            cam = np.einsum("vij,kj->vki", T_cam_target[:, :3, :3], obj) + \
+                T_cam_target[:, None, :3, 3]
+            px = np.einsum("ij,vkj->vki", K, cam)
+            return (px[..., :2] / px[..., 2:3]).ravel()
     else:
-        meas = robot.Measurements(qs, C=C, sigma_rot=sigma_rot, sigma_t=sigma_t)
+        meas = robot.Measurements(list(Q), C=[inv_T(model.fk(q) @ X) @ W for q in Q],
+                                  sigma_rot=sigma_rot, sigma_t=sigma_t)
 
-    def fun(p):
-        return robot.residuals(*robot._unpack(p, model, X, W, mask, True), meas)
+        def fun(p):
+            return robot.residuals(*robot._unpack(p, model, X, W, mask, True), meas)
 
-    return approx_derivative(fun, p0).reshape(len(qs), -1, len(p0))
+    return _central_differences(fun, p0).reshape(len(Q), -1, len(p0))
+
+
+def _central_differences(fun, p0: np.ndarray, step: float = 1e-6) -> np.ndarray:
+    """Jacobian of ``fun`` at ``p0`` by central differences (the parameters are metres
+    and radians, so one absolute step serves them all)."""
+    columns = []
+    for k in range(len(p0)):
+        dp = np.zeros_like(p0)
+        dp[k] = step
+        columns.append((fun(p0 + dp) - fun(p0 - dp)) / (2 * step))
+    return np.stack(columns, axis=1)
 
 
 def scaled_condition(J: np.ndarray) -> float:

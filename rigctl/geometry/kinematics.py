@@ -112,12 +112,18 @@ class KinematicModel:
         error; ``SolveError`` if it does not converge (unreachable pose)."""
         q = np.array(q_seed, float)
         lam = 1e-4
-        for _ in range(iterations):
+        best, best_at = np.inf, 0
+        for k in range(iterations):
             T = self.fk(q)
             err = np.concatenate([T_target[:3, 3] - T[:3, 3],
                                   R_to_rotvec(T_target[:3, :3] @ T[:3, :3].T)])
-            if np.linalg.norm(err) < tol:
+            size = float(np.linalg.norm(err))
+            if size < tol:
                 return q
+            if size < best / 2:
+                best, best_at = size, k
+            elif k - best_at > 25:  # stalled: no halving in 25 steps, out of reach
+                break
             J = self.geometric_jacobian(q)
             step = np.linalg.solve(J.T @ J + lam * np.eye(self.n), J.T @ err)
             norm = np.linalg.norm(step)
@@ -134,12 +140,11 @@ class KinematicModel:
         frames = self.frames(q)
         p_tool = (frames[-1] @ self.T_flange_tool)[:3, 3]
         J = np.zeros((6, self.n))
-        for i in range(self.n):
-            # joint i rotates about z of the frame before link i (after theta offset)
-            z = frames[i][:3, 2]
-            p = frames[i][:3, 3]
-            J[:3, i] = np.cross(z, p_tool - p)
-            J[3:, i] = z
+        # joint i rotates about z of the frame before link i (after theta offset)
+        Z = np.array([frames[i][:3, 2] for i in range(self.n)])
+        P = np.array([frames[i][:3, 3] for i in range(self.n)])
+        J[:3] = np.cross(Z, p_tool - P).T
+        J[3:] = Z.T
         return J
 
 
