@@ -22,7 +22,7 @@ from pydantic import Field
 from rigctl.calib import handeye, robot
 from rigctl.calib.board import board_points
 from rigctl.errors import SolveError
-from rigctl.geometry.kinematics import nominal_ur
+from rigctl.geometry.kinematics import LINK_KEYS, nominal_ur
 from rigctl.geometry.transforms import R_to_rotvec, inv_T
 
 from .base import (
@@ -147,10 +147,20 @@ class RobotKinematics(Procedure):
             lbl = robot.link_by_link(sweeps, he.X, nominal)
         except SolveError as exc:
             lbl_error = str(exc)
+        # axis-based, free of X: every joint's axis line in the target frame, the link
+        # parameters fitted to the lines, then X and W alone on every training view
+        axis, axis_error = None, None
+        try:
+            axis_model, W_axis = robot.axis_based(sweeps, nominal, he.W)
+            axis = robot.refine(axis_model, he.X, W_axis, meas,
+                                mask={k: np.zeros(nominal.n, bool) for k in LINK_KEYS})
+        except SolveError as exc:
+            axis_error = str(exc)
         start = lbl.model if lbl is not None else nominal
         W_start = handeye.average_W([start.fk(o["q"]) for o in train], [o["C"] for o in train],
                                     he.X)
-        ref = robot.refine(start, he.X, W_start, meas, extra_starts=[(nominal, he.X, he.W)])
+        starts = [(nominal, he.X, he.W)] + ([(axis.model, axis.X, axis.W)] if axis else [])
+        ref = robot.refine(start, he.X, W_start, meas, extra_starts=starts)
         dh = robot.refine(start, he.X, W_start, meas, mask=robot.dh_mask(nominal))
 
         def heldout_errors(model, X, W):
@@ -173,6 +183,7 @@ class RobotKinematics(Procedure):
             W_lbl = handeye.average_W([lbl.model.fk(o["q"]) for o in train],
                                       [o["C"] for o in train], he.X)
             lbl_err = heldout_errors(lbl.model, he.X, W_lbl)
+        axis_heldout = heldout_errors(axis.model, axis.X, axis.W) if axis else None
         uncertainty = {"parameters": dict(zip(ref.names, ref.sigma.tolist(), strict=True)),
                        "condition_number": ref.condition,
                        "condition_number_kinematic": ref.condition_kinematic,
@@ -184,6 +195,10 @@ class RobotKinematics(Procedure):
                    "heldout_mm_before": None if before is None else
                    1000 * before["position_rms_m"],
                    "heldout_mm_after": None if after is None else 1000 * after["position_rms_m"],
+                   "heldout_mm_link_by_link": None if lbl_err is None else
+                   1000 * lbl_err["position_rms_m"],
+                   "heldout_mm_axis_based": None if axis_heldout is None else
+                   1000 * axis_heldout["position_rms_m"],
                    "condition_number": ref.condition,
                    "condition_number_kinematic": ref.condition_kinematic,
                    "residual_rms_px": ref.rms}
@@ -192,6 +207,8 @@ class RobotKinematics(Procedure):
                 "intrinsics": intr, "summary": summary,
                 "before": {"heldout": before, "T_flange_cam": he.X.tolist(),
                            "T_base_target": he.W.tolist()},
+                "axis_based": {"heldout": axis_heldout, "error": axis_error,
+                               "links": axis.model.links() if axis else None},
                 "link_by_link": {"heldout": lbl_err, "error": lbl_error,
                                  "links": lbl.model.links() if lbl else None,
                                  "identified": lbl.identified if lbl else None,

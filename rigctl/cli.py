@@ -623,9 +623,10 @@ def bench_robot(as_json: bool = typer.Option(False, "--json"),
         _print_json(result)
         return
     print_table(f"bench robot: held-out position RMS, mm (median of {trials} trials)",
-                ["noise", "poses", "anchor", "nominal", "link-by-link", "refined", "plain DH",
-                 "cond", "z rms", "DH sv min/2nd"],
+                ["noise", "poses", "anchor", "nominal", "link-by-link", "axis-based", "refined",
+                 "plain DH", "cond", "z rms", "DH sv min/2nd"],
                 [[r["noise"], r["poses"], r["anchor_mm"], r["nominal_mm"], r["link_by_link_mm"],
+                  r["axis_based_mm"],
                   r["refined_mm"], r["plain_dh_mm"], r["condition_median"],
                   r["uncertainty_z_rms_median"],
                   f"{r['dh_smallest_sv_rel']:.1e} / {r['dh_second_sv_rel']:.1e}"]

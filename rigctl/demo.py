@@ -128,6 +128,12 @@ def main() -> int:
                               f" mm, after {s['heldout_mm_after']:.3f} mm; condition number "
                               f"{s['condition_number']:.0f} (link parameters alone, X and W "
                               f"projected out: {s['condition_number_kinematic']:.0f})")
+                singles = ", ".join(f"{label} {s[key]:.2f} mm" for label, key in (
+                    ("link-by-link (thesis 4.3, X from hand-eye)", "heldout_mm_link_by_link"),
+                    ("axis-based (no X)", "heldout_mm_axis_based")) if s.get(key) is not None)
+                console.print(f"held-out, single methods before the joint refinement: "
+                              f"{singles} (the sweeps the board allows, 5-20 deg, locate "
+                              "the axes only to mm)")
                 rms, worst, count = model_against_truth(outcome.result, load_rig(rig_path),
                                                         load_world(world_path))
                 console.print(f"exported model against the world's forward kinematics, {count} "

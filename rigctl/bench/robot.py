@@ -7,6 +7,8 @@ alpha; beta on the parallel links 2 and 3). Measurements: full camera poses with
 poses, held-out position RMS (30 held-out poses, against truth) of:
 
 - link-by-link alone (thesis 4.3: single-joint sweeps of 5 captures each, X known);
+- axis-based alone (the same sweeps' axis lines in the target frame, no X; then X and W
+  on the calibration poses with the links fixed);
 - link-by-link plus the joint refinement over the calibration poses (30-parameter
   minimal model: DH links 1, 4, 5, 6; Hayati links 2, 3; X and W estimated);
 - plain D-H refinement (d instead of beta on the parallel joints), with its smallest
@@ -25,7 +27,7 @@ import numpy as np
 
 from rigctl.calib import handeye, robot
 from rigctl.errors import SolveError
-from rigctl.geometry.kinematics import nominal_ur
+from rigctl.geometry.kinematics import LINK_KEYS, nominal_ur
 from rigctl.geometry.transforms import inv_T, make_T, rotvec_to_R
 
 ANCHOR = {(0.05, 0.005): {15: 0.076, 30: 0.045, 50: 0.036, 100: 0.024},
@@ -76,6 +78,15 @@ def trial(args) -> dict:
         lbl, out["link_by_link"] = nominal, float("nan")
     meas = robot.Measurements(train, C=[measure(q) for q in train],
                               sigma_rot=math.radians(s_deg), sigma_t=s_mm / 1000)
+    try:  # axis-based (no X): link parameters from the axis lines, then X and W alone
+        W_s = handeye.average_W([nominal.fk(q) for s in sweeps.values() for q in s.q],
+                                [c for s in sweeps.values() for c in s.C], X)
+        axis_model, W_a = robot.axis_based(sweeps, nominal, W_s)
+        axis = robot.refine(axis_model, X, W_a, meas,
+                            mask={k: np.zeros(6, bool) for k in LINK_KEYS})
+        out["axis_based"] = robot.pose_errors(axis.model, axis.X, axis.W, held, truth)[0]
+    except SolveError:
+        out["axis_based"] = float("nan")
     W0 = handeye.average_W([lbl.fk(q) for q in train], meas.C, X)
     W_nom = handeye.average_W([nominal.fk(q) for q in train], meas.C, X)
     ref = robot.refine(lbl, X, W0, meas, extra_starts=[(nominal, X, W_nom)])
@@ -112,6 +123,7 @@ def run(trials: int = 100, workers: int = 2, seed: int = 11) -> dict:
         rows.append({"noise": f"{s_mm} mm / {s_deg} deg", "poses": n,
                      "anchor_mm": ANCHOR[(s_mm, s_deg)][n],
                      "nominal_mm": med("nominal"), "link_by_link_mm": med("link_by_link"),
+                     "axis_based_mm": med("axis_based"),
                      "refined_mm": med("refined"), "plain_dh_mm": med("plain_dh"),
                      "condition_median": med("condition", 1.0),
                      "uncertainty_z_rms_median": med("z_rms", 1.0),

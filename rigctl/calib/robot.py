@@ -221,6 +221,67 @@ def _base_from_target(sweep: Sweep, X, W, model: KinematicModel) -> None:
     model.theta_offset[0], model.d[0] = sol.x
 
 
+def axis_lines(sweeps: dict[int, Sweep]) -> tuple[np.ndarray, dict[int, tuple]]:
+    """Each swept joint's axis line (unit direction, closest point to the origin) in the
+    target frame, at the sweeps' common base configuration, from the camera poses alone.
+    Beyond the thesis, whose (4.12) needs X: with ``T_target_cam = C^-1``, the motion
+    ``C_b^-1 C_a`` rotates about joint j's axis, fixed in the target frame while only
+    joint j moves, by ``q_b - q_a``; X never enters."""
+    q_bar = np.asarray(next(iter(sweeps.values())).q[0], float)
+    lines = {}
+    for j, sweep in sweeps.items():
+        if not np.allclose(sweep.q[0], q_bar, atol=1e-6):
+            raise SolveError(f"axis lines: joint {j + 1}'s sweep does not start from the "
+                             "common base configuration")
+        axes = []
+        for a in range(len(sweep.q)):
+            for b in range(a + 1, len(sweep.q)):
+                dq = sweep.q[b][j] - sweep.q[a][j]
+                if abs(dq) < math.radians(5.0):
+                    continue
+                u, p, angle = screw_axis(inv_T(sweep.C[b]) @ sweep.C[a])
+                axes.append((u if dq > 0 else -u, p, angle))
+        if not axes:
+            raise SolveError(f"axis lines: joint {j + 1} moved less than 5 deg in its sweep")
+        lines[j] = average_axis(axes)
+    return q_bar, lines
+
+
+def axis_based(sweeps: dict[int, Sweep], nominal: KinematicModel, W0: np.ndarray
+               ) -> tuple[KinematicModel, np.ndarray]:
+    """Link parameters and ``W = T_base_target`` fitted to the measured axis lines
+    (``axis_lines``): the minimal set of ``identifiable_mask`` for links 1..n-1 (the last
+    link only moves the flange, so it and X stay for the hand-eye step). Six lines give
+    24 constraints for 18 link parameters and W's 6: exactly determined, with no X."""
+    if sorted(sweeps) != list(range(nominal.n)):
+        raise SolveError(f"axis-based calibration needs a sweep of every joint; have "
+                         f"{[j + 1 for j in sorted(sweeps)]}")
+    q_bar, lines = axis_lines(sweeps)
+    mask = identifiable_mask(nominal)
+    p_full, _ = _pack(nominal, np.eye(4), W0, mask, True)
+    n_links = len(p_full) - 12
+
+    def unpack(p):
+        model, _, W = _unpack(np.r_[p[:n_links], np.zeros(6), p[n_links:]], nominal,
+                              np.eye(4), W0, mask, True)
+        return model, W
+
+    def fun(p):
+        model, W = unpack(p)
+        frames = model.frames(q_bar)
+        Winv = inv_T(W)
+        out = []
+        for j, (u, point) in lines.items():
+            T = Winv @ frames[j]  # joint j turns about z of the frame before link j
+            u_pred = T[:3, 2]
+            off = point - T[:3, 3]
+            out.append(np.r_[u_pred - u, (off - (off @ u_pred) * u_pred) / 0.1])
+        return np.concatenate(out)  # 1 mrad of direction weighs as 0.1 mm of position
+
+    sol = least_squares(fun, np.r_[p_full[:n_links], p_full[n_links + 6:]], x_scale="jac")
+    return unpack(sol.x)
+
+
 # -- joint refinement -------------------------------------------------------------------
 
 
@@ -395,6 +456,8 @@ def _kinematic_condition(Js: np.ndarray, n_nuisance: int) -> float:
     columns (X, W) are projected out: the identification Jacobian proper, which Schroer's
     guideline (below 100) is about."""
     A = Js[:, :Js.shape[1] - n_nuisance]
+    if A.shape[1] == 0:
+        return float("nan")
     if n_nuisance:
         Q, _ = np.linalg.qr(Js[:, -n_nuisance:])
         A = A - Q @ (Q.T @ A)
