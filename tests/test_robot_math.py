@@ -119,6 +119,14 @@ def ur_truth(seed):
     return nominal, true, X, W, rng
 
 
+def exact_sweeps(true, X, W, qb, offsets_deg) -> dict:
+    """Noise-free single-joint sweeps from ``qb``: every joint moved by each offset."""
+    sweeps = {}
+    for j in range(6):
+        qs = [qb.copy()] + [qb + np.eye(6)[j] * math.radians(o) for o in offsets_deg]
+        sweeps[j] = robot.Sweep(j, qs, [inv_T(true.fk(q) @ X) @ W for q in qs])
+    return sweeps
+
 def test_minimal_set_has_30_parameters_and_plain_dh_two_null_directions():
     nominal = nominal_ur("ur5e")
     mask = robot.identifiable_mask(nominal)
@@ -142,10 +150,7 @@ def test_minimal_set_has_30_parameters_and_plain_dh_two_null_directions():
 def test_link_by_link_exact_on_ur_and_refinement_recovers_truth_with_noise():
     nominal, true, X, W, rng = ur_truth(2)
     qb = np.radians([10, -100, -100, -70, 90, 20])
-    sweeps = {}
-    for j in range(6):
-        qs = [qb.copy()] + [qb + np.eye(6)[j] * math.radians(o) for o in (10, -10, 20)]
-        sweeps[j] = robot.Sweep(j, qs, [inv_T(true.fk(q) @ X) @ W for q in qs])
+    sweeps = exact_sweeps(true, X, W, qb, (10, -10, 20))
     lbl = robot.link_by_link(sweeps, X, nominal)
     test_q = [qb + np.radians(rng.normal(0, 15, 6)) for _ in range(20)]
     W_l = handeye.average_W([lbl.model.fk(q) for s in sweeps.values() for q in s.q],
@@ -231,10 +236,7 @@ def test_axis_based_needs_no_hand_eye_and_is_exact_without_noise():
 
     nominal, true, X, W, rng = ur_truth(3)
     qb = np.radians([10, -100, -100, -70, 90, 20])
-    sweeps = {}
-    for j in range(6):
-        qs = [qb.copy()] + [qb + np.eye(6)[j] * math.radians(o) for o in (15, -15, 30)]
-        sweeps[j] = robot.Sweep(j, qs, [inv_T(true.fk(q) @ X) @ W for q in qs])
+    sweeps = exact_sweeps(true, X, W, qb, (15, -15, 30))
     q_bar, lines = robot.axis_lines(sweeps)
     assert np.allclose(q_bar, qb)
     for j, (u, p) in lines.items():  # each line is joint j's axis at qb, in the target frame
