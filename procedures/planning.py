@@ -6,6 +6,8 @@ import math
 
 import numpy as np
 
+from rigctl.calib import pose_selection
+from rigctl.calib.board import board_points
 from rigctl.config import RigConfig
 from rigctl.errors import SolveError
 from rigctl.geometry.kinematics import nominal_ur
@@ -115,9 +117,7 @@ def informative_views(config: RigConfig, params, K: np.ndarray, planned_q: list,
     board in view; the D-optimal subset together with the views already planned
     (``planned_q``), ordered for short travel. Notes report the predicted condition
     number against that of plain random views."""
-    from rigctl.calib import pose_selection
-
-    from .robot_common import board_visible
+    from .robot_common import board_visible  # robot_common imports this module
 
     model = nominal_ur(config.devices.arm.model)
     X = nominal_flange_cam(config)
@@ -133,8 +133,6 @@ def informative_views(config: RigConfig, params, K: np.ndarray, planned_q: list,
         poses, more = plan_target_views(config, n, params.view_distance_m,
                                         params.max_tilt_deg, seed)
         return poses, notes + more
-    from rigctl.calib.board import board_points
-
     tg = config.target
     obj = board_points(tg.rows, tg.cols, tg.square_mm / 1000.0)
 

@@ -22,7 +22,7 @@ from pydantic import Field
 from rigctl.calib import handeye, robot
 from rigctl.calib.board import board_points
 from rigctl.errors import SolveError
-from rigctl.geometry.kinematics import LINK_KEYS, nominal_ur
+from rigctl.geometry.kinematics import nominal_ur
 from rigctl.geometry.transforms import R_to_rotvec, inv_T
 
 from .base import (
@@ -153,7 +153,7 @@ class RobotKinematics(Procedure):
         try:
             axis_model, W_axis = robot.axis_based(sweeps, nominal, he.W)
             axis = robot.refine(axis_model, he.X, W_axis, meas,
-                                mask={k: np.zeros(nominal.n, bool) for k in LINK_KEYS})
+                                mask=robot.frames_only_mask(nominal))
         except SolveError as exc:
             axis_error = str(exc)
         start = lbl.model if lbl is not None else nominal

@@ -232,7 +232,6 @@ def test_axis_based_needs_no_hand_eye_and_is_exact_without_noise():
     """Axis lines in the target frame from the camera motions alone: with exact
     measurements, the fitted links and a wrong X (2 deg, 5 mm off) still reproduce the
     truth once X and W are fitted with the links held."""
-    from rigctl.geometry.kinematics import LINK_KEYS
 
     nominal, true, X, W, rng = ur_truth(3)
     qb = np.radians([10, -100, -100, -70, 90, 20])
@@ -251,7 +250,7 @@ def test_axis_based_needs_no_hand_eye_and_is_exact_without_noise():
     meas = robot.Measurements(qs, C=[inv_T(true.fk(q) @ X) @ W for q in qs],
                               sigma_rot=1e-4, sigma_t=1e-4)
     fitted = robot.refine(model, X_wrong, W_fit, meas,
-                          mask={k: np.zeros(6, bool) for k in LINK_KEYS})
+                          mask=robot.frames_only_mask(nominal))
     test_q = [qb + rng.normal(0, 0.3, 6) for _ in range(20)]
     pos, rot = robot.pose_errors(fitted.model, fitted.X, fitted.W, test_q,
                                  lambda q: inv_T(W) @ true.fk(q) @ X)

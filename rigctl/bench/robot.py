@@ -27,7 +27,7 @@ import numpy as np
 
 from rigctl.calib import handeye, robot
 from rigctl.errors import SolveError
-from rigctl.geometry.kinematics import LINK_KEYS, nominal_ur
+from rigctl.geometry.kinematics import nominal_ur
 from rigctl.geometry.transforms import inv_T, make_T, rotvec_to_R
 
 ANCHOR = {(0.05, 0.005): {15: 0.076, 30: 0.045, 50: 0.036, 100: 0.024},
@@ -83,7 +83,7 @@ def trial(args) -> dict:
                                 [c for s in sweeps.values() for c in s.C], X)
         axis_model, W_a = robot.axis_based(sweeps, nominal, W_s)
         axis = robot.refine(axis_model, X, W_a, meas,
-                            mask={k: np.zeros(6, bool) for k in LINK_KEYS})
+                            mask=robot.frames_only_mask(nominal))
         out["axis_based"] = robot.pose_errors(axis.model, axis.X, axis.W, held, truth)[0]
     except SolveError:
         out["axis_based"] = float("nan")

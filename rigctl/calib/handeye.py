@@ -125,6 +125,9 @@ def refine_poses(F, C, X0, sigma_rot: float = 0.002, sigma_t: float = 0.005,
     W0 = average_W(F, C, X0) if W0 is None else W0
     n = len(F)
     eiv = sigma_rot_arm > 0 and sigma_t_arm > 0
+    if (sigma_rot_arm > 0) != (sigma_t_arm > 0):
+        raise SolveError("hand-eye refinement: give both arm sigmas (rotation and "
+                         f"translation) or neither; got {sigma_rot_arm}, {sigma_t_arm}")
     rv_F = Rotation.from_matrix(np.array([T[:3, :3] for T in F])).as_rotvec()
     t_F = np.array([T[:3, 3] for T in F])
     R_C = np.array([T[:3, :3] for T in C])

@@ -64,10 +64,7 @@ def _central_differences(fun, p0: np.ndarray, step: float = 1e-6) -> np.ndarray:
 
 def scaled_condition(J: np.ndarray) -> float:
     """Condition number of a Jacobian with unit-norm columns (as ``robot.refine``)."""
-    scale = np.linalg.norm(J, axis=0)
-    scale[scale == 0] = 1.0
-    sv = np.linalg.svd(J / scale, compute_uv=False)
-    return float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
+    return robot.condition_number(robot.scaled_singular_values(J))
 
 
 def select_informative(J_candidates: np.ndarray, n: int, J_fixed: np.ndarray | None = None

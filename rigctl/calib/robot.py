@@ -327,8 +327,8 @@ class Measurements:
     obj: np.ndarray | None = None
     K: np.ndarray | None = None
     dist: np.ndarray | None = None
-    sigma_rot: float | np.ndarray = 0.001  # rad; scalar, or per camera axis
-    sigma_t: float | np.ndarray = 0.001  # m; scalar, or per camera axis
+    sigma_rot: float = 0.001
+    sigma_t: float = 0.001
 
     def subset(self, idx) -> Measurements:
         pick = lambda v: None if v is None else [v[i] for i in idx]  # noqa: E731
@@ -438,33 +438,46 @@ def refine(model0: KinematicModel, X0, W0, meas: Measurements, mask=None,
     sol, (model, X, W) = min((solve(*start) for start in [(model0, X0, W0), *extra_starts]),
                              key=lambda found: found[0].cost)
     J = sol.jac
-    scale = np.linalg.norm(J, axis=0)
-    scale[scale == 0] = 1.0
-    sv = np.linalg.svd(J / scale, compute_uv=False)
-    condition = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
+    sv = scaled_singular_values(J)
+    condition = condition_number(sv)
     dof = max(len(sol.fun) - len(p0), 1)
     s2 = float(np.sum(sol.fun ** 2) / dof)
     cov = np.linalg.pinv(J.T @ J) * s2
     sigma = np.sqrt(np.clip(np.diag(cov), 0, None))
     return RefineResult(model, X, W, names, sol.x, sigma, condition, sv,
                         float(np.sqrt(np.mean(sol.fun ** 2))),
-                        _kinematic_condition(J / scale, 12 if free_XW else 0))
+                        _kinematic_condition(J, 12 if free_XW else 0))
 
 
-def _kinematic_condition(Js: np.ndarray, n_nuisance: int) -> float:
+def scaled_singular_values(J: np.ndarray) -> np.ndarray:
+    """Singular values of a Jacobian with its columns scaled to unit norm, so that
+    metres and radians compare (largest first)."""
+    norms = np.linalg.norm(J, axis=0)
+    norms[norms == 0] = 1.0
+    return np.linalg.svd(J / norms, compute_uv=False)
+
+
+def condition_number(sv: np.ndarray) -> float:
+    """Largest over smallest singular value (inf when rank-deficient)."""
+    return float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
+
+
+def frames_only_mask(model: KinematicModel) -> dict[str, np.ndarray]:
+    """A mask that estimates no link parameter: ``refine`` then fits X and W alone."""
+    return {k: np.zeros(model.n, bool) for k in LINK_KEYS}
+
+
+def _kinematic_condition(J: np.ndarray, n_nuisance: int) -> float:
     """Condition number of the link-parameter columns once the last ``n_nuisance``
     columns (X, W) are projected out: the identification Jacobian proper, which Schroer's
     guideline (below 100) is about."""
-    A = Js[:, :Js.shape[1] - n_nuisance]
+    A = J[:, :J.shape[1] - n_nuisance]
     if A.shape[1] == 0:
         return float("nan")
     if n_nuisance:
-        Q, _ = np.linalg.qr(Js[:, -n_nuisance:])
+        Q, _ = np.linalg.qr(J[:, -n_nuisance:])
         A = A - Q @ (Q.T @ A)
-    norms = np.linalg.norm(A, axis=0)
-    norms[norms == 0] = 1.0
-    sv = np.linalg.svd(A / norms, compute_uv=False)
-    return float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
+    return condition_number(scaled_singular_values(A))
 
 
 def pose_errors(model, X, W, q_list, truth_fn) -> tuple[float, float]:
