@@ -553,25 +553,27 @@ def bench_active(as_json: bool = typer.Option(False, "--json"),
 
 @bench_app.command("handeye")
 def bench_handeye(as_json: bool = typer.Option(False, "--json"),
-                  trials: int = typer.Option(100, "--trials")) -> None:
-    """OpenCV calibrateHandEye methods against our joint refinement, 10 and 30 poses."""
+                  trials: int = typer.Option(200, "--trials", min=1)) -> None:
+    """OpenCV calibrateHandEye methods against our joint refinement, 10 and 30 poses, on
+    OpenCV's test noise (as run and as described) and on board-corner pixels."""
     from rigctl.bench import handeye
     from rigctl.bench.common import print_table
 
-    result = handeye.run(trials)
+    result = handeye.run(trials, progress=lambda key, n: err.print(
+        f"bench handeye: {key}, {n} poses, {trials} trials ..."))
     if as_json:
         _print_json(result)
         return
-    for key in ("opencv_noise_model", "pixel_noise_model"):
+    for key in handeye.MODELS:
         block = result[key]
         rows = []
         for case in block["cases"]:
             for method, m in case.items():
                 if isinstance(m, dict):
-                    rows.append([case["poses"], method, m["rot_deg_median"], m["t_mm_median"],
-                                 m["t_mm_p95"]])
-        print_table(block["model"], ["poses", "method", "rot deg med", "t mm med", "t mm p95"],
-                    rows, out)
+                    rows.append([case["poses"], method, m["rot_deg_median"], m["rot_deg_p95"],
+                                 m["t_mm_median"], m["t_mm_p95"]])
+        print_table(block["model"], ["poses", "method", "rot deg med", "rot deg p95",
+                                     "t mm med", "t mm p95"], rows, out)
         for case in block["cases"]:
             line = (f"{case['poses']} poses: refined vs best closed form "
                     f"({case['best_closed_form']}) {case['refined_vs_best_t_pct']:+.1f} % "
