@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -92,35 +93,82 @@ def planning_K(config: RigConfig, given: dict | None) -> np.ndarray:
         return np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1.0]])
 
 
-def plan_sweeps(config: RigConfig, q_base, K: np.ndarray, steps: int, max_deg: float = 60.0,
-                step_deg: float = 10.0) -> tuple[dict[int, list[float]], list[str]]:
-    """Single-joint offsets from ``q_base``, last joint first: +-step, +-2 step, ... up to
-    ``max_deg``, keeping those where the board stays in view and the joint inside its soft
-    limits. Joints that move the view fast get 5 and then 2.5 degree steps."""
+def visible_range(config: RigConfig, model: KinematicModel, q_base, joint: int,
+                  K: np.ndarray, max_deg: float = 60.0, resolution_deg: float = 1.0
+                  ) -> tuple[float, float]:
+    """The interval of offsets (deg, lo <= 0 <= hi) of one joint from ``q_base`` over which
+    the nominal camera keeps the whole board in view and the joint stays inside its soft
+    limits, scanned outwards from 0 in ``resolution_deg`` steps up to ``max_deg``."""
+    limits = config.devices.arm.joint_limits_rad()[joint]
+    if not board_visible(config, model, q_base, K):
+        return 0.0, 0.0
+    ends = []
+    for sign in (-1.0, 1.0):
+        reached = 0.0
+        while reached + resolution_deg <= max_deg + 1e-9:
+            q = np.array(q_base, float)
+            q[joint] += math.radians(sign * (reached + resolution_deg))
+            if not (limits[0] <= q[joint] <= limits[1] and board_visible(config, model, q, K)):
+                break
+            reached += resolution_deg
+        ends.append(sign * reached)
+    return ends[0], ends[1]
+
+
+def spread_offsets(lo: float, hi: float, steps: int, min_deg: float = 2.0) -> list[float]:
+    """``steps`` offsets (deg) spread over [lo, hi], shared between the two sides in
+    proportion to their length (a side shorter than ``min_deg`` gets none), evenly spaced
+    out to each end, rounded to 0.5 deg; offsets closer to 0 than ``min_deg`` are dropped."""
+    sides = [side for side in (hi, lo) if abs(side) >= min_deg]
+    if not sides:
+        return []
+    total = sum(abs(side) for side in sides)
+    counts = [max(1, round(steps * abs(side) / total)) for side in sides]
+    while sum(counts) > steps and max(counts) > 1:
+        counts[counts.index(max(counts))] -= 1
+    offsets = []
+    for side, count in zip(sides, counts, strict=True):
+        for k in range(1, count + 1):
+            off = round(2 * side * k / count) / 2
+            if abs(off) >= min_deg and off not in offsets:
+                offsets.append(off)
+    return offsets
+
+
+@dataclass
+class SweepPlan:
+    """One joint's sweep: its base configuration, the offsets (deg) and the range (deg) in
+    which the board stays in view."""
+
+    joint: int
+    q_base: np.ndarray
+    offsets: list[float]
+    visible: tuple[float, float]
+
+
+def plan_sweeps(config: RigConfig, bases: list[np.ndarray], K: np.ndarray, steps: int,
+                max_deg: float = 60.0) -> tuple[dict[int, SweepPlan], list[str]]:
+    """Single-joint sweeps, last joint first. Each joint starts from the configuration of
+    ``bases`` in which the board stays in view over the widest range of that joint (the
+    first wins ties), and takes ``steps`` offsets spread over that range (up to
+    +-``max_deg``) out to both ends: the axis is located to sigma / (angle swept), so the
+    widest sweep the view allows is the most informative. Link-by-link and the axis lines
+    need only joint j to move within a sweep, not a base common to all sweeps."""
     model = nominal_ur(config.devices.arm.model)
-    limits = config.devices.arm.joint_limits_rad()
     plan, notes = {}, []
     for j in range(5, -1, -1):
-        chosen: list[float] = []
-        for step in (step_deg, step_deg / 2, step_deg / 4):
-            chosen = []
-            for k in range(1, int(max_deg / step) + 1):
-                for sign in (1.0, -1.0):
-                    off = sign * k * step
-                    q = np.array(q_base, float)
-                    q[j] += math.radians(off)
-                    if limits[j][0] <= q[j] <= limits[j][1] and \
-                            board_visible(config, model, q, K):
-                        chosen.append(off)
-                if len(chosen) >= steps:
-                    break
-            if len(chosen) >= 2:
-                break
-        if len(chosen) < 2:
-            notes.append(f"joint {j + 1}: the board leaves the view within "
-                         f"{step_deg / 4:.1f} deg; sweep skipped")
+        ranges = [visible_range(config, model, q, j, K, max_deg) for q in bases]
+        best = max(range(len(bases)), key=lambda k: ranges[k][1] - ranges[k][0])
+        lo, hi = ranges[best]
+        offsets = spread_offsets(lo, hi, steps)
+        if hi - lo < 5.0 or len(offsets) < 2:
+            notes.append(f"joint {j + 1}: the board stays in view only from {lo:+g} to "
+                         f"{hi:+g} deg; sweep skipped")
             continue
-        plan[j] = chosen[:steps]
+        plan[j] = SweepPlan(j, np.asarray(bases[best], float), offsets, (lo, hi))
+        notes.append(f"joint {j + 1}: from base {best + 1} of {len(bases)}, board in view "
+                     f"from {lo:+g} to {hi:+g} deg; sweep "
+                     f"{', '.join(f'{o:+g}' for o in offsets)} deg")
     return plan, notes
 
 

@@ -1,9 +1,12 @@
 """``robot-kinematics``: link-by-link robot calibration with the eye-in-hand camera
 (thesis 4.3) and a joint refinement of every identifiable parameter.
 
-Sequence (head held at home): a base view of the target; single-joint sweeps, last joint
-first, in 10-degree steps up to 60 where reach and visibility allow; random views for the
-refinement; held-out views for validation. Poses are planned with the nominal model.
+Sequence (head held at home): single-joint sweeps, last joint first, each from the planned
+view of the target that keeps the board in sight over the widest range of that joint
+(``sweep_bases=widest``; ``common`` sweeps every joint from one base view, as the thesis
+does), with offsets spread over that range up to +-60 degrees; D-optimal (or random)
+views for the refinement; held-out views for validation. Poses are planned with the
+nominal model.
 
 Solve: board poses (Tsai + LM) with the intrinsics of the latest accepted active-camera
 run (or a parameter); hand-eye (OpenCV closed forms, then a joint refinement of X and W
@@ -55,6 +58,9 @@ class RobotKinematicsParams(Params):
     view_distance_m: float = Field(0.45, gt=0.2, le=1.0)
     sweep_distance_m: float = Field(0.7, gt=0.2, le=1.2)
     max_tilt_deg: float = Field(45.0, ge=0, le=50)
+    # sweep bases: per joint, the view keeping the board in sight longest; or one for all
+    sweep_bases: Literal["widest", "common"] = "widest"
+    sweep_base_candidates: int = Field(16, ge=1, le=100)
     # training views: the most informative of many candidates, or plain random ones
     pose_selection: Literal["d-optimal", "random"] = "d-optimal"
     settle_s: float = Field(0.2, ge=0)
@@ -78,22 +84,29 @@ class RobotKinematics(Procedure):
             raise SolveError("robot-kinematics: no reachable view of the target")
         q_base = base[0]
         K = planning_K(config, params.intrinsics)
-        sweeps, sweep_notes = plan_sweeps(config, q_base, K, params.sweep_steps)
+        bases = [q_base]
+        if params.sweep_bases == "widest":
+            more, _ = plan_target_views(config, params.sweep_base_candidates,
+                                        params.sweep_distance_m, params.max_tilt_deg,
+                                        params.seed + 7)
+            bases += more
+        sweeps, sweep_notes = plan_sweeps(config, bases, K, params.sweep_steps)
         steps += [Note(n) for n in notes + sweep_notes]
 
         def capture(label, **extra):
             return [Settle(params.settle_s), CaptureStep(label, extra=extra)]
 
-        steps.append(MoveArmJoints(tuple(q_base), "base view"))
-        steps += capture("base view", kind="sweep", joint=None)
-        for j, offsets in sweeps.items():
-            for off in offsets:
+        sweep_q = []
+        for j, sweep in sweeps.items():
+            q0 = sweep.q_base
+            steps.append(MoveArmJoints(tuple(float(v) for v in q0), f"joint {j + 1} sweep base"))
+            steps += capture(f"joint {j + 1} sweep base", kind="sweep", joint=j)
+            sweep_q.append(q0)
+            for off in sweep.offsets:
                 label = f"joint {j + 1} {off:+g} deg"
-                steps.append(MoveArmJoint(j, float(q_base[j] + math.radians(off)), label))
+                steps.append(MoveArmJoint(j, float(q0[j] + math.radians(off)), label))
                 steps += capture(label, kind="sweep", joint=j)
-            steps.append(MoveArmJoint(j, float(q_base[j]), f"joint {j + 1} back"))
-        sweep_q = [q_base] + [q_base + np.eye(6)[j] * math.radians(off)
-                              for j, offsets in sweeps.items() for off in offsets]
+                sweep_q.append(q0 + np.eye(6)[j] * math.radians(off))
         for kind, n, seed in (("train", params.random_poses, params.seed + 1),
                               ("heldout", params.heldout_poses, params.seed + 1000)):
             if n == 0:
@@ -135,13 +148,16 @@ class RobotKinematics(Procedure):
         he = handeye.refine_pixels(F, meas.corners, obj, K, dist, closed["park"],
                                    C=[o["C"] for o in train])
 
-        # link-by-link from the sweeps (X from the hand-eye)
+        # link-by-link from the sweeps (X from the hand-eye); each sweep starts with its
+        # base capture (records before per-joint bases have one shared, joint None)
         base = [o for o in train if o["kind"] == "sweep" and o["joint"] is None]
         sweeps = {}
         for j in range(6):
             members = base + [o for o in train if o["kind"] == "sweep" and o["joint"] == j]
             if len(members) >= 3:
                 sweeps[j] = robot.Sweep(j, [o["q"] for o in members], [o["C"] for o in members])
+        sweep_span_deg = {f"joint{j + 1}": float(np.degrees(np.ptp([q[j] for q in sw.q])))
+                          for j, sw in sweeps.items()}
         lbl, lbl_error = None, None
         try:
             lbl = robot.link_by_link(sweeps, he.X, nominal)
@@ -201,7 +217,7 @@ class RobotKinematics(Procedure):
                    1000 * axis_heldout["position_rms_m"],
                    "condition_number": ref.condition,
                    "condition_number_kinematic": ref.condition_kinematic,
-                   "residual_rms_px": ref.rms}
+                   "residual_rms_px": ref.rms, "sweep_span_deg": sweep_span_deg}
         _plot(ctx, ref, meas)
         return {**export, "arm_model": ctx.config.devices.arm.model,
                 "intrinsics": intr, "summary": summary,

@@ -131,9 +131,11 @@ def main() -> int:
                 singles = ", ".join(f"{label} {s[key]:.2f} mm" for label, key in (
                     ("link-by-link (thesis 4.3, X from hand-eye)", "heldout_mm_link_by_link"),
                     ("axis-based (no X)", "heldout_mm_axis_based")) if s.get(key) is not None)
+                spans = s.get("sweep_span_deg") or {}
+                span = (f" (sweeps spanning {min(spans.values()):.0f}-"
+                        f"{max(spans.values()):.0f} deg)" if spans else "")
                 console.print(f"held-out, single methods before the joint refinement: "
-                              f"{singles} (the sweeps the board allows, 5-20 deg, locate "
-                              "the axes only to mm)")
+                              f"{singles}{span}")
                 rms, worst, count = model_against_truth(outcome.result, load_rig(rig_path),
                                                         load_world(world_path))
                 console.print(f"exported model against the world's forward kinematics, {count} "

@@ -221,18 +221,22 @@ def _base_from_target(sweep: Sweep, X, W, model: KinematicModel) -> None:
     model.theta_offset[0], model.d[0] = sol.x
 
 
-def axis_lines(sweeps: dict[int, Sweep]) -> tuple[np.ndarray, dict[int, tuple]]:
-    """Each swept joint's axis line (unit direction, closest point to the origin) in the
-    target frame, at the sweeps' common base configuration, from the camera poses alone.
-    Beyond the thesis, whose (4.12) needs X: with ``T_target_cam = C^-1``, the motion
-    ``C_b^-1 C_a`` rotates about joint j's axis, fixed in the target frame while only
-    joint j moves, by ``q_b - q_a``; X never enters."""
-    q_bar = np.asarray(next(iter(sweeps.values())).q[0], float)
+def axis_lines(sweeps: dict[int, Sweep]) -> dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Each swept joint's axis line in the target frame, from the camera poses alone:
+    joint j -> (the sweep's base configuration ``sweep.q[0]``, unit direction, closest
+    point to the origin). Beyond the thesis, whose (4.12) needs X: with
+    ``T_target_cam = C^-1``, the motion ``C_b^-1 C_a`` rotates about joint j's axis, fixed
+    in the target frame while only joint j moves, by ``q_b - q_a``; X never enters. The
+    line depends only on joints 1..j-1, so each sweep may start from its own
+    configuration (the others may be set to keep the board in view longest)."""
     lines = {}
     for j, sweep in sweeps.items():
-        if not np.allclose(sweep.q[0], q_bar, atol=1e-6):
-            raise SolveError(f"axis lines: joint {j + 1}'s sweep does not start from the "
-                             "common base configuration")
+        q_base = np.asarray(sweep.q[0], float)
+        moved = [k for k, q in enumerate(sweep.q)
+                 if np.any(np.abs(np.delete(np.asarray(q) - q_base, j)) > 1e-6)]
+        if moved:
+            raise SolveError(f"axis lines: joint {j + 1}'s sweep moves other joints "
+                             f"(capture {moved[0] + 1})")
         axes = []
         for a in range(len(sweep.q)):
             for b in range(a + 1, len(sweep.q)):
@@ -243,8 +247,8 @@ def axis_lines(sweeps: dict[int, Sweep]) -> tuple[np.ndarray, dict[int, tuple]]:
                 axes.append((u if dq > 0 else -u, p, angle))
         if not axes:
             raise SolveError(f"axis lines: joint {j + 1} moved less than 5 deg in its sweep")
-        lines[j] = average_axis(axes)
-    return q_bar, lines
+        lines[j] = (q_base, *average_axis(axes))
+    return lines
 
 
 def axis_based(sweeps: dict[int, Sweep], nominal: KinematicModel, W0: np.ndarray
@@ -256,7 +260,7 @@ def axis_based(sweeps: dict[int, Sweep], nominal: KinematicModel, W0: np.ndarray
     if sorted(sweeps) != list(range(nominal.n)):
         raise SolveError(f"axis-based calibration needs a sweep of every joint; have "
                          f"{[j + 1 for j in sorted(sweeps)]}")
-    q_bar, lines = axis_lines(sweeps)
+    lines = axis_lines(sweeps)
     mask = identifiable_mask(nominal)
     p_full, _ = _pack(nominal, np.eye(4), W0, mask, True)
     n_links = len(p_full) - 12
@@ -268,11 +272,10 @@ def axis_based(sweeps: dict[int, Sweep], nominal: KinematicModel, W0: np.ndarray
 
     def fun(p):
         model, W = unpack(p)
-        frames = model.frames(q_bar)
         Winv = inv_T(W)
         out = []
-        for j, (u, point) in lines.items():
-            T = Winv @ frames[j]  # joint j turns about z of the frame before link j
+        for j, (q_base, u, point) in lines.items():
+            T = Winv @ model.frames(q_base)[j]  # joint j turns about this frame's z
             u_pred = T[:3, 2]
             off = point - T[:3, 3]
             out.append(np.r_[u_pred - u, (off - (off @ u_pred) * u_pred) / 0.1])
