@@ -35,6 +35,8 @@ def test_robot_kinematics_end_to_end(tmp_path):
         result = rigctl("run", "robot-kinematics", "--rig", str(rig.rig_path), "--json",
                         "--param", "random_poses=12", "--param", "heldout_poses=5",
                         "--param", "sweep_steps=3")
+        validate = rigctl("run", "validate-arm", "--rig", str(rig.rig_path), "--json",
+                          "--param", "poses=5")
     finally:
         rig.stop()
     assert result.returncode == 0, result.stderr[-3000:]
@@ -58,8 +60,18 @@ def test_robot_kinematics_end_to_end(tmp_path):
     rms, _, count = model_against_truth(out, load_rig(rig.rig_path),
                                         load_world(ROOT / "mocks/worlds/default.yaml"))
     assert count > 60 and rms < 0.5
+    # validate-arm on new views, with the calibration just recorded
+    assert validate.returncode == 0, validate.stderr[-3000:]
+    check = json.loads(validate.stdout)
+    before, after = check["before"], check["after"]
+    assert check["views"] >= 4
+    assert after["position_rms_mm"] < 0.5 * before["position_rms_mm"]
+    assert after["target_in_camera_rms_mm"] < 0.5 < before["target_in_camera_rms_mm"]
+    # the predicted board lands on the detected corners to their own noise (~0.2 px)
+    assert after["reprojection_rms_px"] < 0.4 < 1.0 < before["reprojection_rms_px"]
     # exports
     run_dir = next((tmp_path / "records").glob("*robot-kinematics*"))
+    assert check["calibration_run"] == run_dir.name
     assert rigctl("export", str(run_dir), "--format", "json").returncode == 0
     exported = json.loads((run_dir / "export.json").read_text())
     assert exported["links"] == out["links"] and "summary" not in exported
