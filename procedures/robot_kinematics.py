@@ -96,12 +96,19 @@ class RobotKinematics(Procedure):
         def capture(label, **extra):
             return [Settle(params.settle_s), CaptureStep(label, extra=extra)]
 
-        sweep_q = []
+        sweep_q: list[np.ndarray] = []  # every configuration captured in the sweeps
+        base_q: list[np.ndarray] = []
         for j, sweep in sweeps.items():
             q0 = sweep.q_base
-            steps.append(MoveArmJoints(tuple(float(v) for v in q0), f"joint {j + 1} sweep base"))
-            steps += capture(f"joint {j + 1} sweep base", kind="sweep", joint=j)
-            sweep_q.append(q0)
+            # one capture per distinct base (joint None); sweeps that share it move back
+            if not any(np.allclose(q0, q, atol=1e-9) for q in base_q):
+                base_q.append(q0)
+                sweep_q.append(q0)
+                label = f"sweep base {len(base_q)}"
+                steps.append(MoveArmJoints(tuple(float(v) for v in q0), label))
+                steps += capture(label, kind="sweep", joint=None)
+            else:
+                steps.append(MoveArmJoints(tuple(float(v) for v in q0), f"joint {j + 1} base"))
             for off in sweep.offsets:
                 label = f"joint {j + 1} {off:+g} deg"
                 steps.append(MoveArmJoint(j, float(q0[j] + math.radians(off)), label))
@@ -148,12 +155,17 @@ class RobotKinematics(Procedure):
         he = handeye.refine_pixels(F, meas.corners, obj, K, dist, closed["park"],
                                    C=[o["C"] for o in train])
 
-        # link-by-link from the sweeps (X from the hand-eye); each sweep starts with its
-        # base capture (records before per-joint bases have one shared, joint None)
-        base = [o for o in train if o["kind"] == "sweep" and o["joint"] is None]
+        # link-by-link from the sweeps (X from the hand-eye); each sweep starts with the
+        # base capture (joint None) it moved away from
+        bases = [o for o in train if o["kind"] == "sweep" and o["joint"] is None]
         sweeps = {}
         for j in range(6):
-            members = base + [o for o in train if o["kind"] == "sweep" and o["joint"] == j]
+            moved = [o for o in train if o["kind"] == "sweep" and o["joint"] == j]
+            if not moved:
+                continue
+            own = [b for b in bases if np.all(np.abs(np.delete(b["q"] - moved[0]["q"], j))
+                                              < robot.OTHER_JOINTS_TOL)]
+            members = own[:1] + moved
             if len(members) >= 3:
                 sweeps[j] = robot.Sweep(j, [o["q"] for o in members], [o["C"] for o in members])
         sweep_span_deg = {f"joint{j + 1}": float(np.degrees(np.ptp([q[j] for q in sw.q])))

@@ -221,6 +221,10 @@ def _base_from_target(sweep: Sweep, X, W, model: KinematicModel) -> None:
     model.theta_offset[0], model.d[0] = sol.x
 
 
+# a sweep moves one joint; the others may differ by encoder jitter (measured joint angles)
+OTHER_JOINTS_TOL = 1e-3  # rad
+
+
 def axis_lines(sweeps: dict[int, Sweep]) -> dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """Each swept joint's axis line in the target frame, from the camera poses alone:
     joint j -> (the sweep's base configuration ``sweep.q[0]``, unit direction, closest
@@ -233,7 +237,7 @@ def axis_lines(sweeps: dict[int, Sweep]) -> dict[int, tuple[np.ndarray, np.ndarr
     for j, sweep in sweeps.items():
         q_base = np.asarray(sweep.q[0], float)
         moved = [k for k, q in enumerate(sweep.q)
-                 if np.any(np.abs(np.delete(np.asarray(q) - q_base, j)) > 1e-6)]
+                 if np.any(np.abs(np.delete(np.asarray(q) - q_base, j)) > OTHER_JOINTS_TOL)]
         if moved:
             raise SolveError(f"axis lines: joint {j + 1}'s sweep moves other joints "
                              f"(capture {moved[0] + 1})")
