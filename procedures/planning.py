@@ -13,6 +13,9 @@ from rigctl.errors import SolveError
 from rigctl.geometry.kinematics import nominal_ur
 from rigctl.geometry.transforms import inv_T, look_at, make_T, xyz_rpy_to_T
 
+# a coarse guard against driving the arm into the table the target lies on: the elbow,
+# wrists, flange and camera stay this far on the camera's side of the target plane
+MIN_CLEARANCE_M = 0.05
 VIEW_SEEDS_DEG = ([0, -100, -100, -70, 90, 0], [0, -80, -110, -80, 90, 0],
                   [30, -100, -100, -70, 90, 0], [-30, -100, -100, -70, 90, 0])
 
@@ -24,6 +27,17 @@ def target_centre(config: RigConfig) -> tuple[np.ndarray, np.ndarray]:
     s = tg.square_mm / 1000.0
     centre = T @ np.array([tg.cols * s / 2, tg.rows * s / 2, 0.0, 1.0])
     return T, centre[:3]
+
+
+def clearance_m(config: RigConfig, model, q) -> float:
+    """The smallest height of the elbow, wrist, flange and camera frames (nominal model)
+    above the target plane, on the side the camera looks from. Frame origins only, and
+    only at the planned configurations, not along the moves between them."""
+    T_base_target, _ = target_centre(config)
+    normal = -T_base_target[:3, 2]
+    frames = model.frames(q)
+    points = [T[:3, 3] for T in frames[2:]] + [(frames[-1] @ nominal_flange_cam(config))[:3, 3]]
+    return float(min(normal @ (p - T_base_target[:3, 3]) for p in points))
 
 
 def nominal_flange_cam(config: RigConfig) -> np.ndarray:
@@ -76,12 +90,14 @@ def plan_target_views(config: RigConfig, n: int, distance_m: float = 0.45,
             except SolveError:
                 continue
             q = (q + np.pi) % (2 * np.pi) - np.pi
-            if all(lo <= v <= hi for v, (lo, hi) in zip(q, limits, strict=True)):
+            if all(lo <= v <= hi for v, (lo, hi) in zip(q, limits, strict=True)) and \
+                    clearance_m(config, model, q) >= MIN_CLEARANCE_M:
                 break
             q = None
         if q is None:
-            notes.append(f"view {attempts}: eye {np.round(eye, 3).tolist()} m unreachable or "
-                         "outside the soft limits; skipped")
+            notes.append(f"view {attempts}: eye {np.round(eye, 3).tolist()} m unreachable, "
+                         "outside the soft limits or closer than "
+                         f"{100 * MIN_CLEARANCE_M:.0f} cm to the target plane; skipped")
             continue
         poses.append(q)
         previous = q

@@ -16,7 +16,7 @@ from rigctl.geometry.kinematics import KinematicModel, nominal_ur
 from rigctl.geometry.transforms import inv_T
 from rigctl.records import RecordIndex, RunDirectory
 
-from .planning import nominal_flange_cam, target_centre
+from .planning import MIN_CLEARANCE_M, clearance_m, nominal_flange_cam, target_centre
 
 
 def intrinsics_from(config: RigConfig, given: dict | None) -> dict[str, Any]:
@@ -97,10 +97,16 @@ def visible_range(config: RigConfig, model: KinematicModel, q_base, joint: int,
                   K: np.ndarray, max_deg: float = 60.0, resolution_deg: float = 1.0
                   ) -> tuple[float, float]:
     """The interval of offsets (deg, lo <= 0 <= hi) of one joint from ``q_base`` over which
-    the nominal camera keeps the whole board in view and the joint stays inside its soft
-    limits, scanned outwards from 0 in ``resolution_deg`` steps up to ``max_deg``."""
+    the nominal camera keeps the whole board in view, the joint stays inside its soft
+    limits and the arm clear of the target plane (``clearance_m``), scanned outwards from 0
+    in ``resolution_deg`` steps up to ``max_deg``."""
     limits = config.devices.arm.joint_limits_rad()[joint]
-    if not board_visible(config, model, q_base, K):
+
+    def allowed(q) -> bool:
+        return (limits[0] <= q[joint] <= limits[1] and board_visible(config, model, q, K)
+                and clearance_m(config, model, q) >= MIN_CLEARANCE_M)
+
+    if not allowed(np.asarray(q_base, float)):
         return 0.0, 0.0
     ends = []
     for sign in (-1.0, 1.0):
@@ -108,7 +114,7 @@ def visible_range(config: RigConfig, model: KinematicModel, q_base, joint: int,
         while reached + resolution_deg <= max_deg + 1e-9:
             q = np.array(q_base, float)
             q[joint] += math.radians(sign * (reached + resolution_deg))
-            if not (limits[0] <= q[joint] <= limits[1] and board_visible(config, model, q, K)):
+            if not allowed(q):
                 break
             reached += resolution_deg
         ends.append(sign * reached)

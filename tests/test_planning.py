@@ -10,7 +10,7 @@ import yaml
 
 from mocks.sim import rig_text
 from mocks.world import WORLDS, load_world
-from procedures.planning import plan_target_views
+from procedures.planning import MIN_CLEARANCE_M, clearance_m, plan_target_views
 from procedures.robot_common import board_visible, plan_sweeps, spread_offsets
 from rigctl.config import load_rig
 from rigctl.geometry.kinematics import nominal_ur
@@ -46,6 +46,7 @@ def test_sweeps_from_the_widest_bases_stay_in_view_and_sweep_further(tmp_path):
             q = sweep.q_base + np.eye(6)[j] * math.radians(off)
             assert limits[j][0] <= q[j] <= limits[j][1]
             assert board_visible(config, model, q, K)
+            assert clearance_m(config, model, q) >= MIN_CLEARANCE_M
         c_lo, c_hi = common[j].visible
         assert hi - lo >= c_hi - c_lo
     # joints 3 and 4 (parallel, close to the camera) lose the board within ~+-10 deg of
@@ -53,3 +54,18 @@ def test_sweeps_from_the_widest_bases_stay_in_view_and_sweep_further(tmp_path):
     # as far
     for j in (2, 3):
         assert np.ptp(widest[j].offsets) >= 2 * np.ptp(common[j].offsets)
+
+
+def test_clearance_guard_sees_an_arm_reaching_below_the_target_plane(tmp_path):
+    world_path = WORLDS / "default.yaml"
+    rig = rig_text(world_path, "127.0.0.1", tmp_path, "http://127.0.0.1:9/stream",
+                   str(tmp_path / "records"), load_world(world_path))
+    (tmp_path / "rig.yaml").write_text(yaml.safe_dump(rig))
+    config = load_rig(tmp_path / "rig.yaml")
+    model = nominal_ur(config.devices.arm.model)
+    # the target lies on the table (z = 0): upper arm horizontal at shoulder height, then
+    # the forearm hanging straight down 0.39 m: the wrists are 0.23 m below the table
+    down = np.radians([0, 0, 90, 0, 0, 0])
+    up = np.radians([0, -90, 0, -90, 0, 0])  # pointing straight up
+    assert clearance_m(config, model, down) < -0.1
+    assert clearance_m(config, model, up) > 0.1
