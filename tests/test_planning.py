@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 import yaml
 
 from mocks.sim import rig_text
@@ -16,6 +17,16 @@ from rigctl.config import load_rig
 from rigctl.geometry.kinematics import nominal_ur
 
 
+@pytest.fixture
+def config(tmp_path):
+    """The rig file ``rigctl sim up`` writes for the default world (nothing started)."""
+    world_path = WORLDS / "default.yaml"
+    rig = rig_text(world_path, "127.0.0.1", tmp_path, "http://127.0.0.1:9/stream",
+                   str(tmp_path / "records"), load_world(world_path))
+    (tmp_path / "rig.yaml").write_text(yaml.safe_dump(rig))
+    return load_rig(tmp_path / "rig.yaml")
+
+
 def test_spread_offsets_reach_both_ends_in_proportion():
     assert spread_offsets(-42, 19, 4) == [19, -14, -28, -42]
     assert spread_offsets(-7, 7, 4) == [3.5, 7, -3.5, -7]
@@ -24,12 +35,7 @@ def test_spread_offsets_reach_both_ends_in_proportion():
     assert spread_offsets(-1.5, 1.5, 4) == []
 
 
-def test_sweeps_from_the_widest_bases_stay_in_view_and_sweep_further(tmp_path):
-    world_path = WORLDS / "default.yaml"
-    rig = rig_text(world_path, "127.0.0.1", tmp_path, "http://127.0.0.1:9/stream",
-                   str(tmp_path / "records"), load_world(world_path))
-    (tmp_path / "rig.yaml").write_text(yaml.safe_dump(rig))
-    config = load_rig(tmp_path / "rig.yaml")
+def test_sweeps_from_the_widest_bases_stay_in_view_and_sweep_further(config):
     K = np.array([[900.0, 0, 640], [0, 900.0, 360], [0, 0, 1]])
     model = nominal_ur(config.devices.arm.model)
     limits = config.devices.arm.joint_limits_rad()
@@ -56,12 +62,7 @@ def test_sweeps_from_the_widest_bases_stay_in_view_and_sweep_further(tmp_path):
         assert np.ptp(widest[j].offsets) >= 2 * np.ptp(common[j].offsets)
 
 
-def test_clearance_guard_sees_an_arm_reaching_below_the_target_plane(tmp_path):
-    world_path = WORLDS / "default.yaml"
-    rig = rig_text(world_path, "127.0.0.1", tmp_path, "http://127.0.0.1:9/stream",
-                   str(tmp_path / "records"), load_world(world_path))
-    (tmp_path / "rig.yaml").write_text(yaml.safe_dump(rig))
-    config = load_rig(tmp_path / "rig.yaml")
+def test_clearance_guard_sees_an_arm_reaching_below_the_target_plane(config):
     model = nominal_ur(config.devices.arm.model)
     # the target lies on the table (z = 0): upper arm horizontal at shoulder height, then
     # the forearm hanging straight down 0.39 m: the wrists are 0.23 m below the table
