@@ -19,11 +19,13 @@ from __future__ import annotations
 import math
 from typing import Any, Literal
 
+import cv2
 import numpy as np
 from pydantic import Field
 
 from rigctl.calib import handeye, robot
 from rigctl.calib.board import board_points
+from rigctl.calib.intrinsics_check import board_intrinsics
 from rigctl.errors import SolveError
 from rigctl.geometry.kinematics import nominal_ur
 from rigctl.geometry.transforms import R_to_rotvec, inv_T
@@ -231,8 +233,14 @@ class RobotKinematics(Procedure):
                    "condition_number_kinematic": ref.condition_kinematic,
                    "residual_rms_px": ref.rms, "sweep_span_deg": sweep_span_deg}
         _plot(ctx, ref, meas)
+        cam = ctx.config.devices.camera
+        try:
+            intrinsics_check = board_intrinsics(obj, [o["corners"] for o in found],
+                                                (cam.width, cam.height), intr)
+        except (SolveError, cv2.error) as exc:
+            intrinsics_check = {"error": str(exc)}
         return {**export, "arm_model": ctx.config.devices.arm.model,
-                "intrinsics": intr, "summary": summary,
+                "intrinsics": intr, "intrinsics_check": intrinsics_check, "summary": summary,
                 "before": {"heldout": before, "T_flange_cam": he.X.tolist(),
                            "T_base_target": he.W.tolist()},
                 "axis_based": {"heldout": axis_heldout, "error": axis_error,

@@ -56,6 +56,13 @@ def test_robot_kinematics_end_to_end(tmp_path):
     assert 1 < out["uncertainty"]["condition_number_kinematic"] < 100
     assert min(out["uncertainty"]["plain_dh_smallest_singular_values"]) < 1e-3
 
+    # the independent intrinsics check (Zhang on the same board views) against the truth
+    truth = load_world(ROOT / "mocks/worlds/default.yaml").truth()
+    check = out["intrinsics_check"]
+    assert check["views"] >= 20 and abs(check["board"]["fx"] / truth["fx"] - 1) < 0.003
+    for key in ("cx", "cy"):
+        assert abs(check["board"][key] - truth[key]) < max(3 * check["sigma"][key], 1.0)
+
     # The exported model against the truth, over views the calibration never saw
     rms, _, count = model_against_truth(out, load_rig(rig.rig_path),
                                         load_world(ROOT / "mocks/worlds/default.yaml"))
