@@ -141,7 +141,7 @@ def main() -> int:
                     b, sd, used = check["board"], check["sigma"], outcome.result["intrinsics"]
                     console.print(
                         f"intrinsics check, Zhang on the {check['views']} board views (k1 k2 p1 "
-                        f"p2 k3): cx, cy = {b['cx']:.2f} +- {sd['cx']:.2f}, {b['cy']:.2f} +- "
+                        f"p2): cx, cy = {b['cx']:.2f} +- {sd['cx']:.2f}, {b['cy']:.2f} +- "
                         f"{sd['cy']:.2f} px; in use {used['cx']:.2f}, {used['cy']:.2f}; true "
                         f"{truth['cx']:.2f}, {truth['cy']:.2f}. {check['note']}")
                 rms, worst, count = model_against_truth(outcome.result, load_rig(rig_path),
