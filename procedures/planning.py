@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 
 import numpy as np
 
@@ -20,10 +21,19 @@ VIEW_SEEDS_DEG = ([0, -100, -100, -70, 90, 0], [0, -80, -110, -80, 90, 0],
                   [30, -100, -100, -70, 90, 0], [-30, -100, -100, -70, 90, 0])
 
 
+@lru_cache(maxsize=32)
+def _fixed_pose(xyz_mm: tuple[float, ...], rpy_deg: tuple[float, ...]) -> np.ndarray:
+    """``xyz_rpy_to_T`` of a rig-file pose, built once: the planners ask for the target
+    and mount poses thousands of times per plan (read-only; callers copy to change it)."""
+    T = xyz_rpy_to_T(list(xyz_mm), list(rpy_deg))
+    T.flags.writeable = False
+    return T
+
+
 def target_centre(config: RigConfig) -> tuple[np.ndarray, np.ndarray]:
     """``T_base_target`` (nominal) and the board centre in the base frame."""
     tg = config.target
-    T = xyz_rpy_to_T(tg.pose.xyz_mm, tg.pose.rpy_deg)
+    T = _fixed_pose(tuple(tg.pose.xyz_mm), tuple(tg.pose.rpy_deg)).copy()
     s = tg.square_mm / 1000.0
     centre = T @ np.array([tg.cols * s / 2, tg.rows * s / 2, 0.0, 1.0])
     return T, centre[:3]
@@ -45,7 +55,7 @@ def nominal_flange_cam(config: RigConfig) -> np.ndarray:
     mount = config.devices.head.mount if config.devices.head else None
     if mount is None:
         return make_T(t=[0, 0, 0.05])
-    return xyz_rpy_to_T(mount.xyz_mm, mount.rpy_deg)
+    return _fixed_pose(tuple(mount.xyz_mm), tuple(mount.rpy_deg)).copy()
 
 
 def plan_target_views(config: RigConfig, n: int, distance_m: float = 0.45,

@@ -28,7 +28,7 @@ from rigctl.calib.board import board_points
 from rigctl.calib.intrinsics_check import board_intrinsics
 from rigctl.errors import SolveError
 from rigctl.geometry.kinematics import nominal_ur
-from rigctl.geometry.transforms import R_to_rotvec, inv_T
+from rigctl.geometry.transforms import inv_T
 
 from .base import (
     CaptureStep,
@@ -196,14 +196,10 @@ class RobotKinematics(Procedure):
         def heldout_errors(model, X, W):
             if not held:
                 return None
-            pos, rot = [], []
-            for o in held:
-                T_pred = inv_T(W) @ model.fk(o["q"]) @ X
-                T_meas = inv_T(o["C"])
-                pos.append(np.linalg.norm(T_pred[:3, 3] - T_meas[:3, 3]))
-                rot.append(np.linalg.norm(R_to_rotvec(T_pred[:3, :3].T @ T_meas[:3, :3])))
-            return {"position_rms_m": float(np.sqrt(np.mean(np.square(pos)))),
-                    "rotation_rms_rad": float(np.sqrt(np.mean(np.square(rot)))),
+            pos, rot = robot.pose_deviations(model, X, W, [o["q"] for o in held],
+                                             [inv_T(o["C"]) for o in held])
+            return {"position_rms_m": float(np.sqrt(np.mean(pos ** 2))),
+                    "rotation_rms_rad": float(np.sqrt(np.mean(rot ** 2))),
                     "views": len(held)}
 
         before = heldout_errors(nominal, he.X, he.W)

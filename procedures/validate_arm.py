@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 from pydantic import Field
 
+from rigctl.calib import robot
 from rigctl.calib.board import board_points
 from rigctl.errors import SolveError
 from rigctl.geometry.kinematics import KinematicModel, nominal_ur
@@ -65,11 +66,7 @@ class ValidateArm(Procedure):
         found = [o for o in board_observations(ctx, intr) if o["found"]]
         if not found:
             raise SolveError("validate-arm: the board was not found in any view")
-        links = cal["links"]
-        model = KinematicModel(*(np.array([lk[k] for lk in links]) for k in ("d", "a", "alpha")),
-                               beta=np.array([lk["beta"] for lk in links]),
-                               theta_offset=np.array([lk["theta_offset"] for lk in links]),
-                               T_base_link0=np.array(cal["T_base_link0"]))
+        model = KinematicModel.from_export(cal)
         nominal = nominal_ur(ctx.config.devices.arm.model)
         states = {"before": (nominal, np.array(cal["before"]["T_flange_cam"]),
                              np.array(cal["before"]["T_base_target"])),
@@ -83,13 +80,11 @@ class ValidateArm(Procedure):
             return float(np.sqrt(np.mean(np.square(values))))
 
         for name, (m, X, W) in states.items():
-            pos, rot, target, px = [], [], [], []
+            pos, rot = robot.pose_deviations(m, X, W, [o["q"] for o in found],
+                                             [inv_T(o["C"]) for o in found])
+            target, px = [], []
             for o in found:
-                T_pred = inv_T(W) @ m.fk(o["q"]) @ X  # T_target_cam
-                T_meas = inv_T(o["C"])
-                pos.append(np.linalg.norm(T_pred[:3, 3] - T_meas[:3, 3]))
-                rot.append(np.linalg.norm(R_to_rotvec(T_pred[:3, :3].T @ T_meas[:3, :3])))
-                C_pred = inv_T(T_pred)
+                C_pred = inv_T(m.fk(o["q"]) @ X) @ W  # the predicted T_cam_target
                 target.append(np.linalg.norm(C_pred[:3, 3] - o["C"][:3, 3]))
                 proj, _ = cv2.projectPoints(obj.reshape(-1, 1, 3), R_to_rotvec(C_pred[:3, :3]),
                                             C_pred[:3, 3], K, dist)

@@ -72,10 +72,7 @@ def model_against_truth(result: dict, config, world) -> tuple[float, float, int]
     from rigctl.geometry.kinematics import KinematicModel
     from rigctl.geometry.transforms import inv_T
 
-    links = result["links"]
-    model = KinematicModel(*(np.array([lk[k] for lk in links]) for k in ("d", "a", "alpha")),
-                           beta=np.array([lk["beta"] for lk in links]),
-                           theta_offset=np.array([lk["theta_offset"] for lk in links]))
+    model = KinematicModel.from_export(result)
     X, W = np.array(result["T_flange_cam"]), np.array(result["T_base_target"])
     views, _ = plan_target_views(config, 34, 0.5, 35.0, seed=4242)
     rng = np.random.default_rng(0)

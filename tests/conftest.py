@@ -11,6 +11,23 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture
+def start_sim(tmp_path: Path):
+    """Start ``rigctl sim up`` (``tests.simrig.SimRig`` keywords); every rig started is
+    stopped, with its stand-ins, by PID in teardown."""
+    from tests.simrig import SimRig
+
+    started = []
+
+    def start(**kwargs):
+        started.append(SimRig(tmp_path, **kwargs))
+        return started[-1]
+
+    yield start
+    for rig in started:
+        rig.stop()
+
+
+@pytest.fixture
 def rig_file(tmp_path: Path):
     """Write a rig file with a head (and optionally arm/camera) into tmp_path."""
 

@@ -12,21 +12,17 @@ import pytest
 
 from mocks.world import load_world
 from tests.mockproc import ROOT
-from tests.simrig import SimRig
 
 pytestmark = pytest.mark.integration
 
 
 @pytest.mark.timeout(300)
-def test_active_camera_on_default_world(tmp_path):
-    rig = SimRig(tmp_path, world="default", host="127.0.0.11", port=18083)
-    try:
-        result = subprocess.run(
-            [sys.executable, "-m", "rigctl.cli", "run", "active-camera", "--rig",
-             str(rig.rig_path), "--json", "--param", "pan_deg=10", "--param", "tilt_deg=10"],
-            capture_output=True, text=True, timeout=240, cwd=ROOT)
-    finally:
-        rig.stop()
+def test_active_camera_on_default_world(tmp_path, start_sim):
+    rig = start_sim(world="default", host="127.0.0.11", port=18083)
+    result = subprocess.run(
+        [sys.executable, "-m", "rigctl.cli", "run", "active-camera", "--rig",
+         str(rig.rig_path), "--json", "--param", "pan_deg=10", "--param", "tilt_deg=10"],
+        capture_output=True, text=True, timeout=240, cwd=ROOT)
     assert result.returncode == 0, result.stderr[-3000:]
     out = json.loads(result.stdout)  # stdout is JSON and nothing else
     truth = load_world(ROOT / "mocks/worlds/default.yaml").truth()

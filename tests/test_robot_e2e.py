@@ -15,7 +15,6 @@ from mocks.world import load_world
 from rigctl.config import load_rig
 from rigctl.demo import model_against_truth
 from tests.mockproc import ROOT
-from tests.simrig import SimRig
 
 pytestmark = pytest.mark.integration
 
@@ -26,19 +25,16 @@ def rigctl(*args, timeout=400):
 
 
 @pytest.mark.timeout(600)  # two calibrations on the simulated rig: ~2 min, more under load
-def test_robot_kinematics_end_to_end(tmp_path):
-    rig = SimRig(tmp_path, world="default", host="127.0.0.14", port=18084)
-    try:
-        cam = rigctl("run", "active-camera", "--rig", str(rig.rig_path), "--json",
-                     "--param", "pan_deg=10", "--param", "tilt_deg=10")
-        assert cam.returncode == 0, cam.stderr[-2000:]
-        result = rigctl("run", "robot-kinematics", "--rig", str(rig.rig_path), "--json",
-                        "--param", "random_poses=12", "--param", "heldout_poses=5",
-                        "--param", "sweep_steps=3")
-        validate = rigctl("run", "validate-arm", "--rig", str(rig.rig_path), "--json",
-                          "--param", "poses=5")
-    finally:
-        rig.stop()
+def test_robot_kinematics_end_to_end(tmp_path, start_sim):
+    rig = start_sim(world="default", host="127.0.0.14", port=18084)
+    cam = rigctl("run", "active-camera", "--rig", str(rig.rig_path), "--json",
+                 "--param", "pan_deg=10", "--param", "tilt_deg=10")
+    assert cam.returncode == 0, cam.stderr[-2000:]
+    result = rigctl("run", "robot-kinematics", "--rig", str(rig.rig_path), "--json",
+                    "--param", "random_poses=12", "--param", "heldout_poses=5",
+                    "--param", "sweep_steps=3")
+    validate = rigctl("run", "validate-arm", "--rig", str(rig.rig_path), "--json",
+                      "--param", "poses=5")
     assert result.returncode == 0, result.stderr[-3000:]
     out = json.loads(result.stdout)
     for key in ("convention", "units", "links", "T_base_link0", "T_flange_cam",
@@ -57,15 +53,15 @@ def test_robot_kinematics_end_to_end(tmp_path):
     assert min(out["uncertainty"]["plain_dh_smallest_singular_values"]) < 1e-3
 
     # the independent intrinsics check (Zhang on the same board views) against the truth
-    truth = load_world(ROOT / "mocks/worlds/default.yaml").truth()
+    world = load_world(ROOT / "mocks/worlds/default.yaml")
+    truth = world.truth()
     check = out["intrinsics_check"]
     assert check["views"] >= 20 and abs(check["board"]["fx"] / truth["fx"] - 1) < 0.003
     for key in ("cx", "cy"):
         assert abs(check["board"][key] - truth[key]) < max(3 * check["sigma"][key], 1.0)
 
     # The exported model against the truth, over views the calibration never saw
-    rms, _, count = model_against_truth(out, load_rig(rig.rig_path),
-                                        load_world(ROOT / "mocks/worlds/default.yaml"))
+    rms, _, count = model_against_truth(out, load_rig(rig.rig_path), world)
     assert count > 60 and rms < 0.5
     # validate-arm on new views, with the calibration just recorded
     assert validate.returncode == 0, validate.stderr[-3000:]

@@ -487,14 +487,19 @@ def _kinematic_condition(J: np.ndarray, n_nuisance: int) -> float:
     return condition_number(scaled_singular_values(A))
 
 
-def pose_errors(model, X, W, q_list, truth_fn) -> tuple[float, float]:
-    """RMS position (m) and rotation (rad) error of predicted camera poses in the target
-    frame, ``W^-1 FK(q) X``, against ``truth_fn(q)`` (a 4x4 of the same)."""
-    pos, rot = [], []
+def pose_deviations(model, X, W, q_list, T_target_cam) -> tuple[np.ndarray, np.ndarray]:
+    """Per configuration, position (m) and rotation (rad) error of the predicted camera
+    pose in the target frame, ``W^-1 FK(q) X``, against ``T_target_cam`` (one 4x4 each)."""
     Winv = inv_T(W)
-    for q in q_list:
+    pos, rot = [], []
+    for q, T_ref in zip(q_list, T_target_cam, strict=True):
         T = Winv @ model.fk(q) @ X
-        T_true = truth_fn(q)
-        pos.append(np.linalg.norm(T[:3, 3] - T_true[:3, 3]))
-        rot.append(np.linalg.norm(R_to_rotvec(T[:3, :3].T @ T_true[:3, :3])))
-    return float(np.sqrt(np.mean(np.square(pos)))), float(np.sqrt(np.mean(np.square(rot))))
+        pos.append(np.linalg.norm(T[:3, 3] - T_ref[:3, 3]))
+        rot.append(np.linalg.norm(R_to_rotvec(T[:3, :3].T @ T_ref[:3, :3])))
+    return np.array(pos), np.array(rot)
+
+
+def pose_errors(model, X, W, q_list, truth_fn) -> tuple[float, float]:
+    """RMS of ``pose_deviations`` against ``truth_fn(q)`` (a 4x4 ``T_target_cam``)."""
+    pos, rot = pose_deviations(model, X, W, q_list, [truth_fn(q) for q in q_list])
+    return float(np.sqrt(np.mean(pos ** 2))), float(np.sqrt(np.mean(rot ** 2)))

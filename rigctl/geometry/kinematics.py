@@ -69,6 +69,14 @@ class KinematicModel:
     def links(self) -> list[dict[str, float]]:
         return [{k: float(getattr(self, k)[i]) for k in LINK_KEYS} for i in range(self.n)]
 
+    @classmethod
+    def from_export(cls, export: dict) -> KinematicModel:
+        """The model of a robot-kinematics result or export: its ``links`` (as ``links()``
+        writes them) and ``T_base_link0``."""
+        links = export["links"]
+        return cls(**{k: np.array([lk[k] for lk in links]) for k in LINK_KEYS},
+                   T_base_link0=np.array(export.get("T_base_link0", np.eye(4))))
+
     def link(self, i: int, q_i: float) -> np.ndarray:
         return link_transform(q_i + self.theta_offset[i], self.d[i], self.a[i], self.alpha[i],
                               self.beta[i])
