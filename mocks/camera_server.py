@@ -237,8 +237,9 @@ def main(argv: list[str] | None = None) -> int:
     done = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: done.set())
     signal.signal(signal.SIGINT, lambda *_: done.set())
-    print(json.dumps({"url": f"http://{args.host}:{args.port}/stream.mjpg", "host": args.host,
-                      "port": args.port, "pid": os.getpid(),
+    port = httpd.server_address[1]  # --port 0 binds an ephemeral port
+    print(json.dumps({"url": f"http://{args.host}:{port}/stream.mjpg", "host": args.host,
+                      "port": port, "pid": os.getpid(),
                       "control": str(args.control) if args.control else None}), flush=True)
     done.wait()
     camera.running = False

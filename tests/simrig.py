@@ -5,12 +5,15 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from tests.loopback import free_host
 from tests.mockproc import ROOT, MockProcess
 
 
 class SimRig:
-    def __init__(self, tmp_path: Path, world: str = "ideal", host: str = "127.0.0.7",
-                 port: int = 18081) -> None:
+    def __init__(self, tmp_path: Path, world: str = "ideal", host: str | None = None,
+                 port: int = 0) -> None:
+        host = host or free_host()
+        self.host = host
         self.rig_path = tmp_path / "sim-rig.yaml"
         self.proc = MockProcess(["-m", "rigctl.cli", "sim", "up", "--world",
                                  str(ROOT / "mocks" / "worlds" / f"{world}.yaml"),

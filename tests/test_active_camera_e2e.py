@@ -18,7 +18,7 @@ pytestmark = pytest.mark.integration
 
 @pytest.mark.timeout(300)
 def test_active_camera_on_default_world(tmp_path, start_sim):
-    rig = start_sim(world="default", host="127.0.0.11", port=18083)
+    rig = start_sim(world="default")
     result = subprocess.run(
         [sys.executable, "-m", "rigctl.cli", "run", "active-camera", "--rig",
          str(rig.rig_path), "--json", "--param", "pan_deg=10", "--param", "tilt_deg=10"],

@@ -26,7 +26,7 @@ def rigctl(*args, timeout=400):
 
 @pytest.mark.timeout(600)  # two calibrations on the simulated rig: ~2 min, more under load
 def test_robot_kinematics_end_to_end(tmp_path, start_sim):
-    rig = start_sim(world="default", host="127.0.0.14", port=18084)
+    rig = start_sim(world="default")
     cam = rigctl("run", "active-camera", "--rig", str(rig.rig_path), "--json",
                  "--param", "pan_deg=10", "--param", "tilt_deg=10")
     assert cam.returncode == 0, cam.stderr[-2000:]

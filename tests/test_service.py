@@ -13,11 +13,11 @@ import httpx
 import pytest
 import yaml
 
+from tests.loopback import free_host, free_port
 from tests.mockproc import ROOT, MockProcess
 
 pytestmark = pytest.mark.integration
 
-HOST, PORT, CAMERA_PORT = "127.0.0.16", 18711, 18086
 TOKEN = "s3cret"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 
@@ -49,8 +49,8 @@ class Webhook:
 def start_sim(tmp, world):
     return MockProcess(["-m", "rigctl.cli", "sim", "up", "--world",
                         str(ROOT / "mocks" / "worlds" / f"{world}.yaml"), "--rig-out",
-                        str(tmp / "sim-rig.yaml"), "--host", HOST, "--records",
-                        str(tmp / "records"), "--camera-port", str(CAMERA_PORT), "--workdir",
+                        str(tmp / "sim-rig.yaml"), "--host", free_host(), "--records",
+                        str(tmp / "records"), "--camera-port", "0", "--workdir",
                         str(tmp / "simwork")], ready_timeout=40)
 
 
@@ -60,7 +60,8 @@ class Stack:
         self.hook = Webhook()
         self.sim = start_sim(tmp, "ideal")
         rig = yaml.safe_load((tmp / "sim-rig.yaml").read_text())
-        rig["service"] = {"bind": "127.0.0.1", "port": PORT, "token": TOKEN,
+        port = free_port()
+        rig["service"] = {"bind": "127.0.0.1", "port": port, "token": TOKEN,
                           "webhook": self.hook.url, "auto_accept": False,
                           "schedules": [{"procedure": "head-sweep", "interval_s": 12,
                                          "max_delay": "5s",
@@ -72,7 +73,7 @@ class Stack:
         self.server = subprocess.Popen([sys.executable, "-m", "rigctl.cli", "serve", "--rig",
                                         str(self.rig)], cwd=ROOT, stdout=subprocess.DEVNULL,
                                        stderr=subprocess.PIPE, text=True)
-        self.base = f"http://127.0.0.1:{PORT}"
+        self.base = f"http://127.0.0.1:{port}"
         deadline = time.monotonic() + 30
         while time.monotonic() < deadline:
             try:

@@ -117,11 +117,11 @@ def test_sim_truth_json():
 
 
 def test_sim_up_then_down_leaves_nothing_running(tmp_path):
-    rig = SimRig(tmp_path, host="127.0.0.8", port=18082)
+    rig = SimRig(tmp_path)
     workdir = Path(rig.ready["workdir"])
     assert (workdir / "dxl").is_symlink()
     result = subprocess.run([sys.executable, "-m", "rigctl.cli", "sim", "down", "--host",
-                             "127.0.0.8"], capture_output=True, text=True, timeout=60, cwd=ROOT)
+                             rig.host], capture_output=True, text=True, timeout=60, cwd=ROOT)
     assert result.returncode == 0, result.stderr
     assert json.loads(result.stdout)["stopped"] is True
     rig.proc.proc.wait(timeout=10)

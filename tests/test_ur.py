@@ -13,6 +13,7 @@ from rigctl.config import load_rig, parse_rig
 from rigctl.errors import DeviceError, SafetyError
 from rigctl.records import RunDirectory
 from rigctl.runner import Runner
+from tests.loopback import free_host
 from tests.mockproc import MockProcess, control
 
 pytestmark = pytest.mark.integration
@@ -20,7 +21,8 @@ pytestmark = pytest.mark.integration
 HOME = np.radians([0.0, -90.0, 90.0, -90.0, -90.0, 0.0])
 
 
-def start_arm(tmp_path, host="127.0.0.2", extra=()):
+def start_arm(tmp_path, host=None, extra=()):
+    host = host or free_host()
     sock = tmp_path / f"ur-{host}.sock"
     return MockProcess(["-m", "mocks.ur_controller", "--host", host, "--control", str(sock),
                         *extra])
@@ -180,8 +182,8 @@ def test_protective_stop_mid_move_aborts_recorded_run(arm_proc, tmp_path):
 
 
 def test_stand_in_killed_mid_move_raises_device_error_within_3s(tmp_path):
-    proc = start_arm(tmp_path, host="127.0.0.4")
-    arm = URArm(arm_config("127.0.0.4", speed_cap_dps=10))
+    proc = start_arm(tmp_path)
+    arm = URArm(arm_config(proc.ready["host"], speed_cap_dps=10))
     try:
         arm.open()
         status = arm.move_joint(0, math.radians(30))
@@ -202,11 +204,11 @@ def test_stand_in_killed_mid_move_raises_device_error_within_3s(tmp_path):
 def test_two_stand_ins_side_by_side(tmp_path):
     import rtde_receive
 
-    a = start_arm(tmp_path, host="127.0.0.2")
-    b = start_arm(tmp_path, host="127.0.0.3", extra=("--model", "ur10e"))
+    a = start_arm(tmp_path)
+    b = start_arm(tmp_path, extra=("--model", "ur10e"))
     try:
-        ra = rtde_receive.RTDEReceiveInterface("127.0.0.2")
-        rb = rtde_receive.RTDEReceiveInterface("127.0.0.3")
+        ra = rtde_receive.RTDEReceiveInterface(a.ready["host"])
+        rb = rtde_receive.RTDEReceiveInterface(b.ready["host"])
         za, zb = ra.getActualTCPPose()[2], rb.getActualTCPPose()[2]
         assert za == pytest.approx(0.1625 + 0.1333 - 0.1333 + 0.4879 - 0.1625, abs=0.5)
         assert za != zb  # UR5e and UR10e answer with their own kinematics
