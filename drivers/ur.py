@@ -244,10 +244,16 @@ class URArm(Arm):
                     status.set_progress(1 - left / span)
                 running = self.control.getAsyncOperationProgress() >= 0
                 if not running:
+                    if target_q is not None:
+                        # q above may predate the end of the move (a loaded host widens
+                        # that gap): judge arrival on a sample taken after the end
+                        q = self._sample_after_now()
+                        left = max(abs(t - c) for t, c in zip(target_q, q, strict=True))
                     if target_q is not None and left > ARRIVAL_TOL_RAD:
                         raise DeviceError(f"arm: move ended {math.degrees(left):.3f} deg short "
                                           "of its target")
                     if target_pose is not None:
+                        self._sample_after_now()
                         err = math.dist(target_pose[:3], self.receive.getActualTCPPose()[:3])
                         if err > 1e-4:
                             raise DeviceError(f"arm: moveL ended {err * 1000:.2f} mm short")
@@ -258,6 +264,16 @@ class URArm(Arm):
                 time.sleep(0.01)
         except Exception as exc:
             status.set_exception(exc)
+
+    def _sample_after_now(self) -> list[float]:
+        """Joint angles from an RTDE sample whose controller timestamp is newer than the one
+        current at the call (so it was taken after whatever just happened)."""
+        first = self.receive.getTimestamp()
+        deadline = time.monotonic() + self.cfg.move_timeout_s
+        while self.receive.getTimestamp() <= first and time.monotonic() < deadline:
+            self._require_alive()
+            time.sleep(0.002)
+        return list(self.receive.getActualQ())
 
     def stop(self) -> None:
         """Decelerate now (stopJ); skipped when the link is already gone."""
