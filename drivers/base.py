@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import abc
 import math
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -44,7 +45,22 @@ __all__ = [
     "SolveError",
     "Status",
     "check_axis_limit",
+    "load_note",
 ]
+
+
+def load_note(knobs: str) -> str:
+    """A clause for a timeout message: the host's load, and the rig-file keys that give
+    the device more time. A process descheduled on a busy host (a stand-in, or the
+    client itself) misses a timeout set for hardware; the message should say so."""
+    cores = os.cpu_count() or 1
+    try:
+        load = os.getloadavg()[0]
+    except OSError:
+        return f"if the host is busy, raise {knobs} in the rig file"
+    busy = "busy" if load >= 0.8 * cores else "not busy"
+    return (f"host load {load:.1f} on {cores} cores ({busy}); a loaded host delays replies, "
+            f"raise {knobs} in the rig file if this recurs")
 
 
 def check_axis_limit(name: str, value: float, lo: float, hi: float) -> None:

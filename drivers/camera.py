@@ -22,7 +22,7 @@ from typing import Any
 
 import cv2
 
-from drivers.base import Camera, DeviceError, Frame
+from drivers.base import Camera, DeviceError, Frame, load_note
 
 log = logging.getLogger(__name__)
 
@@ -57,6 +57,29 @@ class OpenCVCamera(Camera):
         return f"camera {self.cfg.device}"
 
     def open(self) -> None:
+        """Open the device (``open_retries`` more tries, 0.5 s apart, doubling), apply the
+        settings and check that a frame of the configured size arrives."""
+        for attempt in range(self.cfg.open_retries + 1):
+            if attempt:
+                time.sleep(0.5 * 2 ** (attempt - 1))
+            cap = self._open_capture()
+            if cap.isOpened():
+                break
+            log.warning("%s: open attempt %d/%d failed", self.name, attempt + 1,
+                        self.cfg.open_retries + 1)
+        else:
+            raise DeviceError(f"{self.name}: cannot open (no such device, or stream not "
+                              f"reachable) after {self.cfg.open_retries + 1} tries; "
+                              f"{load_note('devices.camera.timeout_s and open_retries')}")
+        self.cap = cap
+        self._apply_settings()
+        self._running = True
+        self._thread = threading.Thread(target=self._grab, daemon=True, name="camera-grab")
+        self._thread.start()
+        frame = self.capture()  # also checks the actual frame shape
+        self.settings["actual_shape"] = list(frame.image.shape)
+
+    def _open_capture(self) -> cv2.VideoCapture:
         timeout_ms = int(self.cfg.timeout_s * 1000)
         if self.is_stream:
             params = [cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, timeout_ms,
@@ -67,16 +90,7 @@ class OpenCVCamera(Camera):
             if isinstance(device, str) and device.isdigit():
                 device = int(device)
             cap = cv2.VideoCapture(device, cv2.CAP_V4L2)
-        if not cap.isOpened():
-            raise DeviceError(f"{self.name}: cannot open (no such device, or stream not "
-                              "reachable)")
-        self.cap = cap
-        self._apply_settings()
-        self._running = True
-        self._thread = threading.Thread(target=self._grab, daemon=True, name="camera-grab")
-        self._thread.start()
-        frame = self.capture()  # also checks the actual frame shape
-        self.settings["actual_shape"] = list(frame.image.shape)
+        return cap
 
     def _apply_settings(self) -> None:
         cap, cfg = self.cap, self.cfg
@@ -153,7 +167,8 @@ class OpenCVCamera(Camera):
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
                     why = self._error or "no new frame"
-                    raise DeviceError(f"{self.name}: {why} within {self.cfg.timeout_s:.1f} s")
+                    raise DeviceError(f"{self.name}: {why} within {self.cfg.timeout_s:.1f} s; "
+                                      f"{load_note('devices.camera.timeout_s')}")
                 self._cond.wait(remaining)
         image, arrived, seq = latest
         h, w = image.shape[:2]

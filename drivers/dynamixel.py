@@ -8,7 +8,13 @@ Facts this driver is built around (see ``shared/reference/dynamixel-protocol.md`
   at the end of every move, and on any reply whose error byte has the Alert bit;
 - a vanished port raises ``termios.error``/``OSError`` (EIO) and leaves the port busy: the
   driver closes it, reopens the same path and retries once;
-- CRC errors and timeouts are retried ``retries`` times, then ``DeviceError`` names the servo.
+- CRC errors and timeouts are retried ``retries`` times with a doubling pause
+  (``retry_backoff_s``), then ``DeviceError`` names the servo, the time spent and the
+  host's load;
+- the SDK sets each packet's timeout from its length and a 16 ms USB latency timer;
+  ``packet_timeout_ms`` in the rig file raises that floor (a stand-in process on a busy
+  host, or a slow adapter); the late reply to a timed-out try is flushed by the SDK,
+  which clears the port before every transmission.
 """
 
 from __future__ import annotations
@@ -22,7 +28,15 @@ from typing import Any, ClassVar
 
 import dynamixel_sdk as sdk
 
-from drivers.base import DeviceError, Head, HeadAngles, ProtocolError, SafetyError, Status
+from drivers.base import (
+    DeviceError,
+    Head,
+    HeadAngles,
+    ProtocolError,
+    SafetyError,
+    Status,
+    load_note,
+)
 
 log = logging.getLogger(__name__)
 
@@ -48,6 +62,24 @@ PULSES_PER_DEG = 4096 / 360.0
 def hw_error_text(bits: int) -> str:
     names = [name for bit, name in HW_ERROR_NAMES.items() if bits & bit]
     return ", ".join(names) or f"0x{bits:02x}"
+
+
+class TimedPortHandler(sdk.PortHandler):
+    """The SDK's port with a floor under every packet timeout (``floor_ms``, None: the
+    SDK's own timeouts). The SDK calls ``setPacketTimeout``/``setPacketTimeoutMillis``
+    before each reception; both are raised to the floor here."""
+
+    def __init__(self, port_name: str, floor_ms: float | None) -> None:
+        super().__init__(port_name)
+        self.floor_ms = floor_ms
+
+    def setPacketTimeout(self, packet_length):
+        super().setPacketTimeout(packet_length)
+        if self.floor_ms is not None:
+            self.packet_timeout = max(self.packet_timeout, self.floor_ms)
+
+    def setPacketTimeoutMillis(self, msec):
+        super().setPacketTimeoutMillis(max(msec, self.floor_ms or 0.0))
 
 
 def _signed32(value: int) -> int:
@@ -92,7 +124,7 @@ class DynamixelHead(Head):
     # -- transport ----------------------------------------------------------------
 
     def _open_port(self) -> None:
-        port = sdk.PortHandler(self.cfg.port)
+        port = TimedPortHandler(self.cfg.port, self.cfg.packet_timeout_ms)
         try:
             opened = port.openPort()
         except Exception as exc:  # pyserial raises SerialException with the OS reason
@@ -117,8 +149,11 @@ class DynamixelHead(Head):
         attempts = self.cfg.retries + 1
         last = ""
         reopened = False
+        t0 = time.monotonic()
         with self._lock:
             for attempt in range(attempts):
+                if attempt and self.cfg.retry_backoff_s:
+                    time.sleep(self.cfg.retry_backoff_s * 2 ** (attempt - 1))
                 if self.port is None:
                     self._open_port()
                 try:
@@ -139,7 +174,10 @@ class DynamixelHead(Head):
                     break
                 log.info("head: %s: %s (try %d/%d)", what, last, attempt + 1, attempts)
         target = self._name(dxl_id) if dxl_id is not None else f"head bus {self.cfg.port}"
-        raise DeviceError(f"{target}: {what} failed after {attempts} tries: {last}")
+        spent = time.monotonic() - t0
+        note = load_note("devices.head.packet_timeout_ms, retries and retry_backoff_s")
+        raise DeviceError(f"{target}: {what} failed after {attempts} tries in {spent:.2f} s: "
+                          f"{last} ({note})")
 
     def _check_error(self, dxl_id: int, error: int, what: str) -> None:
         if error & 0x80:

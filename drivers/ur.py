@@ -5,7 +5,7 @@
 - Moves are started asynchronously (``moveJ``/``moveL`` with ``async=True``) and watched
   from a thread that reads the receive interface: a protective or emergency stop raises
   ``SafetyError``; a stream that stops advancing raises ``DeviceError`` within
-  ``STALE_S`` (never hangs).
+  ``stream_timeout_s`` (rig file) (never hangs).
 - Never unlocks a protective stop by itself: ``unlock_protective_stop()`` is an explicit
   operator action (``rigctl arm unlock``).
 - Teardown: ``disconnect()`` of the control interface sleeps ~0.5 s in ur_rtde; the cost
@@ -22,12 +22,10 @@ import threading
 import time
 from typing import Any
 
-from drivers.base import Arm, ArmState, DeviceError, SafetyError, Status
+from drivers.base import Arm, ArmState, DeviceError, SafetyError, Status, load_note
 
 log = logging.getLogger(__name__)
 
-STALE_S = 1.0            # stream silent this long: connection lost
-TEARDOWN_TIMEOUT_S = 3.0
 ARRIVAL_TOL_RAD = 1e-3
 
 
@@ -124,7 +122,8 @@ class URArm(Arm):
             if control is not None:
                 try:
                     if alive:
-                        _bounded(control.stopScript, TEARDOWN_TIMEOUT_S, "control stopScript")
+                        _bounded(control.stopScript, self.cfg.teardown_timeout_s,
+                                 "control stopScript")
                     control.disconnect()
                 except Exception as exc:
                     log.warning("arm: control teardown: %s", exc)
@@ -156,15 +155,17 @@ class URArm(Arm):
             self._monitor_stop.wait(0.02)
 
     def _alive(self) -> bool:
-        """The stream is connected and its timestamp advanced within ``STALE_S``."""
+        """The stream is connected and its timestamp advanced within ``stream_timeout_s``."""
         if self.receive is None or not self.receive.isConnected():
             return False
-        return time.monotonic() - self._last_ts[1] < STALE_S
+        return time.monotonic() - self._last_ts[1] < self.cfg.stream_timeout_s
 
     def _require_alive(self) -> None:
         if not self._alive():
-            raise DeviceError(f"arm {self.cfg.host}: RTDE connection lost "
-                              f"(no data for {STALE_S:.1f} s)")
+            silent = time.monotonic() - self._last_ts[1]
+            raise DeviceError(f"arm {self.cfg.host}: RTDE connection lost (no new sample for "
+                              f"{silent:.1f} s, limit {self.cfg.stream_timeout_s:g} s; "
+                              f"{load_note('devices.arm.stream_timeout_s')})")
 
     def check_safety(self) -> None:
         if self.receive is None:
@@ -281,7 +282,7 @@ class URArm(Arm):
         if self.control is None or not self._alive():
             return
         try:
-            _bounded(lambda: self.control.stopJ(2.0, False), TEARDOWN_TIMEOUT_S, "stopJ")
+            _bounded(lambda: self.control.stopJ(2.0, False), self.cfg.teardown_timeout_s, "stopJ")
         except Exception as exc:
             log.error("arm: stopJ failed: %s", exc)
 

@@ -26,6 +26,18 @@ from rigctl.errors import ConfigError, DeviceError
 STATE_DIR = Path(tempfile.gettempdir())
 
 
+# Timing for stand-in processes, which a busy host deschedules for hundreds of ms; real
+# hardware keeps the rig file's defaults. Head: 6 tries of 100 ms with 20-320 ms pauses,
+# about 1.2 s per transaction before a servo is reported dead (a 300 ms stall costs three
+# tries). Arm: the RTDE stream may pause 5 s before the link counts as lost. Camera: 10 s
+# for a frame, and three more tries to open the stream.
+STAND_IN_TIMING = {
+    "head": {"packet_timeout_ms": 100, "retries": 5, "retry_backoff_s": 0.02},
+    "arm": {"stream_timeout_s": 5.0, "move_timeout_s": 60},
+    "camera": {"timeout_s": 10.0, "open_retries": 3},
+}
+
+
 def state_path(host: str) -> Path:
     return STATE_DIR / f"rigctl-sim-{host}.json"
 
@@ -47,14 +59,15 @@ def rig_text(world_path: Path, host: str, workdir: Path, camera_url: str, record
             "head": {"port": str(workdir / "dxl"), "baud": 1_000_000, "model": "xm430-w350",
                      "limits": {"pan": [-45, 45], "tilt": [-30, 30], "roll": [-180, 180]},
                      "speed_cap_dps": 120, "accel_cap_dps2": 600, "settle_s": 0.1,
-                     "park": {"policy": "home"},
+                     **STAND_IN_TIMING["head"], "park": {"policy": "home"},
                      "mount": {"xyz_mm": [round(v, -1) for v in world.spec.hand_eye.xyz_mm],
                                "rpy_deg": [round(v) for v in world.spec.hand_eye.rpy_deg]}},
             "arm": {"host": host, "model": world.spec.arm.model,
                     "home_deg": list(world.spec.arm.home_deg),
-                    "speed_cap_dps": 90, "accel_cap_dps2": 180, "settle_s": 0.1},
+                    "speed_cap_dps": 90, "accel_cap_dps2": 180, "settle_s": 0.1,
+                    **STAND_IN_TIMING["arm"]},
             "camera": {"device": camera_url, "width": cam.width, "height": cam.height,
-                       "fps": cam.fps, "timeout_s": 3.0},
+                       "fps": cam.fps, **STAND_IN_TIMING["camera"]},
         },
         "target": {"rows": world.spec.target.rows, "cols": world.spec.target.cols,
                    "square_mm": world.spec.target.square_mm,

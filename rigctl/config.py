@@ -21,6 +21,7 @@ from rigctl.errors import ConfigError
 HEAD_AXES = ("pan", "tilt", "roll")
 SERVO_RANGE_DEG = 180.0  # position mode: 4096 pulses over one turn, centred at 2048
 UR_JOINT_RANGE_DEG = 363.0  # UR joints turn +-363 deg (controller software limit)
+MAX_RETRY_BUDGET_S = 5.0  # one head bus transaction, all retries included
 
 
 class _Strict(BaseModel):
@@ -103,7 +104,14 @@ class HeadConfig(_Strict):
     accel_cap_dps2: float = Field(240.0, gt=0, le=5000)
     move_timeout_s: float = Field(15.0, gt=0)
     settle_s: float = Field(0.2, ge=0)
+    # Bus timing. ``packet_timeout_ms`` None keeps the SDK's own per-packet timeout (a few
+    # ms plus twice the USB latency timer), right for servos that answer in microseconds;
+    # a stand-in process on a loaded host needs a longer one. A failed transaction is
+    # retried ``retries`` times, pausing ``retry_backoff_s`` before the first retry and
+    # twice as long before each next one.
+    packet_timeout_ms: float | None = Field(None, gt=0, le=2000)
     retries: int = Field(3, ge=0, le=10)
+    retry_backoff_s: float = Field(0.0, ge=0, le=1.0)
     park: HeadPark = HeadPark()
 
     @field_validator("baud")
@@ -122,6 +130,21 @@ class HeadConfig(_Strict):
         if not all(0 <= i <= 252 for i in ids):
             raise ValueError(f"ids: servo IDs must be 0-252, got {ids}")
         return self
+
+    @model_validator(mode="after")
+    def _bounded_retry_budget(self) -> HeadConfig:
+        budget = self.retry_budget_s()
+        if budget > MAX_RETRY_BUDGET_S:
+            raise ValueError(f"packet_timeout_ms, retries and retry_backoff_s allow {budget:.1f} s "
+                             f"per transaction; keep it under {MAX_RETRY_BUDGET_S:g} s so a dead "
+                             "servo is reported promptly")
+        return self
+
+    def retry_budget_s(self, sdk_timeout_ms: float = 34.0) -> float:
+        """Longest time one bus transaction may take before it is reported as failed."""
+        timeout_s = max(self.packet_timeout_ms or 0.0, sdk_timeout_ms) / 1000.0
+        backoff = sum(self.retry_backoff_s * 2 ** i for i in range(self.retries))
+        return (self.retries + 1) * timeout_s + backoff
 
     def limits_rad(self) -> dict[str, tuple[float, float]]:
         return {
@@ -148,6 +171,10 @@ class ArmConfig(_Strict):
     move_timeout_s: float = Field(30.0, gt=0)
     settle_s: float = Field(0.2, ge=0)
     connect_retries: int = Field(3, ge=1, le=20)
+    # The RTDE stream (500 Hz on a real controller) silent this long: connection lost.
+    stream_timeout_s: float = Field(1.0, gt=0, le=30)
+    # Bound on each teardown call (stopScript, stopJ) into ur_rtde.
+    teardown_timeout_s: float = Field(3.0, gt=0, le=60)
     park: ArmPark = ArmPark()
 
     @field_validator("joint_limits_deg")
@@ -182,7 +209,8 @@ class CameraConfig(_Strict):
     fps: float | None = Field(None, gt=0)
     controls: dict[str, float] = Field(default_factory=dict)
     auto_off: bool = True
-    timeout_s: float = Field(3.0, gt=0)
+    timeout_s: float = Field(3.0, gt=0)  # open, and wait for a fresh frame
+    open_retries: int = Field(0, ge=0, le=10)  # reopen attempts after a failed open
 
     @field_validator("fourcc")
     @classmethod
