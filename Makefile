@@ -4,7 +4,7 @@ PYTHON ?= python3
 VENV := .venv
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint bench clean
+.PHONY: demo test lint bench clean load-check
 
 $(STAMP): pyproject.toml
 	test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
@@ -19,8 +19,14 @@ test: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/python -m pytest -q
 
+# The suite on a busy machine: 3 runs of everything with two cores kept busy, then 10 runs
+# of the end-to-end tests with one (tools/load_check.py; logs in load-check-logs/).
+load-check: $(STAMP)
+	$(VENV)/bin/python tools/load_check.py --busy 2 --runs 3
+	$(VENV)/bin/python tools/load_check.py --busy 1 --runs 10 --e2e
+
 demo: $(STAMP)
 	$(VENV)/bin/python -m rigctl.demo
 
 clean:
-	rm -rf $(VENV) demo-records
+	rm -rf $(VENV) demo-records load-check-logs

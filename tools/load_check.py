@@ -1,0 +1,82 @@
+"""Run tests while busy loops occupy cores: does the suite hold on a busy machine?
+
+    python tools/load_check.py --busy 2 --runs 3                 # whole suite, two busy cores
+    python tools/load_check.py --busy 1 --runs 10 --e2e          # end-to-end tests, one busy core
+
+Each busy loop is its own process (a pure-Python spin), started before the first run and
+stopped by PID when the check ends, whatever happens. Prints one line per run and a JSON
+summary; exits 0 only when every run passed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+E2E = ["tests/test_active_camera_e2e.py", "tests/test_robot_e2e.py", "tests/test_stalls.py"]
+
+
+def start_busy_loops(n: int) -> list[subprocess.Popen]:
+    return [subprocess.Popen([sys.executable, "-c", "while True: pass"],
+                             stdin=subprocess.DEVNULL, start_new_session=True)
+            for _ in range(n)]
+
+
+def stop(procs: list[subprocess.Popen]) -> None:
+    for proc in procs:
+        if proc.poll() is None:
+            os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=10)
+
+
+def run_once(tests: list[str], extra: list[str], log_path: Path) -> tuple[int, float]:
+    t0 = time.monotonic()
+    with log_path.open("w") as log:
+        code = subprocess.call([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+                                *tests, *extra], cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
+    return code, time.monotonic() - t0
+
+
+def last_line(path: Path) -> str:
+    lines = [line for line in path.read_text(errors="replace").splitlines() if line.strip()]
+    return lines[-1] if lines else ""
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--busy", type=int, default=2, help="busy loops (cores kept busy)")
+    parser.add_argument("--runs", type=int, default=3)
+    parser.add_argument("--e2e", action="store_true", help="only the end-to-end tests")
+    parser.add_argument("--logs", default="load-check-logs", help="one pytest log per run")
+    parser.add_argument("pytest_args", nargs="*", help="passed to pytest (after --)")
+    args = parser.parse_args(argv)
+    tests = E2E if args.e2e else []
+    logs = Path(args.logs)
+    logs.mkdir(parents=True, exist_ok=True)
+    busy = start_busy_loops(args.busy)
+    results = []
+    try:
+        for k in range(1, args.runs + 1):
+            log_path = logs / f"{'e2e' if args.e2e else 'suite'}-busy{args.busy}-run{k}.log"
+            code, seconds = run_once(tests, args.pytest_args, log_path)
+            results.append({"run": k, "exit": code, "seconds": round(seconds, 1),
+                            "log": str(log_path), "summary": last_line(log_path)})
+            print(f"run {k}/{args.runs}: {'PASS' if code == 0 else 'FAIL'} in {seconds:.0f} s "
+                  f"- {results[-1]['summary']}", file=sys.stderr, flush=True)
+    finally:
+        stop(busy)
+    passed = sum(r["exit"] == 0 for r in results)
+    print(json.dumps({"what": "e2e" if args.e2e else "suite", "busy_cores": args.busy,
+                      "runs": len(results), "passed": passed, "results": results}, indent=2))
+    return 0 if passed == len(results) == args.runs else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
