@@ -46,11 +46,13 @@ class Webhook:
         self.server.server_close()
 
 
-def start_sim(tmp, world):
+def start_sim(tmp, world, host=None, camera_port=0):
+    """`sim up` on a fresh loopback address; a restart passes the old host and camera port
+    so that the service's rig file still points at the stand-ins."""
     return MockProcess(["-m", "rigctl.cli", "sim", "up", "--world",
                         str(ROOT / "mocks" / "worlds" / f"{world}.yaml"), "--rig-out",
-                        str(tmp / "sim-rig.yaml"), "--host", free_host(), "--records",
-                        str(tmp / "records"), "--camera-port", "0", "--workdir",
+                        str(tmp / "sim-rig.yaml"), "--host", host or free_host(), "--records",
+                        str(tmp / "records"), "--camera-port", str(camera_port), "--workdir",
                         str(tmp / "simwork")], ready_timeout=40)
 
 
@@ -241,7 +243,9 @@ def test_schedule_fires_and_records_its_run(stack):
 @pytest.mark.timeout(300)
 def test_drifted_intrinsics_are_flagged_and_wait(stack):
     stack.sim.stop(timeout=20)
-    stack.sim = start_sim(stack.tmp, "drift")  # same devices, refocused lens
+    camera = stack.sim.ready["camera"]
+    stack.sim = start_sim(stack.tmp, "drift", host=stack.sim.ready["host"],
+                          camera_port=camera["port"])  # same devices, refocused lens
     run_id = post(stack, "/runs", {"procedure": "active-camera",
                                    "params": {"pan_deg": 5, "tilt_deg": 5}}).json()["run_id"]
     run = wait_for(stack, run_id, timeout=180)
