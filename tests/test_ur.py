@@ -163,7 +163,7 @@ def test_driver_move_joint_and_soft_limits(arm_proc):
 def test_protective_stop_mid_move_aborts_recorded_run(arm_proc, tmp_path):
     rig = tmp_path / "rig.yaml"
     rig.write_text(f"name: ur-rig\ndevices:\n  arm: {{host: {arm_proc.ready['host']}, "
-                   f"speed_cap_dps: 10, accel_cap_dps2: 40}}\n")
+                   f"speed_cap_dps: 10, accel_cap_dps2: 40, stream_timeout_s: 5}}\n")
     runner = Runner(load_rig(rig), show_progress=False)
     import threading
 
@@ -222,7 +222,7 @@ def test_two_stand_ins_side_by_side(tmp_path):
 def test_arm_sweep_procedure_runs_through_runner(arm_proc, tmp_path):
     rig = tmp_path / "rig.yaml"
     rig.write_text(f"name: ur-rig\ndevices:\n  arm: {{host: {arm_proc.ready['host']}, "
-                   f"speed_cap_dps: 120, accel_cap_dps2: 400}}\n")
+                   f"speed_cap_dps: 120, accel_cap_dps2: 400, stream_timeout_s: 5}}\n")
     outcome = Runner(load_rig(rig), show_progress=False).run(
         "arm-sweep", {"joints": [6, 5], "offsets_deg": [-5, 5], "settle_s": 0.0})
     assert outcome.status == "succeeded", outcome.reason
