@@ -115,7 +115,7 @@ Step = MoveHead | MoveArmJoints | MoveArmJoint | MoveArmLinear | Settle | Captur
 class Params(BaseModel):
     """Base of procedure parameter models: unknown keys are refused."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 @dataclass

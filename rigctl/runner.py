@@ -86,6 +86,26 @@ class PlanCheck:
         }
 
 
+def prepare_run(config: RigConfig, name: str, overrides: dict[str, Any]
+                ) -> tuple[Procedure, Any, PlanCheck]:
+    """Procedure, parsed parameters and the plan checked against the soft limits; raises
+    ``ConfigError`` for an unknown procedure or bad parameters. Touches no device."""
+    procedure = procedures.get_procedure(name)
+    params = procedure.parse_params(config, overrides)
+    missing = check_plan(config, [], procedure.devices)
+    if missing:  # nothing to plan with: say which devices the rig file lacks
+        return procedure, params, PlanCheck(name, params.model_dump(), [], missing)
+    steps = procedure.plan(params, config)
+    violations = check_plan(config, steps, procedure.devices)
+    return procedure, params, PlanCheck(name, params.model_dump(), steps, violations)
+
+
+def refuse_violations(plan: PlanCheck) -> None:
+    """``SafetyError`` listing every move of ``plan`` outside the soft limits."""
+    if plan.violations:
+        raise SafetyError("plan refused before any motion:\n" + "\n".join(plan.violations))
+
+
 @dataclass
 class RunOutcome:
     run_id: str
@@ -159,11 +179,7 @@ class Runner:
     # -- planning -------------------------------------------------------------
 
     def prepare(self, name: str, overrides: dict[str, Any]) -> tuple[Procedure, Any, PlanCheck]:
-        procedure = procedures.get_procedure(name)
-        params = procedure.parse_params(self.config, overrides)
-        steps = procedure.plan(params, self.config)
-        violations = check_plan(self.config, steps, procedure.devices)
-        return procedure, params, PlanCheck(name, params.model_dump(), steps, violations)
+        return prepare_run(self.config, name, overrides)
 
     def dry_run(self, name: str, overrides: dict[str, Any]) -> PlanCheck:
         """The whole plan with limits checked; touches no device."""
@@ -192,8 +208,7 @@ class Runner:
         once the run is recorded, failures end up in the outcome, not as exceptions.
         """
         procedure, params, plan = self.prepare(name, overrides or {})
-        if plan.violations:
-            raise SafetyError("plan refused before any motion:\n" + "\n".join(plan.violations))
+        refuse_violations(plan)
         run_id = run_id or new_run_id(name)
         self.abort_event.clear()
         self._abort_reason = "abort requested"

@@ -27,17 +27,18 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from fastapi import Depends, FastAPI, Header, HTTPException, Request
+from fastapi import Depends, FastAPI, Header, HTTPException, Query, Request
+from fastapi import Path as PathParam
 from fastapi.responses import FileResponse, HTMLResponse, Response, StreamingResponse
 from pydantic import BaseModel, Field
 
 import procedures
 from rigctl import __version__, drift
 from rigctl.config import RigConfig
-from rigctl.errors import BusyError, ConfigError, RigError
+from rigctl.errors import BusyError, ConfigError, RigError, SafetyError
 from rigctl.locks import RigLock
 from rigctl.records import RecordIndex, RunDirectory, new_run_id, utcnow
-from rigctl.runner import Runner
+from rigctl.runner import Runner, prepare_run, refuse_violations
 
 log = logging.getLogger("rigctl.service")
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
@@ -129,9 +130,11 @@ class RigService:
 
     def submit(self, procedure: str, params: dict[str, Any], source: str = "api",
                operator: str = "service") -> Job:
-        """Validate and queue a run; the run id is assigned now."""
-        proc = procedures.get_procedure(procedure)
-        proc.parse_params(self.config, params)  # ConfigError names the parameter
+        """Validate, plan and limit-check a run, then queue it; the run id is assigned now.
+        Raises ``ConfigError`` (procedure, parameters) or ``SafetyError`` (soft limits) with
+        the CLI's exit-2 text, before anything is queued or recorded."""
+        _, _, plan = prepare_run(self.config, procedure, params)
+        refuse_violations(plan)
         job = Job(new_run_id(procedure), procedure, params, source, operator)
         with self.cond:
             self.queue.append(job)
@@ -240,8 +243,12 @@ class RigService:
                              "drift": breaches, "metrics": metrics})
         return decision
 
+    def runs(self, limit: int, procedure: str | None = None) -> list[dict]:
+        """This rig's runs, newest first (an index may be shared by several rigs)."""
+        return self.index.list(limit, procedure, rig_name=self.config.name)
+
     def _last_accepted(self, procedure: str, exclude: str | None = None) -> dict | None:
-        rows = [r for r in self.index.list(500, procedure)
+        rows = [r for r in self.runs(500, procedure)
                 if r["decision"] == "accepted" and r["run_id"] != exclude]
         return rows[0] if rows else None
 
@@ -295,10 +302,15 @@ class RigService:
         self.worker.join(timeout=30)
 
 
+NAME = r"^[a-z][a-z0-9-]{0,63}$"
+RUN_ID = PathParam(min_length=1, max_length=128)
+MAX_LIMIT = 1000
+
+
 class RunRequest(BaseModel):
-    procedure: str
-    params: dict[str, Any] = Field(default_factory=dict)
-    operator: str | None = None
+    procedure: str = Field(pattern=NAME, description="see GET /procedures")
+    params: dict[str, Any] = Field(default_factory=dict, max_length=64)
+    operator: str | None = Field(None, max_length=100)
 
 
 def _row(row: dict) -> dict:
@@ -327,7 +339,7 @@ def create_app(service: RigService) -> FastAPI:
         last recorded readings."""
         lock = RigLock(config.records_dir() / "locks", config.name)
         last = {}
-        for row in service.index.list(20):
+        for row in service.runs(20):
             sidecars = sorted(Path(row["run_dir"], "captures").glob("[0-9][0-9][0-9].json")) \
                 if row["run_dir"] else []
             if sidecars:  # the newest only: the status page polls this every few seconds
@@ -354,23 +366,24 @@ def create_app(service: RigService) -> FastAPI:
         try:
             job = service.submit(request.procedure, request.params,
                                  operator=request.operator or "api")
-        except ConfigError as exc:
+        except (ConfigError, SafetyError) as exc:  # the CLI's exit 2: nothing queued
             raise HTTPException(422, str(exc)) from None
         return {"run_id": job.run_id, "status": "queued", "position": len(service.queue)}
 
     @app.get("/runs")
-    def list_runs(limit: int = 50, procedure: str | None = None) -> list[dict]:
+    def list_runs(limit: int = Query(50, ge=1, le=MAX_LIMIT),
+                  procedure: str | None = Query(None, pattern=NAME)) -> list[dict]:
         queued = [{"run_id": j.run_id, "procedure": j.procedure, "status": "queued"}
-                  for j in list(service.queue)]
-        return queued + [_row(r) for r in service.index.list(limit, procedure)]
+                  for j in list(service.queue) if procedure in (None, j.procedure)]
+        return queued + [_row(r) for r in service.runs(limit, procedure)]
 
     @app.get("/runs/{run_id}")
-    def get_run(run_id: str) -> dict:
+    def get_run(run_id: str = RUN_ID) -> dict:
         for job in list(service.queue):
             if job.run_id == run_id:
                 return {"run_id": run_id, "procedure": job.procedure, "status": "queued"}
         try:
-            row = _row(service.index.get(run_id))
+            row = _row(own_run(run_id))
         except RigError:
             raise HTTPException(404, f"no run {run_id}") from None
         current = service.current
@@ -381,32 +394,46 @@ def create_app(service: RigService) -> FastAPI:
         return row
 
     @app.post("/runs/{run_id}/abort", dependencies=[Depends(require_token)])
-    def abort_run(run_id: str) -> dict:
+    def abort_run(run_id: str = RUN_ID) -> dict:
         return {"run_id": run_id, "status": service.abort(run_id)}
 
     @app.get("/runs/{run_id}/captures/{n}")
-    def capture_image(run_id: str, n: int) -> FileResponse:
+    def capture_image(run_id: str = RUN_ID, n: int = PathParam(ge=0, le=99_999)
+                      ) -> FileResponse:
         try:
-            row = service.index.get(run_id)
+            row = own_run(run_id)
         except RigError:
             raise HTTPException(404, f"no run {run_id}") from None
         path = Path(row["run_dir"]) / "captures" / f"{n:03d}.png" if row["run_dir"] else None
-        if n < 0 or path is None or not path.is_file():
+        if path is None or not path.is_file():
             raise HTTPException(404, f"run {run_id} has no capture {n}")
         return FileResponse(path, media_type="image/png")
 
+    def own_run(run_id: str) -> dict:
+        """The run with this id (or unique prefix) of this rig; ``RigError`` otherwise."""
+        row = service.index.get(run_id)
+        if row["rig_name"] != config.name:
+            raise RigError(f"run {run_id} belongs to rig {row['rig_name']}")
+        return row
+
+    def calibration_name(procedure: str | None) -> list[str]:
+        if procedure is None:
+            return list(drift.CALIBRATIONS)
+        if procedure not in drift.CALIBRATIONS:
+            raise HTTPException(422, f"procedure {procedure!r} is not a calibration; one of "
+                                     f"{', '.join(drift.CALIBRATIONS)}")
+        return [procedure]
+
     def calibration_rows(procedure: str | None, limit: int = 200) -> list[dict]:
-        names = [procedure] if procedure else list(drift.CALIBRATIONS)
         rows = []
-        for name in names:
-            rows += [r for r in service.index.list(limit, name) if r["status"] == "succeeded"]
+        for name in calibration_name(procedure):
+            rows += [r for r in service.runs(limit, name) if r["status"] == "succeeded"]
         return sorted(rows, key=lambda r: r["started_at"], reverse=True)
 
     @app.get("/calibrations/latest")
-    def latest_calibration(procedure: str | None = None) -> dict:
-        names = [procedure] if procedure else list(drift.CALIBRATIONS)
+    def latest_calibration(procedure: str | None = Query(None, pattern=NAME)) -> dict:
         out = {}
-        for name in names:
+        for name in calibration_name(procedure):
             row = service._last_accepted(name)
             if row is not None:
                 out[name] = {**_row(row), "result": RunDirectory(row["run_dir"]).result()}
@@ -415,12 +442,12 @@ def create_app(service: RigService) -> FastAPI:
         return out
 
     @app.get("/calibrations/history")
-    def calibration_history(procedure: str | None = None) -> list[dict]:
+    def calibration_history(procedure: str | None = Query(None, pattern=NAME)) -> list[dict]:
         return [_row(r) for r in calibration_rows(procedure)]
 
     def set_decision(run_id: str, decision: str) -> dict:
         try:
-            row = service.index.get(run_id)
+            row = own_run(run_id)
         except RigError:
             raise HTTPException(404, f"no run {run_id}") from None
         if row["procedure"] not in drift.CALIBRATIONS or row["status"] != "succeeded":
@@ -431,11 +458,11 @@ def create_app(service: RigService) -> FastAPI:
         return {"run_id": row["run_id"], "decision": decision}
 
     @app.post("/calibrations/{run_id}/accept", dependencies=[Depends(require_token)])
-    def accept(run_id: str) -> dict:
+    def accept(run_id: str = RUN_ID) -> dict:
         return set_decision(run_id, "accepted")
 
     @app.post("/calibrations/{run_id}/reject", dependencies=[Depends(require_token)])
-    def reject(run_id: str) -> dict:
+    def reject(run_id: str = RUN_ID) -> dict:
         return set_decision(run_id, "rejected")
 
     @app.get("/events")
