@@ -15,7 +15,7 @@ from typing import Any, ClassVar
 from pydantic import BaseModel, ConfigDict, ValidationError
 
 from rigctl.config import RigConfig
-from rigctl.errors import ConfigError
+from rigctl.errors import ConfigError, SolveError
 from rigctl.records import Capture, RunDirectory
 
 
@@ -120,11 +120,22 @@ class Params(BaseModel):
 
 @dataclass
 class SolveContext:
-    """What a solve may read: the recorded run, its rig file and parameters."""
+    """What a solve may read: the recorded run, its rig file, parameters and the inputs
+    resolved when the run was planned (``inputs.json``: e.g. the intrinsics in use and the
+    run they came from). A solve reads nothing else, so a run directory re-solves the same
+    anywhere, with or without the index it was recorded in."""
 
     run: RunDirectory
     config: RigConfig
     params: Any
+    inputs: dict[str, Any] = field(default_factory=dict)
+
+    def input(self, key: str) -> Any:
+        """One recorded input; a run recorded without it fails with a clear error."""
+        if key not in self.inputs:
+            raise SolveError(f"{self.run.path / 'inputs.json'}: no {key!r} recorded (the run "
+                             "predates recorded inputs); give it as a parameter and re-run")
+        return self.inputs[key]
 
     def captures(self) -> list[Capture]:
         return self.run.captures()
@@ -143,6 +154,11 @@ class Procedure:
     params_model: ClassVar[type[Params]] = Params
     devices: ClassVar[tuple[str, ...]] = ()  # devices that must be configured
     optional_devices: ClassVar[tuple[str, ...]] = ()
+
+    def resolve_inputs(self, params: Params, config: RigConfig) -> dict[str, Any]:
+        """Inputs from outside the run (earlier calibrations), resolved once when the run
+        is planned and recorded in ``inputs.json``; raise ``ConfigError`` if one is missing."""
+        return {}
 
     def parse_params(self, config: RigConfig, overrides: dict[str, Any]) -> Params:
         """Rig-file defaults, then ``overrides``; errors name the parameter."""

@@ -38,9 +38,11 @@ class HandEye(Procedure):
         return view_steps(config, params.poses, params.view_distance_m, params.max_tilt_deg,
                           params.seed, "view", "view", params.settle_s)
 
+    def resolve_inputs(self, params: HandEyeParams, config) -> dict[str, Any]:
+        return {"intrinsics": intrinsics_from(config, params.intrinsics)}
+
     def solve(self, ctx: SolveContext) -> dict[str, Any]:
-        params: HandEyeParams = ctx.params
-        intr = intrinsics_from(ctx.config, params.intrinsics)
+        intr = ctx.input("intrinsics")
         K, dist = camera_matrix(intr)
         found = [o for o in board_observations(ctx, intr) if o["found"]]
         if len(found) < 3:

@@ -11,7 +11,7 @@ import numpy as np
 from rigctl.calib.board import board_points, detect_board
 from rigctl.calib.extrinsic import estimate_pose
 from rigctl.config import RigConfig
-from rigctl.errors import SolveError
+from rigctl.errors import ConfigError
 from rigctl.geometry.kinematics import KinematicModel, nominal_ur
 from rigctl.geometry.transforms import inv_T
 from rigctl.records import RecordIndex, RunDirectory
@@ -21,17 +21,18 @@ from .planning import MIN_CLEARANCE_M, clearance_m, nominal_flange_cam, target_c
 
 def intrinsics_from(config: RigConfig, given: dict | None) -> dict[str, Any]:
     """``given`` (fx, fy, cx, cy, distortion) or the result of the latest accepted (or
-    succeeded) ``active-camera`` run of this rig."""
+    succeeded) ``active-camera`` run of this rig. Read when a run is planned, never while
+    solving (``Procedure.resolve_inputs``)."""
     if given:
         missing = [k for k in ("fx", "fy", "cx", "cy") if k not in given]
         if missing:
-            raise SolveError(f"intrinsics parameter lacks {missing}")
+            raise ConfigError(f"intrinsics parameter lacks {missing}")
         return {"fx": given["fx"], "fy": given["fy"], "cx": given["cx"], "cy": given["cy"],
                 "distortion": list(given.get("distortion", [0.0] * 5)), "source": "parameter"}
     row = RecordIndex(config.database_url()).latest("active-camera", config.name)
     if row is None:
-        raise SolveError("no intrinsics: run active-camera first, or give "
-                         "--param intrinsics='{fx: ..., fy: ..., cx: ..., cy: ...}'")
+        raise ConfigError(f"{config.name}: no intrinsics: run active-camera first, or give "
+                          "--param intrinsics='{fx: ..., fy: ..., cx: ..., cy: ...}'")
     result = RunDirectory(row["run_dir"]).result()
     return {k: result[k] for k in ("fx", "fy", "cx", "cy")} | {
         "distortion": result.get("distortion", [0.0] * 5), "source": f"run {row['run_id']}"}
@@ -87,7 +88,7 @@ def planning_K(config: RigConfig, given: dict | None) -> np.ndarray:
     60-degree field of view guess."""
     try:
         return camera_matrix(intrinsics_from(config, given))[0]
-    except SolveError:
+    except ConfigError:
         w, h = config.devices.camera.width, config.devices.camera.height
         f = w / (2 * math.tan(math.radians(30)))
         return np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1.0]])

@@ -133,9 +133,11 @@ class RobotKinematics(Procedure):
                                    "arm home"))
         return steps
 
+    def resolve_inputs(self, params: RobotKinematicsParams, config) -> dict[str, Any]:
+        return {"intrinsics": intrinsics_from(config, params.intrinsics)}
+
     def solve(self, ctx: SolveContext) -> dict[str, Any]:
-        params: RobotKinematicsParams = ctx.params
-        intr = intrinsics_from(ctx.config, params.intrinsics)
+        intr = ctx.input("intrinsics")
         K, dist = camera_matrix(intr)
         obs = board_observations(ctx, intr)
         lost = [o["label"] for o in obs if not o["found"]]

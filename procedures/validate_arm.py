@@ -23,7 +23,7 @@ from pydantic import Field
 
 from rigctl.calib import robot
 from rigctl.calib.board import board_points
-from rigctl.errors import SolveError
+from rigctl.errors import ConfigError, SolveError
 from rigctl.geometry.kinematics import KinematicModel, nominal_ur
 from rigctl.geometry.transforms import R_to_rotvec, inv_T
 from rigctl.records import RecordIndex, RunDirectory
@@ -54,15 +54,25 @@ class ValidateArm(Procedure):
         return view_steps(config, params.poses, params.view_distance_m, params.max_tilt_deg,
                           params.seed, "check", "heldout", params.settle_s)
 
-    def solve(self, ctx: SolveContext) -> dict[str, Any]:
-        params: ValidateArmParams = ctx.params
-        index = RecordIndex(ctx.config.database_url())
+    def resolve_inputs(self, params: ValidateArmParams, config) -> dict[str, Any]:
+        """The calibration to check (given run, else this rig's latest robot-kinematics)
+        and the intrinsics (given, else the calibration's own)."""
+        index = RecordIndex(config.database_url())
         row = index.get(params.calibration_run) if params.calibration_run else \
-            index.latest("robot-kinematics", ctx.config.name)
+            index.latest("robot-kinematics", config.name)
         if row is None:
-            raise SolveError("validate-arm: no robot-kinematics calibration recorded")
+            raise ConfigError(f"validate-arm: no robot-kinematics calibration recorded for rig "
+                              f"{config.name}; run robot-kinematics first")
+        if row["rig_name"] != config.name:
+            raise ConfigError(f"validate-arm: calibration_run {row['run_id']} belongs to rig "
+                              f"{row['rig_name']}, not {config.name}")
         cal = RunDirectory(row["run_dir"]).result()
-        intr = intrinsics_from(ctx.config, params.intrinsics or cal.get("intrinsics"))
+        return {"calibration_run": row["run_id"], "calibration": cal,
+                "intrinsics": intrinsics_from(config, params.intrinsics or cal.get("intrinsics"))}
+
+    def solve(self, ctx: SolveContext) -> dict[str, Any]:
+        cal = ctx.input("calibration")
+        intr = ctx.input("intrinsics")
         found = [o for o in board_observations(ctx, intr) if o["found"]]
         if not found:
             raise SolveError("validate-arm: the board was not found in any view")
@@ -74,7 +84,8 @@ class ValidateArm(Procedure):
         K, dist = camera_matrix(intr)
         tg = ctx.config.target
         obj = board_points(tg.rows, tg.cols, tg.square_mm / 1000.0)
-        out: dict[str, Any] = {"calibration_run": row["run_id"], "views": len(found)}
+        out: dict[str, Any] = {"calibration_run": ctx.input("calibration_run"),
+                               "views": len(found)}
 
         def rms(values) -> float:
             return float(np.sqrt(np.mean(np.square(values))))

@@ -209,22 +209,24 @@ class Runner:
         """
         procedure, params, plan = self.prepare(name, overrides or {})
         refuse_violations(plan)
+        inputs = procedure.resolve_inputs(params, self.config)
         run_id = run_id or new_run_id(name)
         self.abort_event.clear()
         self._abort_reason = "abort requested"
         lock = RigLock(self.config.records_dir() / "locks", self.config.name)
         lock.acquire(run_id)
         try:
-            return self._run_locked(procedure, params, plan, run_id)
+            return self._run_locked(procedure, params, plan, run_id, inputs)
         finally:
             lock.release()
 
     def _run_locked(self, procedure: Procedure, params: Any, plan: PlanCheck,
-                    run_id: str) -> RunOutcome:
+                    run_id: str, inputs: dict[str, Any]) -> RunOutcome:
         run = RunDirectory.create(self.config.records_dir(), run_id)
         (run.path / "rig.yaml").write_text(self.config.source_text)
         write_json(run.path / "params.json", {"procedure": procedure.name,
                                               "params": plan.params, "operator": self.operator})
+        write_json(run.path / "inputs.json", inputs)
         self.index.insert({
             "run_id": run_id, "procedure": procedure.name, "status": "running", "reason": None,
             "started_at": utcnow(), "operator": self.operator, "rig_name": self.config.name,
@@ -252,7 +254,7 @@ class Runner:
                 log.warning("after the run: %s", "; ".join(problems))
             self._emit(type="step", run_id=run_id, step="solve", index=len(plan.steps),
                        total=len(plan.steps))
-            result = procedure.solve(SolveContext(run, self.config, params))
+            result = procedure.solve(SolveContext(run, self.config, params, inputs))
             run.write_result(result)
             status = "succeeded"
         except (AbortedError, KeyboardInterrupt) as exc:
@@ -397,7 +399,8 @@ def solve_recorded(run_path, index: RecordIndex | None = None) -> dict[str, Any]
     config = parse_rig(rig_text, name=str(run.path / "rig.yaml"))
     procedure = procedures.get_procedure(params_doc["procedure"])
     params = procedure.params_model.model_validate(params_doc["params"])
-    result = procedure.solve(SolveContext(run, config, params))
+    inputs = run.read_json("inputs.json") if (run.path / "inputs.json").exists() else {}
+    result = procedure.solve(SolveContext(run, config, params, inputs))
     run.write_result(result)
     if index is not None:
         try:

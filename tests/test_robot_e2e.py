@@ -15,6 +15,7 @@ from mocks.world import load_world
 from rigctl.config import load_rig
 from rigctl.demo import model_against_truth
 from tests.mockproc import ROOT
+from tests.resolve_check import assert_resolves_alone
 
 pytestmark = pytest.mark.integration
 
@@ -72,6 +73,10 @@ def test_robot_kinematics_end_to_end(tmp_path, start_sim):
     assert after["target_in_camera_rms_mm"] < 0.5 < before["target_in_camera_rms_mm"]
     # the predicted board lands on the detected corners to their own noise (~0.2 px)
     assert after["reprojection_rms_px"] < 0.4 < 1.0 < before["reprojection_rms_px"]
+    # each solve is a function of its run directory alone
+    for procedure in ("active-camera", "robot-kinematics", "validate-arm"):
+        recorded = next((tmp_path / "records").glob(f"*-{procedure}-*"))
+        assert_resolves_alone(recorded, tmp_path / "elsewhere")
     # exports
     run_dir = next((tmp_path / "records").glob("*robot-kinematics*"))
     assert check["calibration_run"] == run_dir.name

@@ -31,11 +31,11 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
 from rigctl.errors import SolveError
+from rigctl.geometry.camera import invert_batch, project_batch
 from rigctl.geometry.kinematics import LINK_KEYS, KinematicModel, link_transform
 from rigctl.geometry.transforms import R_to_rotvec, inv_T, make_T, rotvec_to_R
 
@@ -392,28 +392,25 @@ def residuals(model, X, W, meas: Measurements) -> np.ndarray:
     camera). Taken in the target frame instead, a rotation error would leak into
     translation times the camera-to-target distance and the sigmas would weight it
     wrongly."""
-    out = []
-    Winv = inv_T(W)
-    if meas.corners is None:  # batched: every pose at once
-        from scipy.spatial.transform import Rotation
+    from scipy.spatial.transform import Rotation
 
-        if not hasattr(meas, "_Q"):
-            meas._Q = np.array(meas.q)
-            meas._C = np.array(meas.C)
-        E = meas._C @ Winv @ model.fk_batch(meas._Q) @ X
+    Q = _cached(meas, "_Q", lambda: np.array(meas.q, float))
+    T_base_cam = model.fk_batch(Q) @ X
+    if meas.corners is None:  # pose residuals, every capture at once
+        E = _cached(meas, "_C", lambda: np.array(meas.C)) @ inv_T(W) @ T_base_cam
         rv = Rotation.from_matrix(E[:, :3, :3]).as_rotvec()
         return np.c_[rv / meas.sigma_rot, E[:, :3, 3] / meas.sigma_t].ravel()
-    for k, q in enumerate(meas.q):
-        T_base_cam = model.fk(q) @ X
-        if meas.corners is not None:
-            T = inv_T(T_base_cam) @ W
-            proj, _ = cv2.projectPoints(meas.obj.reshape(-1, 1, 3), R_to_rotvec(T[:3, :3]),
-                                        T[:3, 3], meas.K, meas.dist)
-            out.append((proj.reshape(-1, 2) - meas.corners[k]).ravel())
-        else:
-            E = meas.C[k] @ Winv @ T_base_cam
-            out.append(np.r_[R_to_rotvec(E[:3, :3]) / meas.sigma_rot, E[:3, 3] / meas.sigma_t])
-    return np.concatenate(out)
+    corners = _cached(meas, "_corners",
+                      lambda: np.array([np.asarray(c, float).reshape(-1, 2) for c in meas.corners]))
+    proj = project_batch(invert_batch(T_base_cam) @ W, meas.obj, meas.K, meas.dist)
+    return (proj - corners).ravel()
+
+
+def _cached(meas, name: str, build):
+    """Arrays built once per measurement set (the residuals run thousands of times)."""
+    if not hasattr(meas, name):
+        setattr(meas, name, build())
+    return getattr(meas, name)
 
 
 def refine(model0: KinematicModel, X0, W0, meas: Measurements, mask=None,

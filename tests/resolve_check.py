@@ -1,0 +1,52 @@
+"""A recorded run re-solves to the same result from a copy of its run directory alone:
+no index beside it, no other run reachable, another working directory."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+from tests.mockproc import ROOT
+
+
+def assert_resolves_alone(run_dir: Path, scratch: Path) -> None:
+    """Copy ``run_dir`` into ``scratch`` (which holds no index), `rigctl solve` the copy
+    from ``scratch`` as working directory, and compare the new result with the recorded one."""
+    scratch.mkdir(parents=True, exist_ok=True)
+    copy = scratch / run_dir.name
+    shutil.copytree(run_dir, copy)
+    assert not (scratch / "index.sqlite").exists()
+    done = subprocess.run([sys.executable, "-m", "rigctl.cli", "solve", str(copy), "--json"],
+                          capture_output=True, text=True, timeout=300, cwd=scratch,
+                          env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert done.returncode == 0, f"{run_dir.name}: {done.stderr[-2000:]}"
+    recorded = json.loads((run_dir / "result.json").read_text())
+    again = json.loads((copy / "result.json").read_text())
+    differences = list(_differences(recorded, again))
+    assert not differences, f"{run_dir.name}: the re-solve differs: {differences[:5]}"
+
+
+def _differences(a, b, path=""):
+    """Paths where two JSON documents differ; numbers may differ by 1e-6 relative (OpenCV's
+    threaded calibrateCamera is not bit-reproducible)."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        for key in sorted(set(a) | set(b)):
+            if key not in a or key not in b:
+                yield f"{path}/{key}: only in one"
+            else:
+                yield from _differences(a[key], b[key], f"{path}/{key}")
+    elif isinstance(a, list) and isinstance(b, list):
+        if len(a) != len(b):
+            yield f"{path}: {len(a)} items against {len(b)}"
+        for k, (u, v) in enumerate(zip(a, b, strict=False)):
+            yield from _differences(u, v, f"{path}[{k}]")
+    elif isinstance(a, float | int) and isinstance(b, float | int) and not isinstance(a, bool):
+        if not math.isclose(a, b, rel_tol=1e-6, abs_tol=1e-9):
+            yield f"{path}: {a} against {b}"
+    elif a != b:
+        yield f"{path}: {a!r} against {b!r}"
