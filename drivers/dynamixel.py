@@ -182,8 +182,7 @@ class DynamixelHead(Head):
     def _check_error(self, dxl_id: int, error: int, what: str) -> None:
         if error & 0x80:
             bits = self._read1(dxl_id, ADDR_HW_ERROR, "read hardware error status", check=False)
-            raise DeviceError(f"{self._name(dxl_id)}: hardware error ({hw_error_text(bits)}); "
-                              "torque is off until a reboot")
+            raise self._hardware_error(dxl_id, bits)
         if error:
             raise ProtocolError(f"{self._name(dxl_id)}: {what}: "
                                 f"{self.packet.getRxPacketError(error)} (error {error})")
@@ -344,8 +343,19 @@ class DynamixelHead(Head):
         errors = self.hardware_errors()
         if errors:
             dxl_id, bits = next(iter(errors.items()))
-            raise DeviceError(f"{self._name(dxl_id)}: hardware error ({hw_error_text(bits)}); "
-                              "torque is off until a reboot")
+            raise self._hardware_error(dxl_id, bits)
+
+    def _hardware_error(self, dxl_id: int, bits: int) -> DeviceError:
+        """The error to raise for Hardware Error Status ``bits``; says whether the servo
+        shut its torque off (only errors in its Shutdown mask, address 63, do)."""
+        try:
+            torque = self._read1(dxl_id, ADDR_TORQUE, "read torque enable", check=False)
+            after = ("torque is off until a reboot" if not torque else
+                     "torque stays on (not a shutdown condition); fix the cause")
+        except DeviceError:
+            after = "the servo no longer answers"
+        return DeviceError(f"{self._name(dxl_id)}: hardware error ({hw_error_text(bits)}); "
+                           f"{after}")
 
     def move_to(self, pan: float, tilt: float, roll: float) -> Status:
         """Sync-write the goals, then watch arrival with fast sync reads in a thread."""

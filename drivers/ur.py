@@ -124,6 +124,8 @@ class URArm(Arm):
                     if alive:
                         _bounded(control.stopScript, self.cfg.teardown_timeout_s,
                                  "control stopScript")
+                    else:
+                        self._let_reconnect_give_up(control)
                     control.disconnect()
                 except Exception as exc:
                     log.warning("arm: control teardown: %s", exc)
@@ -133,6 +135,22 @@ class URArm(Arm):
                 except Exception as exc:
                     log.warning("arm: receive teardown: %s", exc)
             self.teardown_s = time.perf_counter() - t0
+
+    def _let_reconnect_give_up(self, control) -> None:
+        """On a link the controller dropped, ur_rtde's control interface tries to reconnect
+        and re-upload its script from its own thread; disconnecting during that attempt
+        has crashed the process (SIGSEGV). Wait, bounded, until it reports itself
+        disconnected."""
+        deadline = time.monotonic() + self.cfg.teardown_timeout_s
+        while time.monotonic() < deadline:
+            try:
+                if not control.isConnected():
+                    return
+            except Exception:
+                return
+            time.sleep(0.05)
+        log.warning("arm: control interface still reconnecting after %.1f s; disconnecting",
+                    self.cfg.teardown_timeout_s)
 
     def describe(self) -> dict[str, Any]:
         return {"model": self.cfg.model, "host": self.cfg.host, "serial": self.serial,
@@ -162,6 +180,9 @@ class URArm(Arm):
 
     def _require_alive(self) -> None:
         if not self._alive():
+            if self.receive is None or not self.receive.isConnected():
+                raise DeviceError(f"arm {self.cfg.host}: RTDE connection lost (closed by the "
+                                  "controller or the network)")
             silent = time.monotonic() - self._last_ts[1]
             raise DeviceError(f"arm {self.cfg.host}: RTDE connection lost (no new sample for "
                               f"{silent:.1f} s, limit {self.cfg.stream_timeout_s:g} s; "
@@ -293,9 +314,13 @@ class URArm(Arm):
         dash = dashboard_client.DashboardClient(self.cfg.host)
         dash.connect()
         try:
-            answer = dash.unlockProtectiveStop()
+            dash.unlockProtectiveStop()  # ur_rtde returns nothing; it raises when refused
+            status = dash.safetystatus()
         finally:
             dash.disconnect()
+        if "PROTECTIVE_STOP" in status:
+            raise SafetyError(f"arm {self.cfg.host}: still in a protective stop after the "
+                              f"unlock ({status}); the controller allows it 5 s after the stop")
         if self.control is not None:
             self.control.reuploadScript()
-        return str(answer)
+        return f"protective stop unlocked ({status})"

@@ -154,6 +154,9 @@ class Procedure:
     params_model: ClassVar[type[Params]] = Params
     devices: ClassVar[tuple[str, ...]] = ()  # devices that must be configured
     optional_devices: ClassVar[tuple[str, ...]] = ()
+    # the solve reads the checkerboard in its captures: the runner detects it in each
+    # capture while the rig moves on, so that solving waits less after the motion
+    detects_board: ClassVar[bool] = False
 
     def resolve_inputs(self, params: Params, config: RigConfig) -> dict[str, Any]:
         """Inputs from outside the run (earlier calibrations), resolved once when the run

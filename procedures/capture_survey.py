@@ -9,7 +9,6 @@ from typing import Any
 import numpy as np
 from pydantic import Field
 
-from rigctl.calib.board import detect_board
 from rigctl.errors import SolveError
 
 from .base import (
@@ -40,6 +39,7 @@ class CaptureSurvey(Procedure):
     params_model = CaptureSurveyParams
     devices = ("head", "camera")
     optional_devices = ("arm",)
+    detects_board = True
 
     def plan(self, params: CaptureSurveyParams, config) -> list:
         steps: list = []
@@ -81,7 +81,7 @@ class CaptureSurvey(Procedure):
 
             sharpness.append(float(cv2.Laplacian(image, cv2.CV_64F).var()))
         for capture in targets:
-            if detect_board(capture.load_image(), tg.rows, tg.cols) is not None:
+            if capture.board_corners(tg.rows, tg.cols) is not None:
                 detections += 1
         summary = {"captures": len(captures), "target_views": len(targets),
                    "board_detected": detections,

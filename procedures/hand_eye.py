@@ -33,6 +33,7 @@ class HandEye(Procedure):
     params_model = HandEyeParams
     devices = ("arm", "camera")
     optional_devices = ("head",)
+    detects_board = True
 
     def plan(self, params: HandEyeParams, config) -> list:
         return view_steps(config, params.poses, params.view_distance_m, params.max_tilt_deg,

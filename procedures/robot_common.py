@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from rigctl.calib.board import board_points, detect_board
+from rigctl.calib.board import board_points
 from rigctl.calib.extrinsic import estimate_pose
 from rigctl.config import RigConfig
 from rigctl.errors import ConfigError
@@ -52,7 +52,7 @@ def board_observations(ctx, intr: dict) -> list[dict]:
     for capture in ctx.captures():
         if capture.image_path is None or "arm" not in capture.meta:
             continue
-        corners = detect_board(capture.load_image(), tg.rows, tg.cols)
+        corners = capture.board_corners(tg.rows, tg.cols)
         extra = capture.meta.get("extra", {})
         if corners is None:
             out.append({"label": capture.meta["label"], "kind": extra.get("kind"),

@@ -75,6 +75,7 @@ class RobotKinematics(Procedure):
     params_model = RobotKinematicsParams
     devices = ("arm", "camera")
     optional_devices = ("head",)
+    detects_board = True
 
     def plan(self, params: RobotKinematicsParams, config) -> list:
         steps: list = []

@@ -49,6 +49,7 @@ class ValidateArm(Procedure):
     params_model = ValidateArmParams
     devices = ("arm", "camera")
     optional_devices = ("head",)
+    detects_board = True
 
     def plan(self, params: ValidateArmParams, config) -> list:
         return view_steps(config, params.poses, params.view_distance_m, params.max_tilt_deg,

@@ -15,6 +15,18 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def _die_with_parent() -> None:
+    """In the child, before exec (Linux): SIGTERM when the parent dies, however it dies. A
+    parent killed by SIGKILL or a crash in a C extension runs no ``finally``; without this,
+    its stand-ins (in sessions of their own) would run on."""
+    if not sys.platform.startswith("linux"):
+        return
+    import ctypes
+
+    PR_SET_PDEATHSIG = 1
+    ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+
+
 class ChildProcess:
     """``python <args>`` in its own session; ``ready`` is its first stdout line (JSON)."""
 
@@ -28,8 +40,9 @@ class ChildProcess:
                         if capture_stderr else None)
         self.proc = subprocess.Popen([sys.executable, *args], stdout=subprocess.PIPE,
                                      stderr=self._stderr, text=True, env=env, cwd=ROOT,
-                                     start_new_session=True)
+                                     start_new_session=True, preexec_fn=_die_with_parent)
         self.pid = self.proc.pid
+        self.orphans: list[int] = []
         self.ready = self._read_ready(timeout)
 
     def _read_ready(self, timeout: float) -> dict:
@@ -49,6 +62,9 @@ class ChildProcess:
         raise RuntimeError(f"{self.name}: did not become ready {stderr[-2000:]}")
 
     def stop(self, timeout: float = 10.0) -> int | None:
+        """SIGTERM, then SIGKILL to the group after ``timeout``; then any process the ready
+        line lists under ``children`` (stand-ins in sessions of their own) that outlived
+        it is killed too and named in ``orphans``."""
         if self.proc.poll() is None:
             os.kill(self.pid, signal.SIGTERM)
             try:
@@ -56,6 +72,8 @@ class ChildProcess:
             except subprocess.TimeoutExpired:
                 os.killpg(self.pid, signal.SIGKILL)
                 self.proc.wait(timeout=5)
+        self.orphans = [pid for pid in getattr(self, "ready", {}).get("children", [])
+                        if _kill_if_alive(pid)]
         if self.proc.stdout:
             self.proc.stdout.close()
         if self._stderr is not None:
@@ -79,3 +97,18 @@ class ChildProcess:
 
     def __exit__(self, *exc) -> None:
         self.stop()
+
+
+def _kill_if_alive(pid: int) -> bool:
+    """SIGKILL ``pid`` if it still runs (a zombie does not count); True if it did."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    if stat.rsplit(")", 1)[1].split()[0] == "Z":
+        return False
+    try:
+        os.kill(pid, signal.SIGKILL)
+    except ProcessLookupError:
+        return False
+    return True

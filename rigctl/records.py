@@ -194,6 +194,30 @@ class Capture:
             raise RigError(f"{self.image_path}: cannot read image")
         return image
 
+    @property
+    def board_path(self) -> Path | None:
+        return None if self.image_path is None else self.image_path.with_suffix(".board.json")
+
+    def board_corners(self, rows: int, cols: int) -> np.ndarray | None:
+        """The checkerboard's inner corners in this capture (None: not found), from the
+        ``NNN.board.json`` the runner wrote while the rig moved on, else detected now."""
+        from rigctl.calib.board import detect_board
+
+        path = self.board_path
+        if path is not None and path.exists():
+            saved = json.loads(path.read_text())
+            if (saved.get("rows"), saved.get("cols")) == (rows, cols):
+                corners = saved.get("corners")
+                return None if corners is None else np.asarray(corners, float)
+        return detect_board(self.load_image(), rows, cols)
+
+    def save_board_corners(self, rows: int, cols: int, image: np.ndarray | None = None) -> None:
+        """Detect the board in this capture and write ``NNN.board.json``."""
+        from rigctl.calib.board import detect_board
+
+        corners = detect_board(self.load_image() if image is None else image, rows, cols)
+        write_json(self.board_path, {"rows": rows, "cols": cols, "corners": corners})
+
 
 class RunDirectory:
     """Reads and writes one run directory."""
@@ -225,6 +249,13 @@ class RunDirectory:
             meta = {**meta, "image": f"{index:03d}.png"}
         write_json(stem.with_suffix(".json"), meta)
         return stem.with_suffix(".json")
+
+    def capture(self, index: int) -> Capture:
+        """One capture by index, as written by ``write_capture``."""
+        sidecar = self.captures_dir / f"{index:03d}.json"
+        meta = json.loads(sidecar.read_text())
+        image = self.captures_dir / meta["image"] if meta.get("image") else None
+        return Capture(index, image, meta)
 
     def captures(self) -> list[Capture]:
         out = []

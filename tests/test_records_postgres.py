@@ -27,9 +27,9 @@ def postgres_url():
     data = Path(tempfile.mkdtemp(prefix="rigctl-pg-"))  # short: Unix socket paths are limited
     server = pgserver.get_server(data, cleanup_mode="stop")
     pid = int((data / "postmaster.pid").read_text().split()[0])
-    listen = (data / "postmaster.pid").read_text().splitlines()[5]
-    assert listen.strip() == "", f"postgres listens on {listen!r}; expected the socket only"
     try:
+        listen = (data / "postmaster.pid").read_text().splitlines()[5]
+        assert listen.strip() == "", f"postgres listens on {listen!r}; expected the socket only"
         yield server.get_uri().replace("postgresql://", "postgresql+psycopg://", 1)
     finally:
         server.cleanup()

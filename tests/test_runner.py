@@ -18,6 +18,7 @@ from rigctl.locks import RigLock
 from rigctl.records import RecordIndex, RunDirectory, utcnow
 from rigctl.runner import Runner, solve_recorded
 from tests.doubles import DoubleCamera, DoubleHead
+from tests.waiting import wait_until
 
 
 def make_runner(config, head=None, **kw):
@@ -132,7 +133,9 @@ def test_abort_mid_move_stops_parks_and_keeps_captures(rig_config):
     result = {}
     thread = threading.Thread(target=lambda: result.update(o=runner.run("head-sweep", slow)))
     thread.start()
-    time.sleep(1.5)  # first move done (1 s), capture taken, second move under way
+    # first move done, capture taken, second move under way
+    wait_until(lambda: sum(c.startswith("move:") for c in built_head.calls) >= 2,
+               what="the second move")
     runner.abort("operator pressed abort")
     thread.join(timeout=10)
     outcome = result["o"]

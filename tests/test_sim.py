@@ -116,8 +116,8 @@ def test_sim_truth_json():
     assert np.allclose(np.array(truth["T_flange_cam"])[:3, 3], [0, 0, 0.05])
 
 
-def test_sim_up_then_down_leaves_nothing_running(tmp_path):
-    rig = SimRig(tmp_path)
+def test_sim_up_then_down_leaves_nothing_running(start_sim):
+    rig = start_sim()  # stopped by PID in teardown even if an assertion fails
     workdir = Path(rig.ready["workdir"])
     assert (workdir / "dxl").is_symlink()
     result = subprocess.run([sys.executable, "-m", "rigctl.cli", "sim", "down", "--host",
@@ -129,4 +129,3 @@ def test_sim_up_then_down_leaves_nothing_running(tmp_path):
         with pytest.raises(ProcessLookupError):
             os.kill(pid, 0)
     assert not workdir.exists()
-    rig.stop()

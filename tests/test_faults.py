@@ -1,0 +1,83 @@
+"""Faults the stand-ins inject, through the real clients and drivers: a late reply, an
+input voltage out of range, dropped RTDE connections."""
+
+from __future__ import annotations
+
+import json
+import math
+import signal
+import subprocess
+import sys
+
+import pytest
+
+from drivers.dynamixel import DynamixelHead
+from rigctl.errors import DeviceError
+from tests.mockproc import ROOT, control
+from tests.test_dynamixel import bus, head_config  # noqa: F401 (the bus fixture)
+from tests.test_ur import arm_proc  # noqa: F401 (the arm fixture)
+
+pytestmark = pytest.mark.integration
+
+
+def test_a_late_reply_is_retried_and_a_silent_bus_is_reported(bus):  # noqa: F811
+    head = DynamixelHead(head_config(bus.ready["link"]))  # hardware timing: ~34 ms a try
+    with head:
+        control(bus.ready["control"], {"cmd": "delay_next", "seconds": 0.1})
+        angles = head.read_angles()  # the first try times out, a retry gets the answer
+        assert abs(angles.pan) < math.radians(0.1) and head.retries_used >= 1
+        control(bus.ready["control"], {"cmd": "drop_next", "count": 10})
+        with pytest.raises(DeviceError) as failed:
+            head.read_angles()
+    message = str(failed.value)
+    assert "failed after 4 tries" in message and "There is no status packet" in message
+    assert "host load" in message and "devices.head.packet_timeout_ms" in message
+
+
+def test_input_voltage_out_of_range_stops_the_move_and_names_the_servo(bus):  # noqa: F811
+    head = DynamixelHead(head_config(bus.ready["link"]))
+    with head:
+        control(bus.ready["control"], {"cmd": "set", "id": 2, "voltage": 9.0})
+        with pytest.raises(DeviceError, match=r"head servo 2 \(tilt\).*input voltage") as e:
+            head.move_to(0.0, math.radians(10), 0.0).wait(15)
+    # input voltage is not in the X-series' default Shutdown mask (52): torque stays on
+    assert "torque stays on" in str(e.value)
+    servos = {s["id"]: s for s in control(bus.ready["control"], {"cmd": "dump"})["servos"]}
+    assert servos[2]["hardware_error_status"] & 0x01 and servos[2]["torque_enable"] == 1
+
+
+DROP_SCRIPT = """
+import json, sys, time
+from drivers.ur import URArm
+from rigctl.config import parse_rig
+from rigctl.errors import DeviceError
+from tests.mockproc import ROOT, control
+host, sock = sys.argv[1:3]
+arm = URArm(parse_rig(f"devices:\\n  arm: {{host: {host}}}\\n").devices.arm)
+arm.open()
+control(sock, {"cmd": "drop_connections"})
+deadline = time.monotonic() + 20
+while time.monotonic() < deadline:
+    try:
+        arm.read_state()
+        time.sleep(0.02)
+    except DeviceError as exc:
+        print(json.dumps({"error": str(exc)}), flush=True)
+        break
+arm.close()
+print(json.dumps({"closed": True}), flush=True)
+"""
+
+
+def test_dropped_rtde_connections_are_reported_as_a_lost_link(arm_proc):  # noqa: F811
+    """In a child process: after a drop, ur_rtde's control interface reconnects from its
+    own thread, and that thread has crashed the process (SIGSEGV) in about a third of the
+    trials here, whatever the driver does meanwhile (a known doubt, see the closing note);
+    the driver's own report must come first."""
+    done = subprocess.run([sys.executable, "-c", DROP_SCRIPT, arm_proc.ready["host"],
+                           arm_proc.ready["control"]], capture_output=True, text=True,
+                          timeout=120, cwd=ROOT)
+    lines = [json.loads(line) for line in done.stdout.splitlines() if line.startswith("{")]
+    assert lines and "RTDE connection lost (closed by the controller" in lines[0]["error"], (
+        done.stdout, done.stderr[-2000:])
+    assert done.returncode in (0, -signal.SIGSEGV), done.stderr[-2000:]

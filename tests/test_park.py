@@ -1,0 +1,73 @@
+"""Park policies with the real drivers against the stand-ins: what each device does when
+it is closed (after a run, an abort or a fault)."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from drivers.dynamixel import DynamixelHead
+from drivers.ur import URArm
+from tests.mockproc import ROOT, control
+from tests.test_dynamixel import bus, head_config  # noqa: F401 (the bus fixture)
+from tests.test_ur import HOME, arm_config, arm_proc  # noqa: F401 (the arm fixture)
+from tests.waiting import wait_until
+
+pytestmark = pytest.mark.integration
+
+PULSES_PER_DEG = 4096 / 360
+
+
+@pytest.mark.parametrize(("policy", "parks_home", "torque"), [
+    ("hold", False, 1), ("home", True, 1), ("torque_off", False, 0),
+    ("home_then_torque_off", True, 0)])
+def test_head_park_policy_on_close(bus, policy, parks_home, torque):  # noqa: F811
+    head = DynamixelHead(head_config(bus.ready["link"], park=f"{{policy: {policy}}}"))
+    head.open()
+    head.move_to(math.radians(10), math.radians(-5), 0.0).wait(15)
+    head.close()
+    servos = {s["id"]: s for s in control(bus.ready["control"], {"cmd": "dump"})["servos"]}
+    pan, tilt = servos[1], servos[2]
+    expected_pan = 2048 if parks_home else 2048 + round(10 * PULSES_PER_DEG)
+    expected_tilt = 2048 if parks_home else 2048 - round(5 * PULSES_PER_DEG)
+    assert abs(pan["present_position"] - expected_pan) <= 2, policy
+    assert abs(tilt["present_position"] - expected_tilt) <= 2, policy
+    assert pan["torque_enable"] == tilt["torque_enable"] == torque, policy
+
+
+def test_arm_parks_home_on_close_and_holds_after_a_protective_stop(arm_proc):  # noqa: F811
+    host = arm_proc.ready["host"]
+    arm = URArm(arm_config(host, park="{policy: home}"))
+    arm.open()
+    arm.move_joint(5, math.radians(20)).wait(15)
+    arm.close()  # park: home
+    q = control(arm_proc.ready["control"], {"cmd": "dump"})["q"]
+    assert np.allclose(q, HOME, atol=1e-3)
+    # after a protective stop nothing moves, whatever the park policy says
+    arm = URArm(arm_config(host, park="{policy: home}"))
+    arm.open()
+    arm.move_joint(5, math.radians(20)).wait(15)
+    control(arm_proc.ready["control"], {"cmd": "protective_stop"})
+    wait_until(lambda: arm.receive.isProtectiveStopped(), what="the protective stop")
+    try:
+        arm.close()
+    except Exception as exc:  # refusing to move is the point; say why
+        assert "protective stop" in str(exc)
+    q = control(arm_proc.ready["control"], {"cmd": "dump"})["q"]
+    assert q[5] == pytest.approx(HOME[5] + math.radians(20), abs=1e-3)
+
+
+def test_rigctl_arm_unlock_clears_a_protective_stop(arm_proc, tmp_path):  # noqa: F811
+    rig = tmp_path / "rig.yaml"
+    rig.write_text(f"name: ur-rig\ndevices:\n  arm: {{host: {arm_proc.ready['host']}}}\n")
+    control(arm_proc.ready["control"], {"cmd": "protective_stop"})
+    assert control(arm_proc.ready["control"], {"cmd": "dump"})["safety_mode"] == 3
+    done = subprocess.run([sys.executable, "-m", "rigctl.cli", "arm", "unlock", "--rig",
+                           str(rig)], capture_output=True, text=True, timeout=60, cwd=ROOT)
+    assert done.returncode == 0, done.stderr
+    assert "protective stop unlocked (Safetystatus: NORMAL)" in done.stderr
+    assert control(arm_proc.ready["control"], {"cmd": "dump"})["safety_mode"] == 1
