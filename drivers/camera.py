@@ -3,7 +3,8 @@
 
 Freshness: a grabber thread reads frames continuously and keeps only the newest one
 with its arrival time (``time.time()``). ``capture(not_before=t)`` returns the first
-frame that *arrived* at least one frame period (plus ``FRESH_MARGIN_S``) after ``t``:
+frame that *arrived* at least one frame period (plus ``FRESH_MARGIN_S`` and the rig
+file's ``latency_s``) after ``t``:
 a frame arriving that late was exposed after ``t``, even counting the exposure, encode
 and transport latency of a USB or network camera. We chose the grabber over flushing
 buffered frames because the depth of V4L2 and FFMPEG buffers differs by driver and
@@ -157,7 +158,8 @@ class OpenCVCamera(Camera):
         if self.cap is None:
             raise DeviceError(f"{self.name}: not open")
         threshold = (not_before if not_before is not None else time.time())
-        threshold += 1.0 / self.fps + FRESH_MARGIN_S if not_before is not None else 0.0
+        if not_before is not None:
+            threshold += 1.0 / self.fps + FRESH_MARGIN_S + self.cfg.latency_s
         deadline = time.monotonic() + self.cfg.timeout_s
         with self._cond:
             while True:

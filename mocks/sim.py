@@ -30,11 +30,13 @@ STATE_DIR = Path(tempfile.gettempdir())
 # hardware keeps the rig file's defaults. Head: 6 tries of 100 ms with 20-320 ms pauses,
 # about 1.2 s per transaction before a servo is reported dead (a 300 ms stall costs three
 # tries). Arm: the RTDE stream may pause 5 s before the link counts as lost. Camera: 10 s
-# for a frame, and three more tries to open the stream.
+# for a frame, three more tries to open the stream, and 0.15 s for a rendered frame to
+# arrive (a busy host slows the renderer: a frame sampled before a move ended arrived
+# after it, 57 px off, in one loaded run).
 STAND_IN_TIMING = {
     "head": {"packet_timeout_ms": 100, "retries": 5, "retry_backoff_s": 0.02},
     "arm": {"stream_timeout_s": 5.0, "move_timeout_s": 60},
-    "camera": {"timeout_s": 10.0, "open_retries": 3},
+    "camera": {"timeout_s": 10.0, "open_retries": 3, "latency_s": 0.15},
 }
 
 

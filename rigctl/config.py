@@ -210,6 +210,10 @@ class CameraConfig(_Strict):
     controls: dict[str, float] = Field(default_factory=dict)
     auto_off: bool = True
     timeout_s: float = Field(3.0, gt=0)  # open, and wait for a fresh frame
+    # longest time from exposure to a frame's arrival beyond one frame period (encode,
+    # transport, decode): a frame counts as taken after a motion only if it arrived this
+    # much later than one period after the motion ended
+    latency_s: float = Field(0.0, ge=0, le=5)
     open_retries: int = Field(0, ge=0, le=10)  # reopen attempts after a failed open
 
     @field_validator("fourcc")
