@@ -299,7 +299,8 @@ class RigService:
             if self.runner is not None:
                 self.runner.abort("service shutting down")
             self.cond.notify_all()
-        self.worker.join(timeout=30)
+        if self.worker.is_alive():
+            self.worker.join(timeout=30)
 
 
 NAME = r"^[a-z][a-z0-9-]{0,63}$"
@@ -318,10 +319,21 @@ def _row(row: dict) -> dict:
             if k not in ("pid", "host")}
 
 
-def create_app(service: RigService) -> FastAPI:
+def create_app(service: RigService, stop_service_on_shutdown: bool = False) -> FastAPI:
+    """The HTTP API of ``service``. With ``stop_service_on_shutdown``, the server's
+    graceful shutdown (SIGTERM, SIGINT) aborts the current run and waits for it to be
+    recorded: uvicorn re-raises the signal once it has shut down, so code after
+    ``uvicorn.run`` never runs."""
     config = service.config
     token = service_token(config)
-    app = FastAPI(title="rigctl", version=__version__,
+
+    @contextlib.asynccontextmanager
+    async def lifespan(_app):
+        yield
+        if stop_service_on_shutdown:
+            await asyncio.to_thread(service.stop)
+
+    app = FastAPI(title="rigctl", version=__version__, lifespan=lifespan,
                   description=f"Rig controller service for rig {config.name!r}")
 
     def require_token(authorization: str | None = Header(None)) -> None:
@@ -592,7 +604,7 @@ def serve(config: RigConfig, host: str | None = None, port: int | None = None) -
     check_bind(config, host)
     service = RigService(config)
     service.start()
-    app = create_app(service)
+    app = create_app(service, stop_service_on_shutdown=True)
     try:
         uvicorn.run(app, host=host, port=port, log_level="warning")
     finally:

@@ -1,0 +1,90 @@
+"""SIGTERM mid-run: the CLI run and the service both stop the devices, record the run as
+aborted and exit; the captures taken so far are kept."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+
+import httpx
+import pytest
+import yaml
+
+from rigctl.records import RecordIndex
+from tests.loopback import free_port
+from tests.mockproc import ROOT
+from tests.waiting import wait_until
+
+pytestmark = pytest.mark.integration
+
+SLOW_SWEEP = ["--param", "pan_deg=[-40,-20,0,20,40]", "--param", "tilt_deg=[-20,0,20]",
+              "--param", "settle_s=0.5"]
+
+
+def _index(rig_path):
+    from rigctl.config import load_rig
+
+    return RecordIndex(load_rig(rig_path).database_url())
+
+
+def _running(index) -> dict | None:
+    rows = [r for r in index.list(5) if r["status"] == "running"]
+    return rows[0] if rows else None
+
+
+@pytest.mark.timeout(180)
+def test_sigterm_on_a_cli_run_exits_3_and_records_it_aborted(start_sim):
+    sim = start_sim()
+    proc = subprocess.Popen([sys.executable, "-m", "rigctl.cli", "run", "head-sweep", "--rig",
+                             str(sim.rig_path), "--json", *SLOW_SWEEP], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        index = _index(sim.rig_path)
+        row = wait_until(lambda: _running(index), timeout=60, what="the run to start")
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(timeout=10)
+    assert proc.returncode == 3, err[-2000:]
+    assert json.loads(out)["status"] == "aborted"
+    row = index.get(row["run_id"])
+    assert row["status"] == "aborted" and row["reason"] == "SIGTERM received"
+
+
+@pytest.mark.timeout(180)
+def test_sigterm_on_the_service_mid_run_aborts_the_run_and_exits(start_sim, tmp_path):
+    sim = start_sim()
+    rig = yaml.safe_load(sim.rig_path.read_text())
+    port = free_port()
+    rig["service"] = {"bind": "127.0.0.1", "port": port}
+    rig_path = tmp_path / "service-rig.yaml"
+    rig_path.write_text(yaml.safe_dump(rig))
+    server = subprocess.Popen([sys.executable, "-m", "rigctl.cli", "serve", "--rig",
+                               str(rig_path)], cwd=ROOT, stdout=subprocess.DEVNULL,
+                              stderr=subprocess.PIPE, text=True)
+    url = f"http://127.0.0.1:{port}"
+    try:
+        def up():
+            try:
+                return httpx.get(f"{url}/health", timeout=2).status_code == 200
+            except httpx.HTTPError:
+                return False
+
+        wait_until(up, timeout=60, what="the service")
+        params = {"pan_deg": [-40, -20, 0, 20, 40], "tilt_deg": [-20, 0, 20], "settle_s": 0.5}
+        run_id = httpx.post(f"{url}/runs", json={"procedure": "head-sweep", "params": params},
+                            timeout=30).json()["run_id"]
+        wait_until(lambda: httpx.get(f"{url}/runs/{run_id}", timeout=5).json()["status"]
+                   == "running", timeout=60, what="the run to start")
+        server.send_signal(signal.SIGTERM)
+        server.wait(timeout=60)
+    finally:
+        if server.poll() is None:
+            server.kill()
+            server.wait(timeout=10)
+    row = _index(rig_path).get(run_id)
+    assert row["status"] == "aborted" and "service shutting down" in row["reason"]
