@@ -15,6 +15,7 @@ import yaml
 
 from tests.loopback import free_host, free_port
 from tests.mockproc import ROOT, MockProcess
+from tests.waiting import wait_until
 
 pytestmark = pytest.mark.integration
 
@@ -57,18 +58,25 @@ def start_sim(tmp, world, host=None, camera_port=0):
 
 
 class Stack:
-    def __init__(self, tmp):
-        self.tmp = tmp
+    """The simulated rig and `rigctl serve` on it; whatever was started is stopped by PID,
+    also when the constructor fails half-way."""
+
+    def __init__(self, tmp, schedules=()):
+        self.tmp, self.sim, self.server = tmp, None, None
         self.hook = Webhook()
+        try:
+            self._start(tmp, list(schedules))
+        except BaseException:
+            self.stop()
+            raise
+
+    def _start(self, tmp, schedules):
         self.sim = start_sim(tmp, "ideal")
         rig = yaml.safe_load((tmp / "sim-rig.yaml").read_text())
         port = free_port()
         rig["service"] = {"bind": "127.0.0.1", "port": port, "token": TOKEN,
                           "webhook": self.hook.url, "auto_accept": False,
-                          "schedules": [{"procedure": "head-sweep", "interval_s": 12,
-                                         "max_delay": "5s",
-                                         "params": {"pan_deg": [0], "tilt_deg": [0],
-                                                    "settle_s": 0}}],
+                          "schedules": schedules,
                           "drift": {"focal_pct": 0.5, "principal_point_px": 3.0}}
         self.rig = tmp / "service-rig.yaml"
         self.rig.write_text(yaml.safe_dump(rig))
@@ -76,15 +84,24 @@ class Stack:
                                         str(self.rig)], cwd=ROOT, stdout=subprocess.DEVNULL,
                                        stderr=subprocess.PIPE, text=True)
         self.base = f"http://127.0.0.1:{port}"
-        deadline = time.monotonic() + 30
-        while time.monotonic() < deadline:
+
+        def healthy():
+            if self.server.poll() is not None:
+                raise RuntimeError(f"service exited: {self.server.stderr.read()[-2000:]}")
             try:
-                if httpx.get(self.base + "/health", timeout=1).status_code == 200:
-                    return
+                return httpx.get(self.base + "/health", timeout=2).status_code == 200
             except httpx.HTTPError:
-                time.sleep(0.2)
-        self.stop()
-        raise RuntimeError("service did not start")
+                return False
+
+        wait_until(healthy, timeout=90, what="the service to answer /health")
+
+    def restart_sim(self, world):
+        """The same devices (loopback host, camera port) on another world."""
+        ready = self.sim.ready
+        self.sim.stop(timeout=20)
+        self.sim = None
+        self.sim = start_sim(self.tmp, world, host=ready["host"],
+                             camera_port=ready["camera"]["port"])
 
     def stop(self):
         if self.server is not None and self.server.poll() is None:
@@ -104,6 +121,22 @@ def stack(tmp_path_factory):
     s = Stack(tmp_path_factory.mktemp("service"))
     yield s
     s.stop()
+
+
+@pytest.fixture(scope="module")
+def accepted_camera(stack):
+    """An accepted active-camera calibration on the ideal world (run here unless an earlier
+    test already accepted one), so that drift has something to compare with."""
+    latest = httpx.get(stack.base + "/calibrations/latest").json()
+    if "active-camera" in latest:
+        return latest["active-camera"]["run_id"]
+    run_id = post(stack, "/runs", {"procedure": "active-camera",
+                                   "params": {"pan_deg": 5, "tilt_deg": 5}}).json()["run_id"]
+    assert wait_for(stack, run_id, timeout=240)["status"] == "succeeded"
+    wait_until(lambda: httpx.get(f"{stack.base}/runs/{run_id}").json()["decision"],
+               what="the decision on the calibration")
+    assert post(stack, f"/calibrations/{run_id}/accept").status_code == 200
+    return run_id
 
 
 def post(stack, path, body=None, auth=True):
@@ -226,29 +259,35 @@ def test_service_run_while_cli_holds_the_rig_fails_busy(stack):
     assert cli.returncode == 0
 
 
-def test_schedule_fires_and_records_its_run(stack):
-    deadline = time.monotonic() + 40
-    while time.monotonic() < deadline:
-        runs = httpx.get(stack.base + "/runs?limit=200&procedure=head-sweep").json()
-        scheduled = [r for r in runs if r.get("operator") == "scheduler"]
-        if any(r["status"] in ("succeeded", "skipped") for r in scheduled):
-            break
-        time.sleep(1)
-    else:
-        raise AssertionError("no scheduled run was recorded")
-    skipped = [r for r in scheduled if r["status"] == "skipped"]
-    assert all("busy" in (r["reason"] or "") for r in skipped)
+@pytest.mark.timeout(240)
+def test_schedule_fires_and_records_its_run(tmp_path):
+    """A stack of its own (its schedule never holds the rig during the other tests): an
+    interval schedule fires, and its runs are recorded as the scheduler's."""
+    schedule = {"procedure": "head-sweep", "interval_s": 3, "max_delay": "5s",
+                "params": {"pan_deg": [0], "tilt_deg": [0], "settle_s": 0}}
+    own = Stack(tmp_path, schedules=[schedule])
+    try:
+        def scheduled_done():
+            runs = httpx.get(own.base + "/runs?limit=200&procedure=head-sweep").json()
+            done = [r for r in runs if r.get("operator") == "scheduler"
+                    and r["status"] in ("succeeded", "skipped")]
+            return done if any(r["status"] == "succeeded" for r in done) else None
+
+        done = wait_until(scheduled_done, timeout=120, poll=0.5, what="a scheduled run")
+        assert all("busy" in (r["reason"] or "") for r in done if r["status"] == "skipped")
+    finally:
+        own.stop()
 
 
 @pytest.mark.timeout(300)
-def test_drifted_intrinsics_are_flagged_and_wait(stack):
-    stack.sim.stop(timeout=20)
-    camera = stack.sim.ready["camera"]
-    stack.sim = start_sim(stack.tmp, "drift", host=stack.sim.ready["host"],
-                          camera_port=camera["port"])  # same devices, refocused lens
-    run_id = post(stack, "/runs", {"procedure": "active-camera",
-                                   "params": {"pan_deg": 5, "tilt_deg": 5}}).json()["run_id"]
-    run = wait_for(stack, run_id, timeout=180)
+def test_drifted_intrinsics_are_flagged_and_wait(stack, accepted_camera):
+    stack.restart_sim("drift")  # same devices, refocused lens
+    try:
+        run_id = post(stack, "/runs", {"procedure": "active-camera",
+                                       "params": {"pan_deg": 5, "tilt_deg": 5}}).json()["run_id"]
+        run = wait_for(stack, run_id, timeout=180)
+    finally:
+        stack.restart_sim("ideal")  # the next test finds the rig as it was
     assert run["status"] == "succeeded", run.get("reason")
     deadline = time.monotonic() + 10
     while httpx.get(f"{stack.base}/runs/{run_id}").json()["decision"] is None:
@@ -258,7 +297,7 @@ def test_drifted_intrinsics_are_flagged_and_wait(stack):
     assert stack.hook.received and stack.hook.received[-1]["run_id"] == run_id
     assert any("focal length changed" in d for d in stack.hook.received[-1]["drift"])
     latest = httpx.get(stack.base + "/calibrations/latest?procedure=active-camera").json()
-    assert latest["active-camera"]["run_id"] != run_id  # still the old accepted one
+    assert latest["active-camera"]["run_id"] == accepted_camera  # still the accepted one
     history = httpx.get(stack.base + "/calibrations/history?procedure=active-camera").json()
     assert {h["decision"] for h in history} >= {"accepted", "drift"}
 
