@@ -184,7 +184,7 @@ def runs_list(rig: Path = typer.Option(..., "--rig"), limit: int = typer.Option(
 
     try:
         config = load_rig(rig)
-        rows = RecordIndex(config.database_url()).list(limit, procedure)
+        rows = RecordIndex(config.database_url()).list(limit, procedure, rig_name=config.name)
     except RigError as exc:
         _fail(exc, as_json)
     if as_json:

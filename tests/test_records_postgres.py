@@ -3,9 +3,12 @@ a Unix socket only), shared by two rigs, through SQLAlchemy and psycopg."""
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import signal
+import subprocess
+import sys
 import tempfile
 import textwrap
 import time
@@ -17,6 +20,7 @@ from rigctl.config import load_rig
 from rigctl.errors import ConfigError
 from rigctl.records import RecordIndex, RunDirectory
 from rigctl.runner import solve_recorded
+from tests.mockproc import ROOT
 from tests.test_runner import SMALL, make_runner
 
 pgserver = pytest.importorskip("pgserver", reason="the postgres test needs pgserver (dev extra)")
@@ -86,6 +90,22 @@ def test_two_rigs_share_one_postgres_index(tmp_path, postgres_url):
     again = solve_recorded(first_b.run_dir, index)
     assert again == first_b.result
     assert (RunDirectory(first_b.run_dir).path / "result.1.json").exists()
+    # what each rig's service shows: its own runs, history and latest, never the other's
+    from fastapi.testclient import TestClient
+
+    from rigctl.service import RigService, create_app
+
+    for config, own, other in ((rig_a, {first_a.run_id, second_a.run_id}, first_b.run_id),
+                               (rig_b, {first_b.run_id}, first_a.run_id)):
+        with TestClient(create_app(RigService(config))) as api:
+            assert {r["run_id"] for r in api.get("/runs").json()} == own
+            assert api.get(f"/runs/{other}").status_code == 404
+            assert api.get("/rig").json()["last_readings"].get("run_id") in own | {None}
+    # and the CLI's list
+    listed = subprocess.run([sys.executable, "-m", "rigctl.cli", "runs", "list", "--rig",
+                             str(tmp_path / "rig-b.yaml"), "--json"], capture_output=True,
+                            text=True, timeout=60, cwd=ROOT)
+    assert {r["run_id"] for r in json.loads(listed.stdout)} == {first_b.run_id}
 
 
 def test_unreachable_postgres_names_the_key_and_url(tmp_path):

@@ -8,12 +8,14 @@ import json
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 import yaml
 
 from mocks.world import load_world
 from rigctl.config import load_rig
 from rigctl.demo import model_against_truth
+from rigctl.geometry.kinematics import nominal_ur
 from tests.mockproc import ROOT
 from tests.resolve_check import assert_resolves_alone
 
@@ -31,6 +33,8 @@ def test_robot_kinematics_end_to_end(tmp_path, start_sim):
     cam = rigctl("run", "active-camera", "--rig", str(rig.rig_path), "--json",
                  "--param", "pan_deg=10", "--param", "tilt_deg=10")
     assert cam.returncode == 0, cam.stderr[-2000:]
+    handeye = rigctl("run", "hand-eye", "--rig", str(rig.rig_path), "--json",
+                     "--param", "poses=8")
     result = rigctl("run", "robot-kinematics", "--rig", str(rig.rig_path), "--json",
                     "--param", "random_poses=12", "--param", "heldout_poses=5",
                     "--param", "sweep_steps=3")
@@ -73,8 +77,15 @@ def test_robot_kinematics_end_to_end(tmp_path, start_sim):
     assert after["target_in_camera_rms_mm"] < 0.5 < before["target_in_camera_rms_mm"]
     # the predicted board lands on the detected corners to their own noise (~0.2 px)
     assert after["reprojection_rms_px"] < 0.4 < 1.0 < before["reprojection_rms_px"]
+    # hand-eye (nominal arm, mm-level link errors uncorrected) against the true T_flange_cam
+    assert handeye.returncode == 0, handeye.stderr[-3000:]
+    X = np.array(json.loads(handeye.stdout)["T_flange_cam"])
+    X_true = np.array(truth["T_flange_cam"])
+    assert np.linalg.norm(X[:3, 3] - X_true[:3, 3]) < 0.005  # m
+    cos = (np.trace(X[:3, :3].T @ X_true[:3, :3]) - 1) / 2
+    assert np.degrees(np.arccos(np.clip(cos, -1, 1))) < 0.5
     # each solve is a function of its run directory alone
-    for procedure in ("active-camera", "robot-kinematics", "validate-arm"):
+    for procedure in ("active-camera", "hand-eye", "robot-kinematics", "validate-arm"):
         recorded = next((tmp_path / "records").glob(f"*-{procedure}-*"))
         assert_resolves_alone(recorded, tmp_path / "elsewhere")
     # exports
@@ -82,7 +93,17 @@ def test_robot_kinematics_end_to_end(tmp_path, start_sim):
     assert check["calibration_run"] == run_dir.name
     assert rigctl("export", str(run_dir), "--format", "json").returncode == 0
     exported = json.loads((run_dir / "export.json").read_text())
-    assert exported["links"] == out["links"] and "summary" not in exported
+    assert "summary" not in exported
+    config = load_rig(rig.rig_path)
+    rms, _, _ = model_against_truth(exported, config, world)  # the file, against the truth
+    assert rms < 0.5
     assert rigctl("export", str(run_dir), "--format", "ur").returncode == 0
     ur = yaml.safe_load((run_dir / "export.ur_calibration.yaml").read_text())
-    assert len(ur["delta_theta"]) == 6 and len(ur["beta"]) == 6
+    # nominal + the exported deltas is the calibrated arm: rebuilt, it meets the truth
+    nominal = nominal_ur(ur["model"])
+    links = [{"theta_offset": ur["delta_theta"][i], "d": nominal.d[i] + ur["delta_d"][i],
+              "a": nominal.a[i] + ur["delta_a"][i],
+              "alpha": nominal.alpha[i] + ur["delta_alpha"][i], "beta": ur["beta"][i]}
+             for i in range(6)]
+    rebuilt, _, _ = model_against_truth({**exported, "links": links}, config, world)
+    assert rebuilt == pytest.approx(rms, abs=1e-6) and rebuilt < 0.5
