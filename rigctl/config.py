@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import re
 from pathlib import Path
 from typing import Any, Literal
 
@@ -254,12 +255,44 @@ class RecordsConfig(_Strict):
     database_url: str | None = None  # default: sqlite:///<directory>/index.sqlite
 
 
+def parse_duration(text: str) -> int:
+    """'1h', '30m', '45s', '2h30m' -> seconds (a schedule's max_delay); ``ValueError``
+    for anything else."""
+    total, pos = 0, 0
+    for m in re.finditer(r"(\d+)\s*([hms])", text):
+        if m.start() != pos:
+            break
+        total += int(m.group(1)) * {"h": 3600, "m": 60, "s": 1}[m.group(2)]
+        pos = m.end()
+    if pos != len(text.strip()) or total <= 0:
+        raise ValueError(f"cannot read duration {text!r} (use e.g. 1h, 30m, 45s)")
+    return total
+
+
 class Schedule(_Strict):
     procedure: str
     cron: str | None = None
     interval_s: float | None = Field(None, gt=0)
     params: dict[str, Any] = Field(default_factory=dict)
-    max_delay: str = "1h"
+    max_delay: str = "1h"  # a run that cannot start within this long after its time is skipped
+
+    @field_validator("cron")
+    @classmethod
+    def _readable_cron(cls, value: str | None) -> str | None:
+        if value is not None:
+            from apscheduler.triggers.cron import CronTrigger
+
+            try:
+                CronTrigger.from_crontab(value, timezone="UTC")
+            except ValueError as exc:
+                raise ValueError(f"cannot read cron {value!r}: {exc}") from None
+        return value
+
+    @field_validator("max_delay")
+    @classmethod
+    def _readable_duration(cls, value: str) -> str:
+        parse_duration(value)
+        return value
 
     @model_validator(mode="after")
     def _one_trigger(self) -> Schedule:

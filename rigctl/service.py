@@ -18,7 +18,6 @@ import io
 import json
 import logging
 import os
-import re
 import socket
 import threading
 import urllib.request
@@ -34,7 +33,7 @@ from pydantic import BaseModel, Field
 
 import procedures
 from rigctl import __version__, drift
-from rigctl.config import RigConfig
+from rigctl.config import RigConfig, parse_duration
 from rigctl.errors import BusyError, ConfigError, RigError, SafetyError
 from rigctl.locks import RigLock
 from rigctl.records import RecordIndex, RunDirectory, new_run_id, utcnow
@@ -54,20 +53,6 @@ def check_bind(config: RigConfig, host: str) -> None:
     if not loopback and not service_token(config):
         raise ConfigError(f"service.bind {host}: binding beyond loopback requires a bearer "
                           "token (service.token in the rig file, or RIGCTL_TOKEN)")
-
-
-def parse_duration(text: str) -> int:
-    """'1h', '30m', '45s', '2h30m' -> seconds (max_delay of a schedule)."""
-    total, pos = 0, 0
-    for m in re.finditer(r"(\d+)\s*([hms])", text):
-        if m.start() != pos:
-            break
-        total += int(m.group(1)) * {"h": 3600, "m": 60, "s": 1}[m.group(2)]
-        pos = m.end()
-    if pos != len(text.strip()) or total <= 0:
-        raise ConfigError(f"service.schedules.max_delay: cannot read duration {text!r} "
-                          "(use e.g. 1h, 30m, 45s)")
-    return total
 
 
 class EventBus:

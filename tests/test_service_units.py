@@ -1,0 +1,129 @@
+"""The service's decisions and bookkeeping without hardware: drift comparison, automatic
+and operator decisions (accept, reject, 404, 409), schedule parsing."""
+
+from __future__ import annotations
+
+import math
+import os
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from rigctl import drift
+from rigctl.config import DriftThresholds, parse_duration, parse_rig
+from rigctl.errors import ConfigError
+from rigctl.records import RecordIndex, RunDirectory, utcnow
+from rigctl.service import RigService, create_app
+
+CAMERA = {"fx": 900.0, "fy": 902.0, "cx": 640.0, "cy": 360.0}
+
+
+def _T(mm=(0.0, 0.0, 0.0), deg_about_z=0.0):
+    c, s = math.cos(math.radians(deg_about_z)), math.sin(math.radians(deg_about_z))
+    T = np.eye(4)
+    T[:3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
+    T[:3, 3] = np.array(mm) / 1000
+    return T.tolist()
+
+
+def test_drift_compare_measures_each_calibration_against_its_limits():
+    limits = DriftThresholds(focal_pct=0.5, principal_point_px=3.0, hand_eye_mm=1.0,
+                             hand_eye_deg=0.2, link_mm=0.5, link_deg=0.05)
+    same = drift.compare("active-camera", CAMERA, CAMERA, limits)
+    assert same == ([], {"focal_pct": 0.0, "principal_point_px": 0.0})
+    moved = {**CAMERA, "fy": 902.0 * 1.004, "cy": 364.0}
+    breaches, metrics = drift.compare("active-camera", moved, CAMERA, limits)
+    assert metrics["focal_pct"] == pytest.approx(0.4) and metrics["principal_point_px"] == 4.0
+    assert breaches == ["principal point moved 4.00 px (limit 3.0 px)"]
+    breaches, metrics = drift.compare("hand-eye", {"T_flange_cam": _T((0.6, 0.8, 0), 0.3)},
+                                      {"T_flange_cam": _T()}, limits)
+    assert metrics["hand_eye_mm"] == pytest.approx(1.0) and metrics["hand_eye_deg"] == \
+        pytest.approx(0.3)
+    assert breaches == ["hand-eye turned 0.300 deg (limit 0.2 deg)"]  # 1.0 mm is at the limit
+    link = {"d": 0.1, "a": -0.4, "theta_offset": 0.0, "alpha": 0.0, "beta": 0.0}
+    old = {"T_flange_cam": _T(), "links": [link] * 6}
+    new = {"T_flange_cam": _T(), "links": [link] * 5 + [{**link, "a": -0.4008,
+                                                           "beta": math.radians(0.01)}]}
+    breaches, metrics = drift.compare("robot-kinematics", new, old, limits)
+    assert metrics["link_mm"] == pytest.approx(0.8) and metrics["link_deg"] == \
+        pytest.approx(0.01)
+    assert breaches == ["a link length changed 0.800 mm (limit 0.5 mm)"]
+
+
+def test_durations_and_schedules_are_read_or_refused_at_load():
+    assert [parse_duration(t) for t in ("45s", "30m", "1h", "2h30m", "1h5s")] == \
+        [45, 1800, 3600, 9000, 3605]
+    for bad in ("", "5", "1x", "m5", "0s", "1h-"):
+        with pytest.raises(ValueError, match="cannot read duration"):
+            parse_duration(bad)
+    ok = "service: {schedules: [{procedure: head-sweep, cron: '0 3 * * 1-5', max_delay: 2h}]}\n"
+    assert parse_rig(ok).service.schedules[0].cron == "0 3 * * 1-5"
+    for text, where in (
+            ("[{procedure: head-sweep, cron: '61 * * * *'}]", "service.schedules.0.cron"),
+            ("[{procedure: head-sweep, interval_s: 60, max_delay: soon}]",
+             "service.schedules.0.max_delay"),
+            ("[{procedure: head-sweep, interval_s: 60, cron: '* * * * *'}]",
+             "exactly one of cron or interval_s")):
+        with pytest.raises(ConfigError, match=where.replace(".", r"\.")):
+            parse_rig(f"service: {{schedules: {text}}}\n", name="rig.yaml")
+
+
+def _service(tmp_path, auto_accept=False, name="units-rig"):
+    tmp_path.mkdir(parents=True, exist_ok=True)
+    rig = tmp_path / f"{name}.yaml"
+    rig.write_text(f"name: {name}\nrecords: {{directory: records}}\n"
+                   f"service: {{auto_accept: {str(auto_accept).lower()}}}\n")
+    from rigctl.config import load_rig
+
+    return RigService(load_rig(rig))
+
+
+def _record(service, run_id, procedure, result, status="succeeded"):
+    run = RunDirectory.create(service.config.records_dir(), run_id)
+    run.write_result(result)
+    service.index.insert({"run_id": run_id, "procedure": procedure, "status": status,
+                          "reason": None, "started_at": utcnow(), "ended_at": utcnow(),
+                          "operator": "test", "rig_name": service.config.name,
+                          "config_hash": "0" * 16, "run_dir": str(run.path), "host": "test",
+                          "pid": os.getpid()})
+
+
+def test_decisions_pending_then_drift_and_automatic_accept(tmp_path):
+    service = _service(tmp_path / "manual")
+    _record(service, "r1-active-camera", "active-camera", CAMERA)
+    assert service.decide("r1-active-camera", "active-camera", CAMERA) == "pending"
+    service.index.update("r1-active-camera", decision="accepted")
+    moved = {**CAMERA, "fx": 900.0 * 1.01}
+    _record(service, "r2-active-camera", "active-camera", moved)
+    assert service.decide("r2-active-camera", "active-camera", moved) == "drift"
+    within = {**CAMERA, "cx": 641.0}
+    _record(service, "r3-active-camera", "active-camera", within)
+    assert service.decide("r3-active-camera", "active-camera", within) == "pending"
+    auto = _service(tmp_path / "auto", auto_accept=True)
+    _record(auto, "a1-active-camera", "active-camera", CAMERA)
+    assert auto.decide("a1-active-camera", "active-camera", CAMERA) == "accepted"
+    assert RecordIndex(auto.config.database_url()).get("a1")["decision"] == "accepted"
+
+
+def test_accept_reject_and_their_404_and_409(tmp_path):
+    service = _service(tmp_path)
+    _record(service, "c1-active-camera", "active-camera", CAMERA)
+    _record(service, "c2-active-camera", "active-camera", CAMERA, status="failed")
+    _record(service, "h1-head-sweep", "head-sweep", {"poses": 1})
+    with TestClient(create_app(service)) as api:
+        assert api.post("/calibrations/c1-active-camera/reject").json() == {
+            "run_id": "c1-active-camera", "decision": "rejected"}
+        assert service.index.get("c1")["decision"] == "rejected"
+        assert api.get("/calibrations/latest?procedure=active-camera").status_code == 404
+        assert api.post("/calibrations/c1/accept").json()["decision"] == "accepted"
+        assert api.get("/calibrations/latest").json()["active-camera"]["run_id"] == \
+            "c1-active-camera"
+        assert api.post("/calibrations/nope/accept").status_code == 404
+        assert api.post("/calibrations/nope/reject").status_code == 404
+        assert api.post("/calibrations/h1-head-sweep/accept").status_code == 409
+        assert api.post("/calibrations/c2-active-camera/reject").status_code == 409
+        assert api.post("/runs/nope/abort").status_code == 404
+        assert api.get("/runs/nope").status_code == 404
+        history = api.get("/calibrations/history?procedure=active-camera").json()
+        assert [h["run_id"] for h in history] == ["c1-active-camera"]  # succeeded only
