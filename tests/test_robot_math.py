@@ -1,67 +1,234 @@
-"""Extrinsics, hand-eye and robot calibration math against known truth; no mocks."""
+"""Extrinsics, hand-eye and robot calibration math against known truth, on data from the
+simulator's own forward models: the camera stand-in's projection and the simulated arm
+(``mocks.world``, ``mocks.ur_kinematics``), with ``tests.forward`` where mocks has no
+model (chains other than a UR, error measures). The solvers' helpers in
+``rigctl.geometry`` make no data and judge no result here; the convention tests below
+compare them with the simulator's."""
 
 from __future__ import annotations
 
 import math
 
-import cv2
 import numpy as np
 import pytest
 
-from rigctl.bench.thesis_robot import table_5_6
+from mocks.ur_kinematics import ArmModel, matrix_to_pose, matrix_to_rotvec, pose_to_matrix
+from mocks.ur_kinematics import rotvec_to_matrix as rotvec
+from mocks.world import (
+    ArmErrors,
+    ArmTruth,
+    CameraTruth,
+    PoseTruth,
+    SceneTruth,
+    TargetTruth,
+    World,
+    WorldFile,
+    axis_angle,
+    rpy_matrix,
+    transform,
+)
 from rigctl.calib import handeye, robot
 from rigctl.calib.board import board_points
 from rigctl.calib.extrinsic import estimate_pose, tsai_planar
 from rigctl.errors import SolveError
-from rigctl.geometry.kinematics import nominal_ur
-from rigctl.geometry.transforms import inv_T, make_T, rotvec_to_R
+from rigctl.geometry import transforms
+from rigctl.geometry.kinematics import KinematicModel, nominal_ur
+from tests.forward import (
+    Rx,
+    Ry,
+    Rz,
+    Tr,
+    brown_project,
+    chain_of,
+    dh_fk,
+    dh_frames,
+    pose_rms,
+    rotation_deg,
+)
 
-K = np.array([[900.0, 0, 652.3], [0, 905.0, 371.8], [0, 0, 1]])
-DIST = np.array([-0.08, 0.05, 0.0004, -0.0003, -0.01])
-OBJ = board_points(7, 10, 0.03)
+DIST = [-0.08, 0.05, 0.0004, -0.0003, -0.01]
+OBJ = board_points(7, 10, 0.03)  # the solvers' board model (checked against the world's)
+inv = np.linalg.inv
 
 
-def project(T, noise=0.0, rng=None):
-    px, _ = cv2.projectPoints(OBJ.reshape(-1, 1, 3), cv2.Rodrigues(T[:3, :3])[0], T[:3, 3],
-                              K, DIST)
-    px = px.reshape(-1, 2)
+def sim_world(hand_eye=((0.0, 0.0, 50.0), (0.0, 0.0, 0.0)),
+              target=((600.0, 0.0, 0.0), (180.0, 0.0, 0.0)), errors: ArmErrors | None = None,
+              model: str = "ur5e") -> World:
+    """The simulated rig (camera 900/905 px, centre 652.3/371.8, distortion ``DIST``;
+    7 x 10 board of 30 mm squares) with the hand-eye and target poses (mm, rpy deg) and
+    arm errors given; camera on the flange with the head at zero."""
+    spec = WorldFile(camera=CameraTruth(distortion=DIST),
+                     hand_eye=PoseTruth(xyz_mm=list(hand_eye[0]), rpy_deg=list(hand_eye[1])),
+                     target=TargetTruth(xyz_mm=list(target[0]), rpy_deg=list(target[1])),
+                     arm=ArmTruth(model=model, errors=errors or ArmErrors()),
+                     scene=SceneTruth(shapes=0))
+    return World(spec)
+
+
+def T_flange_cam(world: World) -> np.ndarray:
+    return world.T_flange_head @ world.T_head_cam(0.0, 0.0, 0.0)
+
+
+def T_cam_target(world: World, q) -> np.ndarray:
+    """The camera's view of the target at joints ``q`` (what a board pose measures)."""
+    return inv(world.T_base_cam(q, (0.0, 0.0, 0.0))) @ world.T_base_target
+
+
+CAMERA = sim_world()
+K = CAMERA.K
+
+
+def view(world: World, T_cam_tgt: np.ndarray, noise=0.0, rng=None) -> np.ndarray:
+    """Board corners as the simulated camera sees them from ``T_cam_target``."""
+    px = world.target_corner_pixels(world.T_base_target @ inv(T_cam_tgt))
     return px + (rng.normal(0, noise, px.shape) if noise else 0)
 
 
+def transform_error(T_est, T_true) -> tuple[float, float]:
+    """(rotation deg, translation mm), computed here rather than by the solver's helper."""
+    return rotation_deg(T_est, T_true), 1000 * float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]))
+
+
+# -- conventions: the solvers' models against the simulator's -----------------------------
+
+
+def test_solver_kinematics_match_the_simulated_arm():
+    """calib's FK (nominal UR and with every error, beta included) against the simulated
+    arm and the DH chain written out, at random q, to 1e-9 m / 1e-9 rad; the world's
+    truth export read by ``KinematicModel.from_export`` is the same arm."""
+    rng = np.random.default_rng(40)
+    for model in ("ur3e", "ur5e", "ur10e"):
+        sim, calib = ArmModel.nominal(model), nominal_ur(model)
+        for _ in range(10):
+            q = rng.uniform(-math.pi, math.pi, 6)
+            for T in (calib.fk(q), calib.fk_batch(q[None])[0], dh_fk(chain_of(sim), q)):
+                assert np.linalg.norm(T[:3, 3] - sim.flange(q)[:3, 3]) < 1e-9
+                assert np.abs(T[:3, :3] - sim.flange(q)[:3, :3]).max() < 1e-9
+    errors = ArmErrors(theta_deg=[0.3, -0.2, 0.1, 0.4, -0.3, 0.2],
+                       d_mm=[1, -2, 0.5, 1, -1, 2], a_mm=[0.5, 2, -1, 0.3, 0.2, -0.4],
+                       alpha_deg=[0.2, 0.3, -0.2, 0.1, 0.2, -0.1],
+                       beta_deg=[0, 0.4, -0.3, 0, 0, 0])
+    world = sim_world(errors=errors)
+    calib = KinematicModel(**chain_of(world.arm_true))
+    exported = KinematicModel.from_export(world.truth()["arm"])
+    for _ in range(20):
+        q = rng.uniform(-math.pi, math.pi, 6)
+        truth = world.arm_true.flange(q)
+        for T in (calib.fk(q), calib.fk_batch(q[None])[0], exported.fk(q),
+                  dh_fk(chain_of(world.arm_true), q)):
+            assert np.linalg.norm(T[:3, 3] - truth[:3, 3]) < 1e-9
+            assert np.abs(T[:3, :3] - truth[:3, :3]).max() < 1e-9
+        for Ta, Tb in zip(calib.frames(q), dh_frames(chain_of(world.arm_true), q), strict=True):
+            assert np.abs(Ta - Tb).max() < 1e-12
+    # the errors matter: the nominal chain is millimetres away
+    assert np.linalg.norm(nominal_ur("ur5e").fk(q)[:3, 3] - truth[:3, 3]) > 1e-3
+
+
+def test_solver_transforms_and_board_match_the_simulator():
+    """Rotation vectors, UR poses, roll-pitch-yaw and the board's corner order: the
+    solvers' helpers against the simulator's."""
+    rng = np.random.default_rng(41)
+    for _ in range(50):
+        rv = rng.normal(size=3)
+        rv *= rng.uniform(0.01, math.pi - 1e-3) / np.linalg.norm(rv)
+        R = rotvec(rv)
+        assert np.abs(transforms.rotvec_to_R(rv) - R).max() < 1e-12
+        assert np.abs(transforms.R_to_rotvec(R) - matrix_to_rotvec(R)).max() < 1e-9
+        pose = np.r_[rng.normal(size=3), rv]
+        assert np.abs(transforms.pose_to_T(pose) - pose_to_matrix(pose)).max() < 1e-12
+        assert np.abs(transforms.T_to_pose(pose_to_matrix(pose)) -
+                      matrix_to_pose(pose_to_matrix(pose))).max() < 1e-9
+        T = pose_to_matrix(pose)
+        assert np.abs(transforms.inv_T(T) - inv(T)).max() < 1e-12
+        rpy = rng.uniform(-180, 180, 3)
+        assert np.abs(transforms.rpy_deg_to_R(rpy) - rpy_matrix(rpy)).max() < 1e-12
+        assert np.abs(transforms.xyz_rpy_to_T(rpy * 3, rpy) -
+                      transform(rpy_matrix(rpy), rpy * 3 / 1000)).max() < 1e-12
+    # roll about x, then pitch about y, then yaw about z (fixed axes), written out
+    r, p, y = np.radians([10.0, -20.0, 30.0])
+    assert np.abs(rpy_matrix([10, -20, 30]) - (Rz(y) @ Ry(p) @ Rx(r))[:3, :3]).max() < 1e-12
+    assert np.abs(axis_angle([0, 0, 1], 0.3) - Rz(0.3)[:3, :3]).max() < 1e-12
+    # the solvers' board points are the simulated target's corners, in the same order
+    assert np.array_equal(OBJ, CAMERA.target_corners())
+
+
+def test_solver_projection_matches_the_simulated_camera():
+    """The camera stand-in's projection of the board at an arm pose is the chain
+    ``T_cam_target = (FK(q) X)^-1 W`` and the Brown model written out; the solvers'
+    pose estimate (OpenCV projection, Tsai on undistorted points) fits those pixels
+    exactly."""
+    world = sim_world(hand_eye=((0.0, 0.0, 50.0), (0.0, 0.0, 0.0)),
+                      target=((500.0, 100.0, 0.0), (180.0, 0.0, 0.0)))
+    # the camera 0.4 m above the board, looking down at it obliquely: joints from the
+    # simulator's own IK
+    eye = np.array([0.55, 0.10, 0.40])
+    z = world.T_base_target[:3, :3] @ [0.15, 0.12, 0.0] + world.T_base_target[:3, 3] - eye
+    z /= np.linalg.norm(z)
+    x = np.cross([-1.0, 0, 0], z)
+    x /= np.linalg.norm(x)
+    T_goal = transform(np.c_[x, np.cross(z, x), z], eye) @ inv(T_flange_cam(world))
+    q = world.arm_true.ik(T_goal, np.radians([0, -100, -100, -70, 90, 0]))
+    assert q is not None
+    C = inv(dh_fk(chain_of(world.arm_true), q) @ T_flange_cam(world)) @ world.T_base_target
+    pts = (C[:3, :3] @ OBJ.T).T + C[:3, 3]
+    cam = world.spec.camera
+    px = world.target_corner_pixels(world.T_base_cam(q, (0.0, 0.0, 0.0)))
+    assert np.abs(px - brown_project(pts, cam.fx, cam.fy, cam.cx, cam.cy, DIST)).max() < 1e-9
+    assert np.all((px > 0) & (px < [1280, 720]))
+    est = estimate_pose(OBJ, px, K, DIST)
+    assert est.method == "tsai" and est.rms_px < 1e-6
+    assert transform_error(est.T_cam_target, C)[0] < 1e-7  # deg
+    assert transform_error(est.T_cam_target, C)[1] < 1e-6  # mm
+
+
+# -- extrinsics -----------------------------------------------------------------------------
+
+
 def test_tsai_closed_form_and_refinement_recover_the_pose():
-    T = make_T(rotvec_to_R([0.35, -0.25, 0.4]), [-0.12, -0.08, 0.5])
-    T0 = tsai_planar(OBJ, project(T), K, DIST)
-    assert np.linalg.norm(T0[:3, 3] - T[:3, 3]) < 1e-6  # exact data: exact closed form
-    est = estimate_pose(OBJ, project(T, 0.3, np.random.default_rng(0)), K, DIST)
+    T = transform(rotvec([0.35, -0.25, 0.4]), [-0.12, -0.08, 0.5])
+    T0 = tsai_planar(OBJ, view(CAMERA, T), K, DIST)
+    rot, t = transform_error(T0, T)
+    assert t < 1e-3 and rot < 1e-6  # exact data: exact closed form (under 1 um, 1e-6 deg)
+    est = estimate_pose(OBJ, view(CAMERA, T, 0.3, np.random.default_rng(0)), K, DIST)
     assert est.method == "tsai"
-    assert np.linalg.norm(est.T_cam_target[:3, 3] - T[:3, 3]) < 1e-3
+    rot, t = transform_error(est.T_cam_target, T)
+    assert t < 1.0 and rot < 0.05
     assert 0.2 < est.rms_px < 0.6
 
 
 def test_fronto_parallel_view_is_refused_by_tsai():
-    T = make_T(rotvec_to_R([0.0, 0.0, 0.3]), [-0.12, -0.08, 0.5])
+    T = transform(rotvec([0.0, 0.0, 0.3]), [-0.12, -0.08, 0.5])
     with pytest.raises(SolveError, match="fronto-parallel"):
-        tsai_planar(OBJ, project(T), K, DIST)
-    assert estimate_pose(OBJ, project(T), K, DIST).method == "ippe"  # documented fallback
+        tsai_planar(OBJ, view(CAMERA, T), K, DIST)
+    est = estimate_pose(OBJ, view(CAMERA, T), K, DIST)
+    assert est.method == "ippe"  # documented fallback
+    assert transform_error(est.T_cam_target, T)[0] < 1e-6
+    assert transform_error(est.T_cam_target, T)[1] < 1e-3
     with pytest.raises(SolveError, match="collinear"):
         tsai_planar(np.c_[np.linspace(0, 1, 8), np.zeros(8), np.zeros(8)],
                     np.random.default_rng(1).normal(size=(8, 2)), K)
 
 
+# -- hand-eye -------------------------------------------------------------------------------
+
+
 def he_data(n, seed, noise_px=0.2):
+    """Camera poses drawn around a view of the board from 0.45 m, arm poses ``F`` that
+    put the simulated camera there, the corners the simulated camera sees (with noise)
+    and their board poses."""
     rng = np.random.default_rng(seed)
-    X = make_T(rotvec_to_R([0.05, -0.03, 0.1]), [0.01, 0.02, 0.05])
-    W = make_T(np.diag([1.0, -1, -1]), [0.5, 0.1, 0.0])
+    world = sim_world(hand_eye=((10.0, 20.0, 50.0), (2.9, -1.7, 5.7)),
+                      target=((500.0, 100.0, 0.0), (180.0, 0.0, 0.0)))
+    X, W = T_flange_cam(world), world.T_base_target
     F, C, corners = [], [], []
     while len(F) < n:
-        T_base_cam = make_T(rotvec_to_R(np.r_[rng.normal(0, 0.3, 2), rng.uniform(-1, 1)])
-                            @ np.diag([1.0, -1, -1]), [0.6 + rng.normal(0, 0.08),
-                                                      0.2 + rng.normal(0, 0.08), 0.45])
-        Ck = inv_T(T_base_cam) @ W
-        px = project(Ck)
+        T_base_cam = transform(rotvec(np.r_[rng.normal(0, 0.3, 2), rng.uniform(-1, 1)])
+                               @ np.diag([1.0, -1, -1]), [0.6 + rng.normal(0, 0.08),
+                                                         0.2 + rng.normal(0, 0.08), 0.45])
+        px = world.target_corner_pixels(T_base_cam)
         if not np.all((px > 5) & (px < [1275, 715])):
             continue
-        F.append(T_base_cam @ inv_T(X))
+        F.append(T_base_cam @ inv(X))
         px = px + rng.normal(0, noise_px, px.shape)
         corners.append(px)
         C.append(estimate_pose(OBJ, px, K, DIST).T_cam_target)
@@ -73,75 +240,169 @@ def test_hand_eye_closed_forms_refinement_and_order_independence():
     closed = handeye.closed_form(F, C)
     assert set(closed) == set(handeye.METHODS)
     for Xe in closed.values():
-        rot, t = handeye.transform_error(Xe, X)
+        rot, t = transform_error(Xe, X)
         assert rot < 0.5 and t < 5.0
     ref = handeye.refine_pixels(F, corners, OBJ, K, DIST, closed["park"], C=C)
-    rot, t = handeye.transform_error(ref.X, X)
+    rot, t = transform_error(ref.X, X)
     assert rot < 0.05 and t < 0.5
-    assert handeye.transform_error(ref.W, W)[1] < 0.5
+    assert transform_error(ref.W, W)[0] < 0.05 and transform_error(ref.W, W)[1] < 0.5
     perm = np.random.default_rng(9).permutation(len(F))
     closed2 = handeye.closed_form([F[i] for i in perm], [C[i] for i in perm])
     for name in closed:  # the same samples in another order give the same answer
         assert np.allclose(closed[name], closed2[name], atol=1e-9)
 
 
+def opencv_draw(rng, theta_deg, t_range):
+    """A pose as OpenCV's hand-eye test draws one (test_calibration_hand_eye.cpp): angle
+    uniform in ``theta_deg`` with a random sign, times an axis of components uniform in
+    [-1, 1] (not normalised); each translation component uniform in ``t_range`` with a
+    random sign."""
+    theta = math.radians(rng.uniform(*theta_deg)) * rng.choice([-1.0, 1.0])
+    rv = theta * rng.uniform(-1.0, 1.0, 3)
+    t = []
+    for _ in range(3):
+        size = rng.uniform(*t_range)
+        t.append(size * rng.choice([-1.0, 1.0]))
+    return transform(rotvec(rv), t)
+
+
+def opencv_noisy(T, rng, sigma_rot, sigma_t):
+    return transform(rotvec(matrix_to_rotvec(T[:3, :3]) + rng.normal(0, sigma_rot, 3)),
+                     T[:3, 3] + rng.normal(0, sigma_t, 3))
+
+
+def opencv_trial(n, seed, arm_noise):
+    """OpenCV's test data: camera-to-gripper 10-50 deg / 0.05-0.5 m, target 5-85 deg /
+    0.5-3.5 m, gripper 5-45 deg / 0.5-1.5 m; noise 0.002 rad / 5 mm on target-to-camera,
+    0.001 rad / 1 mm on gripper-to-base (reaching the solvers only ``as_described``).
+    Returns (rotation deg, translation mm) errors of each closed form and the refinement."""
+    rng = np.random.default_rng(seed)
+    X = opencv_draw(rng, (10, 50), (0.05, 0.5))
+    W = opencv_draw(rng, (5, 85), (0.5, 3.5))
+    F, C = [], []
+    for _ in range(n):
+        Fk = opencv_draw(rng, (5, 45), (0.5, 1.5))
+        C.append(opencv_noisy(inv(Fk @ X) @ W, rng, 0.002, 0.005))
+        F_noisy = opencv_noisy(Fk, rng, 0.001, 0.001)
+        F.append(F_noisy if arm_noise == "as_described" else Fk)
+    closed = handeye.closed_form(F, C)
+    out = {name: transform_error(Xe, X) for name, Xe in closed.items()}
+    arm_sigma = 0.001 if arm_noise == "as_described" else 0.0
+    refined = handeye.refine_poses(F, C, closed["park"], sigma_rot=0.002,
+                                   sigma_t=0.005, sigma_rot_arm=arm_sigma,
+                                   sigma_t_arm=arm_sigma)
+    out["refined"] = transform_error(refined.X, X)
+    return out
+
+
 @pytest.mark.parametrize(("poses", "arm_noise", "anchor_mm"), [
     (10, "as_run", 11.0), (30, "as_run", 6.0), (10, "as_described", 11.0)])
 def test_hand_eye_pose_refinement_on_opencv_noise_model_beats_closed_forms(
         poses, arm_noise, anchor_mm):
-    """OpenCV's own test draws (bench handeye), 40 fixed seeds: the closed forms land on
-    the anchor (~11 mm at 10 poses, ~6 mm at 30), and the maximum-likelihood refinement
-    (camera poses compared in the camera frame; arm poses as errors in variables when
-    their noise reaches the solver) beats the best closed form's median translation error
-    by over 20 %."""
+    """OpenCV's own test draws, 40 fixed seeds: the closed forms land on the anchor
+    (~11 mm at 10 poses, ~6 mm at 30), and the maximum-likelihood refinement (camera
+    poses compared in the camera frame; arm poses as errors in variables when their noise
+    reaches the solver) beats the best closed form's median translation error by over
+    20 %. The benchmark (``rigctl bench handeye``) draws the same data."""
     from rigctl.bench.handeye import trial
 
-    rows = [trial(poses, 7 + 10_000 + k, arm_noise) for k in range(40)]
-    closed = [m for m in rows[0] if m != "refined" and not m.startswith("_")]
+    rows = [opencv_trial(poses, 7 + 10_000 + k, arm_noise) for k in range(40)]
+    closed = [m for m in rows[0] if m != "refined"]
     best = min(np.median([r[m][1] for r in rows]) for m in closed)
     refined = np.median([r["refined"][1] for r in rows])
     assert 0.75 * anchor_mm < best < 1.25 * anchor_mm
     assert refined < 0.8 * best
+    bench = trial(poses, 7 + 10_000, arm_noise)
+    for name, (rot, t) in rows[0].items():
+        assert bench[name] == pytest.approx((rot, t), rel=1e-6, abs=1e-9)
+
+
+# -- robot kinematics -----------------------------------------------------------------------
+
+
+PUMA = {"theta_offset": np.radians([1.0, 1.0, 1.0]), "d": np.array([0.2032, 0.0, 0.0]),
+        "a": np.array([0.0, 0.4326, 0.2032]), "alpha": np.radians([90.0, -90.0, 0.0])}
+PUMA_X = transform(rotvec([0.1, -0.2, 0.05]), [0.02, -0.01, 0.08])
+PUMA_W = transform(rotvec([0.3, 0.1, -0.2]), [0.5, 0.2, -0.3])
+
+
+def puma_sweeps(rng=None, kind=None, axis=0, sigma=0.0) -> dict[int, robot.Sweep]:
+    """Thesis Table 5.5-5.6 protocol on the DH chain written out: each joint 0..60 deg in
+    steps of 10, the others at 0; camera poses rotated about (``kind="rot"``, deg) or moved
+    along (mm) their ``axis`` by Gaussian errors of ``sigma``."""
+    sweeps = {}
+    for i in range(3):
+        qs, Cs = [], []
+        for deg in range(0, 61, 10):
+            q = np.zeros(3)
+            q[i] = math.radians(deg)
+            C = inv(dh_fk(PUMA, q) @ PUMA_X) @ PUMA_W
+            if rng is not None and sigma > 0:
+                e = np.zeros(3)
+                e[axis] = rng.normal(0, sigma)
+                C = (transform(rotvec(np.radians(e))) if kind == "rot" else Tr(*e / 1000)) @ C
+            qs.append(q)
+            Cs.append(C)
+        sweeps[i] = robot.Sweep(i, qs, Cs)
+    return sweeps
+
+
+def puma_nominal() -> KinematicModel:
+    return KinematicModel(PUMA["d"], PUMA["a"], PUMA["alpha"])
 
 
 def test_table_5_6_without_noise_beats_1e_6():
+    model = robot.link_by_link(puma_sweeps(), PUMA_X, puma_nominal(), PUMA_W).model
+    for key, scale in (("a", 1000), ("d", 1000), ("alpha", 180 / math.pi),
+                       ("theta_offset", 180 / math.pi)):  # mm and deg
+        assert np.abs(getattr(model, key) - PUMA[key]).max() * scale <= 1e-6, key
+    from rigctl.bench.thesis_robot import table_5_6  # the benchmark's table: same truth
+
     for row in table_5_6():
         assert row["ours"]["dl_mm"] <= 1e-6 and row["ours"]["dd_mm"] <= 1e-6
         assert row["ours"]["dalpha_deg"] <= 1e-6 and row["ours"]["dtheta_deg"] <= 1e-6
 
 
 def ur_truth(seed):
+    """A simulated UR5e with random link errors (0.1 deg, 0.5 mm; beta on the parallel
+    joints 2 and 3), camera 50 mm off the flange, board 0.5 m ahead; and the nominal
+    model the solvers start from."""
     rng = np.random.default_rng(seed)
-    nominal = nominal_ur("ur5e")
-    true = nominal.copy()
-    true.theta_offset += np.radians(rng.normal(0, 0.1, 6))
-    true.d += rng.normal(0, 0.0005, 6)
-    true.a += rng.normal(0, 0.0005, 6)
-    true.alpha += np.radians(rng.normal(0, 0.1, 6))
-    true.beta[1:3] = np.radians(rng.normal(0, 0.1, 2))
-    X = make_T(rotvec_to_R([0.02, -0.01, 0.03]), [0.0, 0.0, 0.05])
-    W = make_T(np.diag([1.0, -1, -1]), [0.5, 0.0, 0.0])
-    return nominal, true, X, W, rng
+    errors = ArmErrors(theta_deg=rng.normal(0, 0.1, 6).tolist(),
+                       d_mm=rng.normal(0, 0.5, 6).tolist(), a_mm=rng.normal(0, 0.5, 6).tolist(),
+                       alpha_deg=rng.normal(0, 0.1, 6).tolist(),
+                       beta_deg=[0.0, *rng.normal(0, 0.1, 2), 0.0, 0.0, 0.0])
+    world = sim_world(hand_eye=((0.0, 0.0, 50.0), (1.15, -0.57, 1.72)),
+                      target=((500.0, 0.0, 0.0), (180.0, 0.0, 0.0)), errors=errors)
+    return nominal_ur("ur5e"), world, T_flange_cam(world), world.T_base_target, rng
 
 
-def exact_sweeps(true, X, W, qb, offsets_deg) -> dict:
+def exact_sweeps(world, qb, offsets_deg) -> dict:
     """Noise-free single-joint sweeps: every joint moved by each offset from ``qb``, or
     from ``qb[j]`` when ``qb`` holds one base configuration per joint."""
     sweeps = {}
     for j in range(6):
         base = np.array(qb[j] if np.ndim(qb) == 2 else qb, float)
         qs = [base] + [base + np.eye(6)[j] * math.radians(o) for o in offsets_deg]
-        sweeps[j] = robot.Sweep(j, qs, [inv_T(true.fk(q) @ X) @ W for q in qs])
+        sweeps[j] = robot.Sweep(j, qs, [T_cam_target(world, q) for q in qs])
     return sweeps
+
+
+def held_out(model, X, W, world, test_q) -> tuple[float, float]:
+    """RMS position (m) and rotation (rad) error of the camera pose in the target frame
+    predicted by a calibration, against the simulated arm's."""
+    return pose_rms([inv(W) @ model.fk(q) @ X for q in test_q],
+                    [inv(T_cam_target(world, q)) for q in test_q])
+
 
 def test_minimal_set_has_30_parameters_and_plain_dh_two_null_directions():
     nominal = nominal_ur("ur5e")
     mask = robot.identifiable_mask(nominal)
     assert sum(int(m.sum()) for m in mask.values()) + 12 == 30
     assert mask["beta"].tolist() == [False, True, True, False, False, False]
-    _, true, X, W, rng = ur_truth(1)
+    _, world, X, W, rng = ur_truth(1)
     qs = [np.radians([0, -100, -100, -70, 90, 0]) + rng.normal(0, 0.4, 6) for _ in range(40)]
-    meas = robot.Measurements(qs, C=[inv_T(true.fk(q) @ X) @ W for q in qs],
+    meas = robot.Measurements(qs, C=[T_cam_target(world, q) for q in qs],
                               sigma_rot=1e-4, sigma_t=1e-4)
     ref = robot.refine(nominal, X, W, meas)
     dh = robot.refine(nominal, X, W, meas, mask=robot.dh_mask(nominal))
@@ -152,6 +413,9 @@ def test_minimal_set_has_30_parameters_and_plain_dh_two_null_directions():
     assert dh_relative[-1] < hayati_smallest / 100 and dh_relative[-2] < hayati_smallest / 100
     assert dh_relative[-3] > hayati_smallest / 100
     assert ref.condition < 1e4
+    # exact data: the Hayati refinement reproduces the simulated arm
+    pos, rot = held_out(ref.model, ref.X, ref.W, world, qs)
+    assert pos < 1e-9 and rot < 1e-9
 
 
 def test_link_by_link_exact_with_each_joint_swept_from_its_own_base():
@@ -159,25 +423,26 @@ def test_link_by_link_exact_with_each_joint_swept_from_its_own_base():
     longest: link-by-link (each axis in the frame after its link) stays exact in
     orientation; position is off only by d4, which parallel joints 2-3-4 leave
     unobservable (0.06-0.12 mm on this truth, with a common base or not)."""
-    nominal, true, X, W, rng = ur_truth(2)
+    nominal, world, X, W, rng = ur_truth(2)
     qb = np.radians([10, -100, -100, -70, 90, 20])
     bases = [qb + np.radians(rng.uniform(-25, 25, 6)) for _ in range(6)]
-    sweeps = exact_sweeps(true, X, W, bases, (10, -10, 20))
+    sweeps = exact_sweeps(world, bases, (10, -10, 20))
     lbl = robot.link_by_link(sweeps, X, nominal, W=W)
     test_q = [qb + np.radians(rng.normal(0, 15, 6)) for _ in range(20)]
-    pos, rot = robot.pose_errors(lbl.model, X, W, test_q, lambda q: inv_T(W) @ true.fk(q) @ X)
+    pos, rot = held_out(lbl.model, X, W, world, test_q)
     assert pos < 2e-4 and rot < 1e-9
 
 
 def test_link_by_link_exact_on_ur_and_refinement_recovers_truth_with_noise():
-    nominal, true, X, W, rng = ur_truth(2)
+    nominal, world, X, W, rng = ur_truth(2)
+    true = world.arm_true
     qb = np.radians([10, -100, -100, -70, 90, 20])
-    sweeps = exact_sweeps(true, X, W, qb, (10, -10, 20))
+    sweeps = exact_sweeps(world, qb, (10, -10, 20))
     lbl = robot.link_by_link(sweeps, X, nominal)
     test_q = [qb + np.radians(rng.normal(0, 15, 6)) for _ in range(20)]
     W_l = handeye.average_W([lbl.model.fk(q) for s in sweeps.values() for q in s.q],
                             [c for s in sweeps.values() for c in s.C], X)
-    pos, _ = robot.pose_errors(lbl.model, X, W_l, test_q, lambda q: inv_T(W) @ true.fk(q) @ X)
+    pos, _ = held_out(lbl.model, X, W_l, world, test_q)
     # noise-free: the sweeps determine the chain up to the Hayati branch's neglected
     # second-order terms (a * alpha * beta) and d4, which only d2 can carry
     assert pos < 1e-4
@@ -189,15 +454,13 @@ def test_link_by_link_exact_on_ur_and_refinement_recovers_truth_with_noise():
     qs = [qb + rng.normal(0, 0.3, 6) for _ in range(50)]
     C = []
     for q in qs:
-        Ck = inv_T(true.fk(q) @ X) @ W
-        C.append(make_T(rotvec_to_R(np.radians(rng.normal(0, 0.005, 3))), rng.normal(0, 5e-5, 3))
-                 @ Ck)
+        C.append(transform(rotvec(np.radians(rng.normal(0, 0.005, 3))), rng.normal(0, 5e-5, 3))
+                 @ T_cam_target(world, q))
     meas = robot.Measurements(qs, C=C, sigma_rot=math.radians(0.005), sigma_t=5e-5)
     ref = robot.refine(nominal, X, W, meas)
-    pos, rot = robot.pose_errors(ref.model, ref.X, ref.W, test_q,
-                                 lambda q: inv_T(W) @ true.fk(q) @ X)
+    pos, rot = held_out(ref.model, ref.X, ref.W, world, test_q)
     assert pos < 1e-4 and rot < math.radians(0.01)
-    nominal_pos, _ = robot.pose_errors(nominal, X, W, test_q, lambda q: inv_T(W) @ true.fk(q) @ X)
+    nominal_pos, _ = held_out(nominal, X, W, world, test_q)
     assert nominal_pos > 5e-4 and nominal_pos > 10 * pos
     # predicted 1-sigma of a link length against the actual error: same order
     i = ref.names.index("link4.a")
@@ -209,23 +472,20 @@ def test_pose_residuals_live_in_the_camera_frame_and_a_bad_start_is_escaped():
     camera frame). The residual ``C_k W^-1 FK(q_k) X`` carries that error as pure rotation,
     so the refinement recovers the link lengths; the noisy link-by-link start (degrees
     off) falls into a local minimum that the nominal start avoids."""
-    from rigctl.bench.thesis_robot import W_TRUE, X_TRUE, _sweeps, _true_model
-    from rigctl.geometry.kinematics import puma560_3link
-
-    true, nominal = _true_model(), puma560_3link()
     rng = np.random.default_rng(7)
     for _ in range(3):  # the third draw is one whose link-by-link start misleads
-        data = _sweeps(true, rng, "rot", 1, 5.0)
-    est = robot.link_by_link(data, X_TRUE, nominal, W_TRUE).model
-    assert np.max(np.abs(est.a - true.a)) > 5e-3  # link-by-link: mm-level errors
+        data = puma_sweeps(rng, "rot", 1, 5.0)
+    nominal = puma_nominal()
+    est = robot.link_by_link(data, PUMA_X, nominal, PUMA_W).model
+    assert np.max(np.abs(est.a - PUMA["a"])) > 5e-3  # link-by-link: mm-level errors
     meas = robot.Measurements([q for s in data.values() for q in s.q],
                               C=[c for s in data.values() for c in s.C],
                               sigma_rot=math.radians(5.0), sigma_t=1e-5)
-    alone = robot.refine(est, X_TRUE, W_TRUE, meas, free_XW=False, robust=False)
-    both = robot.refine(est, X_TRUE, W_TRUE, meas, free_XW=False, robust=False,
-                        extra_starts=[(nominal, X_TRUE, W_TRUE)])
-    assert np.max(np.abs(alone.model.a - true.a)) > 5e-3
-    assert np.max(np.abs(both.model.a - true.a)) < 1e-3
+    alone = robot.refine(est, PUMA_X, PUMA_W, meas, free_XW=False, robust=False)
+    both = robot.refine(est, PUMA_X, PUMA_W, meas, free_XW=False, robust=False,
+                        extra_starts=[(nominal, PUMA_X, PUMA_W)])
+    assert np.max(np.abs(alone.model.a - PUMA["a"])) > 5e-3
+    assert np.max(np.abs(both.model.a - PUMA["a"])) < 1e-3
     assert both.rms < alone.rms / 5
 
 
@@ -255,29 +515,28 @@ def test_axis_based_needs_no_hand_eye_and_is_exact_without_noise():
     measurements, the fitted links and a wrong X (2 deg, 5 mm off) still reproduce the
     truth once X and W are fitted with the links held."""
 
-    nominal, true, X, W, rng = ur_truth(3)
+    nominal, world, X, W, rng = ur_truth(3)
     qb = np.radians([10, -100, -100, -70, 90, 20])
     # each joint swept from its own base configuration
     bases = [qb + np.radians(rng.uniform(-20, 20, 6)) for _ in range(6)]
-    sweeps = exact_sweeps(true, X, W, bases, (15, -15, 30))
+    sweeps = exact_sweeps(world, bases, (15, -15, 30))
     lines = robot.axis_lines(sweeps)
     for j, (q_base, u, p) in lines.items():  # joint j's axis at its base, in the target frame
         assert np.allclose(q_base, bases[j])
-        T = inv_T(W) @ true.frames(bases[j])[j]
+        T = inv(W) @ dh_frames(chain_of(world.arm_true), bases[j])[j]
         assert np.linalg.norm(u - T[:3, 2]) < 1e-9
         off = p - T[:3, 3]
-        assert np.linalg.norm(off - (off @ u) * u) < 1e-9
-    X_wrong = make_T(rotvec_to_R([0.035, 0, 0]), [0.005, 0, 0.05]) @ X
+        assert np.linalg.norm(off - (off @ u) * u) < 1e-8  # 0.6 nm at most here
+    X_wrong = transform(rotvec([0.035, 0, 0]), [0.005, 0, 0.05]) @ X
     model, W_fit = robot.axis_based(sweeps, nominal, handeye.average_W(
         [nominal.fk(q) for q in sweeps[0].q], sweeps[0].C, X_wrong))
     qs = [qb + rng.normal(0, 0.3, 6) for _ in range(20)]
-    meas = robot.Measurements(qs, C=[inv_T(true.fk(q) @ X) @ W for q in qs],
+    meas = robot.Measurements(qs, C=[T_cam_target(world, q) for q in qs],
                               sigma_rot=1e-4, sigma_t=1e-4)
     fitted = robot.refine(model, X_wrong, W_fit, meas,
                           mask=robot.frames_only_mask(nominal))
     test_q = [qb + rng.normal(0, 0.3, 6) for _ in range(20)]
-    pos, rot = robot.pose_errors(fitted.model, fitted.X, fitted.W, test_q,
-                                 lambda q: inv_T(W) @ true.fk(q) @ X)
+    pos, rot = held_out(fitted.model, fitted.X, fitted.W, world, test_q)
     assert pos < 1e-6 and rot < 1e-6
     with pytest.raises(SolveError):
         robot.axis_based({j: sweeps[j] for j in range(5)}, nominal, W)
