@@ -86,24 +86,45 @@ def _undistort(pts, fx, fy, cx, cy, k):
     if not np.any(k):
         return xn
     und = xn.copy()
-    for _ in range(10):
-        shifted = _distort(und, k) - und * _radial(np.sum(und ** 2, axis=1, keepdims=True), k)
-        und = (xn - shifted) / _radial(np.sum(und ** 2, axis=1, keepdims=True), k)
+    for _ in range(10):  # fixed point of xn = und * radial(und) + tangential(und)
+        x, y = und[:, :1], und[:, 1:2]
+        r2 = x * x + y * y
+        tangential = np.c_[2 * k[2] * x * y + k[3] * (r2 + 2 * x * x),
+                           k[2] * (r2 + 2 * y * y) + 2 * k[3] * x * y]
+        und = (xn - tangential) / _radial(r2, k)
     return und
 
 
 def predict(motion: Motion, x: np.ndarray, n_dist: int) -> np.ndarray:
-    """Where the reference points land in the moved image under parameters ``x``."""
+    """Where the reference points land in the moved image under parameters ``x``
+    (thesis eq. 3.3: back-project through K and the distortion, rotate by the head's
+    motion, project again)."""
+    return predict_many([motion], x, n_dist)[0]
+
+
+def predict_many(motions: list[Motion], x: np.ndarray, n_dist: int,
+                 refs: np.ndarray | None = None) -> list[np.ndarray]:
+    """``predict`` for several motions at once: the reference points of all of them
+    (``refs``, their concatenation, if already built) are undistorted and distorted in
+    one pass each; only the rotation differs per motion."""
     fx, fy, cx, cy, N, a, k = _unpack(x, n_dist)
-    R = camera_orientation(motion.angles0, N, a).T @ camera_orientation(motion.angles1, N, a)
-    rays = np.c_[_undistort(motion.ref_points, fx, fy, cx, cy, k), np.ones(len(motion.ref_points))]
-    moved = (R.T @ rays.T).T
+    if refs is None:
+        refs = np.concatenate([m.ref_points for m in motions])
+    rays = np.c_[_undistort(refs, fx, fy, cx, cy, k), np.ones(len(refs))]
+    moved, start = np.empty_like(rays), 0
+    for motion in motions:
+        R = camera_orientation(motion.angles0, N, a).T @ \
+            camera_orientation(motion.angles1, N, a)
+        end = start + len(motion.ref_points)
+        moved[start:end] = rays[start:end] @ R
+        start = end
     # A trial step may turn points behind the camera: keep the residuals finite (and
     # large) so the optimiser backs off instead of failing.
     xn = moved[:, :2] / np.maximum(moved[:, 2:3], 1e-3)
     if n_dist:
         xn = _distort(xn, k)
-    return np.c_[fx * xn[:, 0] + cx, fy * xn[:, 1] + cy]
+    pixels = np.c_[fx * xn[:, 0] + cx, fy * xn[:, 1] + cy]
+    return np.split(pixels, np.cumsum([len(m.ref_points) for m in motions])[:-1])
 
 
 @dataclass
@@ -132,10 +153,11 @@ class RefineResult:
                 "outliers": self.outliers, "residuals_by_motion": self.residuals_by_motion}
 
 
-def _residuals(x, motions, n_dist, masks, associations):
+def _residuals(x, motions, n_dist, masks, associations, refs=None):
     out = []
-    for m, motion in enumerate(motions):
-        pred = predict(motion, x, n_dist)[masks[m]]
+    for m, (motion, predicted) in enumerate(zip(motions, predict_many(motions, x, n_dist, refs),
+                                                strict=True)):
+        pred = predicted[masks[m]]
         if motion.curve_mode:
             idx = associations[m]
             q = motion.moved_points[idx]
@@ -165,19 +187,21 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
     x[:4] = [initial["fx"], initial["fy"], initial["cx"], initial["cy"]]
     masks = [np.ones(len(m.ref_points), bool) for m in motions]
     prior = np.radians(prior_deg)
+    refs = np.concatenate([m.ref_points for m in motions])
 
     def associate(xv):
         out = []
-        for m, motion in enumerate(motions):
+        for m, (motion, predicted) in enumerate(zip(motions, predict_many(motions, xv, n_dist,
+                                                                          refs), strict=True)):
             if motion.curve_mode:
-                _, idx = motion.tree().query(predict(motion, xv, n_dist)[masks[m]])
+                _, idx = motion.tree().query(predicted[masks[m]])
                 out.append(idx)
             else:
                 out.append(None)
         return out
 
     def fun(xv, assoc):
-        r = _residuals(xv, motions, n_dist, masks, assoc)
+        r = _residuals(xv, motions, n_dist, masks, assoc, refs)
         # weak priors keep the rotation parameters near the nominal head (5 deg sigma)
         return np.concatenate([r, xv[4:9] / prior])
 
@@ -187,7 +211,7 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
         result = least_squares(fun, x, args=(assoc,), loss="soft_l1", f_scale=1.0,
                                x_scale="jac", max_nfev=200)
         x = result.x
-        r = _residuals(x, motions, n_dist, masks, assoc)
+        r = _residuals(x, motions, n_dist, masks, assoc, refs)
         scale = 1.4826 * np.median(np.abs(r)) + 1e-9
         changed = False
         offset = 0
@@ -206,7 +230,7 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
     assoc = associate(x)
     final = least_squares(fun, x, args=(assoc,), loss="linear", x_scale="jac", max_nfev=100)
     x = final.x
-    r = _residuals(x, motions, n_dist, masks, assoc)
+    r = _residuals(x, motions, n_dist, masks, assoc, refs)
     if not np.all(np.isfinite(x)) or not np.all(np.isfinite(r)):
         raise SolveError("refinement diverged (non-finite parameters)")
     dof = max(len(r) - n_params, 1)

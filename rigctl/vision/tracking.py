@@ -84,12 +84,16 @@ def _finish(emap: EdgeMap, template: np.ndarray, offset, min_coverage: float,
     return Match(True, "ok", pts, normals, offset, best)
 
 
-def _search(dt, base: np.ndarray, xs, ys):
-    scores = np.zeros((len(ys), len(xs)))
-    for i, dy in enumerate(ys):
-        for j, dx in enumerate(xs):
-            scores[i, j] = _score(dt, base + np.array([dx, dy]))
-    return scores
+def _search(dt, base: np.ndarray, xs, ys, cap: float = RADIUS):
+    """``_score`` of ``base`` shifted by every (xs[j], ys[i]), in one interpolation pass:
+    scores[i, j] is the fraction of shifted points within ``cap`` of an edge."""
+    xs, ys = np.asarray(xs, float), np.asarray(ys, float)
+    px = base[None, None, :, 0] + xs[None, :, None]
+    py = base[None, None, :, 1] + ys[:, None, None]
+    px, py = np.broadcast_arrays(px, py)
+    d = map_coordinates(dt, [py.ravel(), px.ravel()], order=1, mode="constant",
+                        cval=cap * 4).reshape(px.shape)
+    return np.mean(d <= cap, axis=2)
 
 
 def _best_and_second(scores: np.ndarray, xs, ys, exclusion: float):
