@@ -66,7 +66,7 @@ def rig_text(world_path: Path, host: str, workdir: Path, camera_url: str, record
                                "rpy_deg": [round(v) for v in world.spec.hand_eye.rpy_deg]}},
             "arm": {"host": host, "model": world.spec.arm.model,
                     "home_deg": list(world.spec.arm.home_deg),
-                    "speed_cap_dps": 90, "accel_cap_dps2": 180, "settle_s": 0.1,
+                    "speed_cap_dps": 170, "accel_cap_dps2": 720, "settle_s": 0.1,
                     **STAND_IN_TIMING["arm"]},
             "camera": {"device": camera_url, "width": cam.width, "height": cam.height,
                        "fps": cam.fps, **STAND_IN_TIMING["camera"]},

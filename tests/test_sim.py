@@ -23,6 +23,7 @@ from rigctl.rig import Rig
 from rigctl.runner import Runner
 from tests.mockproc import ROOT, control
 from tests.simrig import SimRig
+from tests.waiting import wait_until
 
 pytestmark = pytest.mark.integration
 
@@ -94,14 +95,55 @@ def test_stalled_stream_raises_device_error(sim):
     rig = Rig(config)
     try:
         camera = rig.open("camera")
-        control(sim.ready["camera"]["control"], {"cmd": "stall", "seconds": 3})
+        # a stall far past the timeout, ended by the test: the capture gives up
+        control(sim.ready["camera"]["control"], {"cmd": "stall", "seconds": 120})
         t0 = time.monotonic()
         with pytest.raises(DeviceError, match=r"within 1\.0 s"):
             camera.capture(not_before=time.time())
-        assert time.monotonic() - t0 < 2.0
+        assert time.monotonic() - t0 >= 1.0  # it waited its timeout, no less
+    finally:
+        control(sim.ready["camera"]["control"], {"cmd": "stall", "seconds": 0})
+        rig.close_all()
+    # the stream is back for the tests after this one
+    config.devices.camera.timeout_s = 20.0
+    rig = Rig(config)
+    try:
+        assert rig.open("camera").capture(not_before=time.time()).image is not None
     finally:
         rig.close_all()
-    time.sleep(2.5)  # let the stream resume for later tests
+
+
+ORPHANING_PARENT = """
+import json, subprocess, sys, time
+child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(600)"],
+                         start_new_session=True)
+print(json.dumps({"pid": 0, "children": [child.pid]}), flush=True)
+time.sleep(600)
+"""
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def test_child_process_stop_stops_the_children_it_reported_in_other_sessions():
+    """`sim up` starts its stand-ins in sessions of their own and lists them as
+    `children`: when `sim up` itself has to be killed, ChildProcess.stop still stops them."""
+    from rigctl.childproc import ChildProcess
+
+    parent = ChildProcess(["-c", ORPHANING_PARENT], timeout=30)
+    (child,) = parent.ready["children"]
+    try:
+        assert _alive(child) and os.getsid(child) != os.getsid(parent.pid)
+        parent.kill()  # SIGKILL to the parent's group: the child is in another session
+        assert _alive(child)
+    finally:
+        parent.stop(timeout=5)
+    assert parent.orphans == [child]
+    wait_until(lambda: not _alive(child), what="the orphan to die")
 
 
 def test_sim_truth_json():

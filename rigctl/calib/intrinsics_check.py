@@ -27,9 +27,14 @@ def board_intrinsics(obj: np.ndarray, corners: list[np.ndarray], image_size: tup
         raise SolveError(f"intrinsics check: {len(corners)} board views; need {MIN_VIEWS}")
     object_points = [np.asarray(obj, np.float32).reshape(-1, 1, 3)] * len(corners)
     image_points = [np.asarray(c, np.float32).reshape(-1, 1, 2) for c in corners]
-    rms, K, dist, *_, std_intrinsics, _, _ = cv2.calibrateCameraExtended(
-        object_points, image_points, tuple(int(v) for v in image_size), None, None,
-        flags=cv2.CALIB_FIX_K3)
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)  # OpenCV's threaded sums differ in the last digits run to run
+    try:  # one thread: a re-solve of the run reproduces the check exactly
+        rms, K, dist, *_, std_intrinsics, _, _ = cv2.calibrateCameraExtended(
+            object_points, image_points, tuple(int(v) for v in image_size), None, None,
+            flags=cv2.CALIB_FIX_K3)
+    finally:
+        cv2.setNumThreads(threads)
     board = dict(zip(KEYS, (K[0, 0], K[1, 1], K[0, 2], K[1, 2]), strict=True))
     sigma = dict(zip(KEYS, std_intrinsics.ravel()[:4], strict=True))
     z = {k: float((used[k] - board[k]) / max(sigma[k], 1e-9)) for k in KEYS}
