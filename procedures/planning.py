@@ -11,7 +11,7 @@ from rigctl.calib import pose_selection
 from rigctl.calib.board import board_points
 from rigctl.config import RigConfig
 from rigctl.errors import SolveError
-from rigctl.geometry.kinematics import nominal_ur
+from rigctl.geometry.kinematics import KinematicModel, nominal_ur
 from rigctl.geometry.transforms import inv_T, look_at, make_T, xyz_rpy_to_T
 
 # a coarse guard against driving the arm into the table the target lies on: the elbow,
@@ -143,7 +143,6 @@ def informative_views(config: RigConfig, params, K: np.ndarray, planned_q: list,
     board in view; the D-optimal subset together with the views already planned
     (``planned_q``), ordered for short travel. Notes report the predicted condition
     number against that of plain random views."""
-    from .robot_common import board_visible  # robot_common imports this module
 
     model = nominal_ur(config.devices.arm.model)
     X = nominal_flange_cam(config)
@@ -181,3 +180,20 @@ def informative_views(config: RigConfig, params, K: np.ndarray, planned_q: list,
     poses = [candidates[i] for i in chosen]
     start = planned_q[-1] if planned_q else poses[0]
     return [poses[i] for i in pose_selection.order_by_travel(poses, start)], notes
+
+
+def board_visible(config: RigConfig, model: KinematicModel, q, K: np.ndarray,
+                  margin: float = 0.03) -> bool:
+    """Does the nominal camera at joints q see every board corner, inside a margin?"""
+    tg = config.target
+    T_base_target, _ = target_centre(config)
+    T_cam_target = inv_T(model.fk(q) @ nominal_flange_cam(config)) @ T_base_target
+    pts = board_points(tg.rows, tg.cols, tg.square_mm / 1000.0)
+    cam = (T_cam_target[:3, :3] @ pts.T).T + T_cam_target[:3, 3]
+    if np.any(cam[:, 2] < 0.1):
+        return False
+    px = (K @ cam.T).T
+    px = px[:, :2] / px[:, 2:3]
+    w, h = config.devices.camera.width, config.devices.camera.height
+    return bool(np.all((px[:, 0] > margin * w) & (px[:, 0] < (1 - margin) * w) &
+                       (px[:, 1] > margin * h) & (px[:, 1] < (1 - margin) * h)))

@@ -13,10 +13,9 @@ from rigctl.calib.extrinsic import estimate_pose
 from rigctl.config import RigConfig
 from rigctl.errors import ConfigError
 from rigctl.geometry.kinematics import KinematicModel, nominal_ur
-from rigctl.geometry.transforms import inv_T
 from rigctl.records import RecordIndex, RunDirectory
 
-from .planning import MIN_CLEARANCE_M, clearance_m, nominal_flange_cam, target_centre
+from .planning import MIN_CLEARANCE_M, board_visible, clearance_m
 
 
 def intrinsics_from(config: RigConfig, given: dict | None) -> dict[str, Any]:
@@ -64,23 +63,6 @@ def board_observations(ctx, intr: dict) -> list[dict]:
                     "q": np.asarray(capture.meta["arm"]["q"], float), "corners": corners,
                     "C": pose.T_cam_target, "rms_px": pose.rms_px, "pnp": pose.method})
     return out
-
-
-def board_visible(config: RigConfig, model: KinematicModel, q, K: np.ndarray,
-                  margin: float = 0.03) -> bool:
-    """Does the nominal camera at joints q see every board corner, inside a margin?"""
-    tg = config.target
-    T_base_target, _ = target_centre(config)
-    T_cam_target = inv_T(model.fk(q) @ nominal_flange_cam(config)) @ T_base_target
-    pts = board_points(tg.rows, tg.cols, tg.square_mm / 1000.0)
-    cam = (T_cam_target[:3, :3] @ pts.T).T + T_cam_target[:3, 3]
-    if np.any(cam[:, 2] < 0.1):
-        return False
-    px = (K @ cam.T).T
-    px = px[:, :2] / px[:, 2:3]
-    w, h = config.devices.camera.width, config.devices.camera.height
-    return bool(np.all((px[:, 0] > margin * w) & (px[:, 0] < (1 - margin) * w) &
-                       (px[:, 1] > margin * h) & (px[:, 1] < (1 - margin) * h)))
 
 
 def planning_K(config: RigConfig, given: dict | None) -> np.ndarray:
