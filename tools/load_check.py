@@ -37,6 +37,12 @@ def stop(procs: list[subprocess.Popen]) -> None:
         proc.wait(timeout=10)
 
 
+def _interrupt(*_) -> None:
+    """SIGTERM ends the check like Ctrl-C: the running pytest and the busy loops are
+    stopped on the way out."""
+    raise KeyboardInterrupt
+
+
 def run_once(tests: list[str], extra: list[str], log_path: Path) -> tuple[int, float]:
     t0 = time.monotonic()
     with log_path.open("w") as log:
@@ -63,6 +69,7 @@ def main(argv: list[str] | None = None) -> int:
     logs.mkdir(parents=True, exist_ok=True)
     busy = start_busy_loops(args.busy)
     results = []
+    signal.signal(signal.SIGTERM, _interrupt)
     try:
         for k in range(1, args.runs + 1):
             log_path = logs / f"{'e2e' if args.e2e else 'suite'}-busy{args.busy}-run{k}.log"
