@@ -280,10 +280,10 @@ class Schedule(_Strict):
     @classmethod
     def _readable_cron(cls, value: str | None) -> str | None:
         if value is not None:
-            from apscheduler.triggers.cron import CronTrigger
+            from rigctl.schedules import cron_trigger
 
             try:
-                CronTrigger.from_crontab(value, timezone="UTC")
+                cron_trigger(value)
             except ValueError as exc:
                 raise ValueError(f"cannot read cron {value!r}: {exc}") from None
         return value

@@ -254,12 +254,13 @@ class RigService:
         self.worker.start()
         if self.config.service.schedules:
             from apscheduler.schedulers.background import BackgroundScheduler
-            from apscheduler.triggers.cron import CronTrigger
             from apscheduler.triggers.interval import IntervalTrigger
+
+            from rigctl.schedules import cron_trigger
 
             self.scheduler = BackgroundScheduler(timezone="UTC")
             for k, sched in enumerate(self.config.service.schedules):
-                trigger = (CronTrigger.from_crontab(sched.cron, timezone="UTC") if sched.cron
+                trigger = (cron_trigger(sched.cron) if sched.cron
                            else IntervalTrigger(seconds=sched.interval_s))
                 self.scheduler.add_job(self._scheduled, trigger, args=[sched], id=f"s{k}",
                                        misfire_grace_time=parse_duration(sched.max_delay),

@@ -69,6 +69,31 @@ def test_durations_and_schedules_are_read_or_refused_at_load():
             parse_rig(f"service: {{schedules: {text}}}\n", name="rig.yaml")
 
 
+def test_cron_days_are_read_as_cron_reads_them():
+    """APScheduler's own crontab reader fires '0 3 * * 1' on Tuesdays (it counts days
+    from Monday); the schedules fire on the days cron would."""
+    import datetime as dt
+
+    from rigctl.schedules import cron_trigger, cron_weekdays
+
+    sunday = dt.datetime(2026, 11, 22, 12, 0, tzinfo=dt.UTC)
+
+    def fire_days(text, count=7):
+        trigger, when, days = cron_trigger(text), sunday, []
+        for _ in range(count):
+            when = trigger.get_next_fire_time(None, when + dt.timedelta(seconds=1))
+            days.append(when.strftime("%a"))
+        return days
+
+    assert fire_days("0 3 * * 1", 2) == ["Mon", "Mon"]
+    assert fire_days("0 3 * * 1-5", 5) == ["Mon", "Tue", "Wed", "Thu", "Fri"]
+    assert fire_days("0 3 * * 0", 1) == fire_days("0 3 * * 7", 1) == ["Sun"]
+    assert cron_weekdays("5-7") == "sun,fri,sat" and cron_weekdays("*/2") == "sun,tue,thu,sat"
+    for bad in ("0 3 1 * 1", "0 3 * *", "0 3 * * 8", "0 3 * * 5-2"):
+        with pytest.raises(ValueError):
+            cron_trigger(bad)
+
+
 def _service(tmp_path, auto_accept=False, name="units-rig"):
     tmp_path.mkdir(parents=True, exist_ok=True)
     rig = tmp_path / f"{name}.yaml"
