@@ -43,7 +43,11 @@ def compare(procedure: str, new: dict[str, Any], old: dict[str, Any],
             breaches.append(f"hand-eye moved {mm:.2f} mm (limit {limits.hand_eye_mm} mm)")
         if deg > limits.hand_eye_deg:
             breaches.append(f"hand-eye turned {deg:.3f} deg (limit {limits.hand_eye_deg} deg)")
-    if procedure == "robot-kinematics" and "links" in new and "links" in old:
+    if procedure == "robot-kinematics" and "links" in new and "links" in old \
+            and len(new["links"]) != len(old["links"]):
+        breaches.append(f"the arm model changed: {len(new['links'])} links, "
+                        f"{len(old['links'])} before")
+    elif procedure == "robot-kinematics" and "links" in new and "links" in old:
         mm = max(1000 * abs(n[k] - o[k]) for n, o in zip(new["links"], old["links"],
                                                          strict=True) for k in LENGTH_KEYS)
         deg = max(math.degrees(abs(n[k] - o[k])) for n, o in zip(new["links"], old["links"],
