@@ -28,7 +28,14 @@ from typing import Any
 
 from fastapi import Depends, FastAPI, Header, HTTPException, Query, Request
 from fastapi import Path as PathParam
-from fastapi.responses import FileResponse, HTMLResponse, Response, StreamingResponse
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import (
+    FileResponse,
+    HTMLResponse,
+    JSONResponse,
+    Response,
+    StreamingResponse,
+)
 from pydantic import BaseModel, Field
 
 import procedures
@@ -321,6 +328,14 @@ def create_app(service: RigService, stop_service_on_shutdown: bool = False) -> F
 
     app = FastAPI(title="rigctl", version=__version__, lifespan=lifespan,
                   description=f"Rig controller service for rig {config.name!r}")
+
+    @app.exception_handler(RequestValidationError)
+    async def invalid_request(_request: Request, exc: RequestValidationError) -> JSONResponse:
+        """422 naming each bad value's place and reason; the value itself is left out (a
+        NaN or Infinity in the body is not JSON, and echoing it made the answer a 500)."""
+        errors = [{"loc": list(e.get("loc", ())), "msg": str(e.get("msg", "")),
+                   "type": str(e.get("type", ""))} for e in exc.errors()]
+        return JSONResponse(status_code=422, content={"detail": errors})
 
     def require_token(authorization: str | None = Header(None)) -> None:
         if token and authorization != f"Bearer {token}":

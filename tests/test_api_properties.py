@@ -81,6 +81,12 @@ def test_bounds_are_422_with_a_message(api):
         assert response.status_code == 422, (url, response.status_code, response.text)
         assert response.json()["detail"], url
     assert client.get("/runs?limit=1000").status_code == 200
+    # NaN and Infinity are not JSON, but Python's parser takes them: still a 422
+    for body in ('{"procedure": NaN}', '{"procedure": "head-sweep", "params": {"pan_deg": '
+                 '[Infinity]}}', '{"procedure": "head-sweep", "operator": -Infinity}'):
+        response = client.post("/runs", content=body,
+                               headers={"Content-Type": "application/json"})
+        assert response.status_code == 422, (body, response.status_code, response.text)
 
 
 def test_a_plan_past_the_soft_limits_is_refused_at_post_with_the_cli_text(api):
