@@ -95,7 +95,10 @@ def prepare_run(config: RigConfig, name: str, overrides: dict[str, Any]
     missing = check_plan(config, [], procedure.devices)
     if missing:  # nothing to plan with: say which devices the rig file lacks
         return procedure, params, PlanCheck(name, params.model_dump(), [], missing)
-    steps = procedure.plan(params, config)
+    try:
+        steps = procedure.plan(params, config)
+    except (ValueError, ArithmeticError) as exc:  # parameters the planner cannot use
+        raise ConfigError(f"{name}: cannot plan with these parameters: {exc}") from None
     violations = check_plan(config, steps, procedure.devices)
     return procedure, params, PlanCheck(name, params.model_dump(), steps, violations)
 

@@ -111,3 +111,16 @@ def test_a_plan_past_the_soft_limits_is_refused_at_post_with_the_cli_text(api):
     assert client.get("/runs").json() == [] and not service.queue
     ok = client.post("/runs", json={"procedure": "head-sweep", "params": {"pan_deg": [5]}})
     assert ok.status_code == 202 and len(service.queue) == 1
+
+
+def test_parameters_the_planner_cannot_use_are_refused_not_crashed():
+    """hand-eye with seed -1 raised a ValueError from numpy inside the planner (a traceback
+    from the CLI, a 500 from the API); it is a refusal naming the procedure."""
+    from rigctl.config import parse_rig
+    from rigctl.errors import ConfigError
+    from rigctl.runner import prepare_run
+
+    config = parse_rig("devices:\n  arm: {host: 127.0.0.1}\n"
+                       "  camera: {device: http://127.0.0.1:1/stream.mjpg}\n")
+    with pytest.raises(ConfigError, match="hand-eye: cannot plan with these parameters"):
+        prepare_run(config, "hand-eye", {"seed": -1})
