@@ -9,7 +9,7 @@ import time
 import dynamixel_sdk as sdk
 import pytest
 
-from drivers.dynamixel import DynamixelHead
+from drivers.dynamixel import DynamixelHead, TimedPortHandler
 from rigctl.config import load_rig, parse_rig
 from rigctl.errors import DeviceError, ProtocolError
 from rigctl.records import RunDirectory
@@ -32,7 +32,8 @@ def bus(tmp_path):
 
 @pytest.fixture
 def port(bus):
-    handler = sdk.PortHandler(bus.ready["link"])
+    # the SDK's ~34 ms timeout is for servos; a stand-in on a busy host may answer later
+    handler = TimedPortHandler(bus.ready["link"], 500.0)
     assert handler.openPort() and handler.setBaudRate(1_000_000)
     yield handler
     handler.closePort()
