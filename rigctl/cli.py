@@ -456,6 +456,27 @@ def sim_truth(world: Path = typer.Option(Path("mocks/worlds/default.yaml"), "--w
         out.print_json(json.dumps(truth))
 
 
+@sim_app.command("world")
+def sim_world(seed: int = typer.Option(..., "--random", min=0,
+                                       help="draw a plausible rig from this seed"),
+              out_path: Path | None = typer.Option(None, "--out",
+                                                   help="write the world file here")) -> None:
+    """A random plausible world (camera, head, arm model and errors, hand-eye, target)
+    as a world file: for judging solvers on rigs nobody tuned them for."""
+    from mocks.random_world import random_world
+
+    text = f"# rigctl sim world --random {seed}\n" + \
+        yaml.safe_dump(random_world(seed), sort_keys=False, default_flow_style=None)
+    if out_path is None:
+        sys.stdout.write(text)
+        return
+    try:
+        out_path.write_text(text)
+    except OSError as exc:
+        _fail(ConfigError(f"{out_path}: cannot write the world file: {exc.strerror}"), False)
+    err.print(f"world {seed} written to {out_path}")
+
+
 @bench_app.command("camera")
 def bench_camera(as_json: bool = typer.Option(False, "--json"),
                  world: str = typer.Option("default", "--world")) -> None:
@@ -549,6 +570,34 @@ def bench_active(as_json: bool = typer.Option(False, "--json"),
                 ["sigma", "pan/tilt", "axis tilt", "method", "f% med", "f% p95", "pp med",
                  "pp p95", "failed"], rows, out)
     out.print(f"targets: {result['targets']}; plot: {result.get('plot')}")
+
+
+@bench_app.command("active-worlds")
+def bench_active_worlds(as_json: bool = typer.Option(False, "--json"),
+                        n: int = typer.Option(20, "--n", min=1, max=1000),
+                        first_seed: int = typer.Option(0, "--first-seed", min=0),
+                        distortion_terms: int = typer.Option(2, "--distortion-terms"),
+                        workers: int = typer.Option(1, "--workers", min=1, max=16)) -> None:
+    """The active-camera pipeline on N random worlds (rendered directly, no stand-ins):
+    focal and centre error against truth, and error / sigma of each intrinsic."""
+    from rigctl.bench import active_worlds
+    from rigctl.bench.common import print_table
+
+    if distortion_terms not in (0, 1, 2, 4):
+        _fail(ConfigError(f"--distortion-terms: 0, 1, 2 or 4, got {distortion_terms}"),
+              as_json)
+    result = active_worlds.run(n, first_seed, distortion_terms, workers)
+    if as_json:
+        _print_json(result)
+        return
+    rows = [[r["seed"], r["model"], round(r["fx_true"]), r.get("error", "")[:60]]
+            + ([] if "error" in r else [r["focal_pct"], r["centre_px"],
+                                        *(r["z"][k] for k in active_worlds.KEYS)])
+            for r in result["worlds"]]
+    print_table(f"bench active-worlds ({n} worlds)",
+                ["seed", "arm", "f", "failure", "f err %", "centre px", "z fx", "z fy",
+                 "z cx", "z cy"], rows, out)
+    out.print_json(json.dumps(result["summary"]))
 
 
 @bench_app.command("handeye")

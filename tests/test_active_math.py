@@ -77,7 +77,7 @@ def test_solver_head_model_predicts_what_the_simulator_renders():
     world = head_world(roll_axis_tilt_deg=tilt_deg, distortion=dist)
     pts = np.concatenate(contours(11, 6, 30))
     truth = dict(zip(PARAM_NAMES, [FX, FY, CX, CY, 0.0, 0.0, 0.0, *np.radians(tilt_deg),
-                                   *dist[:4]], strict=True))
+                                   0.0, 0.0, 0.0, *dist[:4]], strict=True))
     x = np.array([truth[name] for name in PARAM_NAMES])
     for a0, a1 in [((0, 0, 0), (0.09, 0, 0)), ((0, 0, 0), (0, -0.07, 0)),
                    ((0, 0, 0), (0, 0, math.pi / 2)), ((0.05, -0.03, 0.4), (-0.04, 0.06, -1.2))]:
@@ -91,6 +91,30 @@ def test_solver_head_model_predicts_what_the_simulator_renders():
     a0, a1 = (0, 0, 0), (0, 0, math.pi / 2)
     ref, moved = seen(world, pts, *a0), seen(world, pts, *a1)
     assert np.max(np.abs(predict(Motion(a0, a1, ref, moved), x_wrong, 4) - moved)) > 5
+
+
+def test_parallax_model_predicts_the_camera_off_the_axes():
+    """With the centre of projection ``o`` off the head's axes (the simulator's
+    ``camera_offset_mm``), points at depth ``Z`` move as the solver's model says with
+    ``s = o / Z``; with ``s = 0`` a half roll misses them by pixels."""
+    offset_mm = (2.0, -1.5, 1.0)
+    spec = WorldFile(camera=CameraTruth(fx=FX, fy=FY, cx=CX, cy=CY),
+                     head=HeadTruth(mount="fixed", fixed_xyz_mm=[0.0, 0.0, 0.0],
+                                    camera_offset_mm=list(offset_mm)),
+                     scene=SceneTruth(shapes=0))
+    world = World(spec)
+    depth = 1.5
+    rays = np.concatenate(contours(12, 6, 30))
+    rays = rays / rays[:, 2:3]
+    points = rays * depth + np.array(offset_mm) / 1000  # head frame at pan = tilt = roll = 0
+    s = np.array(offset_mm) / 1000 / depth
+    x = np.array([FX, FY, CX, CY, 0, 0, 0, 0, 0, *s])
+    for a1 in [(0.05, 0, 0), (0, -0.06, 0), (0, 0, math.pi / 2), (0, 0, -math.pi)]:
+        ref, moved = seen(world, points), seen(world, points, *a1)
+        motion = Motion((0, 0, 0), a1, ref, moved)
+        assert np.max(np.abs(predict(motion, x, n_dist=0) - moved)) < 1e-6, a1
+    x[9:12] = 0
+    assert np.max(np.abs(predict(motion, x, n_dist=0) - moved)) > 1.5
 
 
 def test_synthetic_projection_matches_the_simulated_head():
@@ -246,7 +270,9 @@ def test_refinement_uncertainty_matches_empirical_spread():
     for seed in range(25):
         _, poses, obs, _ = scenario(theta_deg=5.0, sigma=1.0, seed=100 + seed, count=6,
                                      points=30)
-        res = refine(motions_of(poses, obs), {"fx": 880, "fy": 890, "cx": 640, "cy": 360})
+        # no parallax in this data: the sigma is the noise's alone (no consider term)
+        res = refine(motions_of(poses, obs), {"fx": 880, "fy": 890, "cx": 640, "cy": 360},
+                     parallax_sigma=0.0)
         fxs.append(res.fx)
         cxs.append(res.cx)
         sig_fx.append(res.sigma["fx"])

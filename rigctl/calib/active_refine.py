@@ -9,7 +9,21 @@ Camera orientation in the head frame at head angles (pan, tilt, roll)::
 ``N`` is the camera's mounting rotation relative to the pan/tilt axes and ``a`` the roll
 axis in the camera frame (a tilted roll axis, thesis 3.4 and Figs 5.19-5.20). The motion
 between a reference capture 0 and capture 1 is ``R = C0^T C1``. Estimated: fx, fy, cx,
-cy, N (rotation vector), a (two tilt angles), optionally k1 (radial distortion).
+cy, N (rotation vector), a (two tilt angles), the parallax ``s`` and optionally the
+distortion (k1; k1, k2; or k1, k2, p1, p2).
+
+Parallax beyond the thesis, which assumes the centre of projection on the rotation axes:
+with the centre at ``o`` (camera frame) off the common point of the axes, a point at
+inverse depth ``rho`` seen along the normalised ray ``x`` moves to
+``R^T (x + s) - s`` with ``s = rho o``. One ``s`` is shared by all contours (the scene's
+mean inverse depth); the spread of depths is left to the residuals. Under a roll ``s``
+shifts the image much as a wrong principal point would, so the rolls alone no longer fix
+the centre: pan and tilt must, and the reported sigma says how well they did.
+
+Uncertainty: points along one tracked contour share its tracking error, and model error
+(depth spread, unestimated distortion) is shared too, so the covariance is the
+cluster-robust sandwich over contours (one cluster per contour and motion), never
+smaller than the classical ``s^2 (J^T J)^-1``.
 
 Observations come per motion either as point correspondences (synthetic data) or as
 reference contour points with the tracked contour's points and normals in the moved
@@ -27,8 +41,9 @@ from scipy.spatial import cKDTree
 from rigctl.calib.synthetic import rot_axis, rot_x, rot_y
 from rigctl.errors import SolveError
 
-PARAM_NAMES = ["fx", "fy", "cx", "cy", "n_x", "n_y", "n_z", "a_x", "a_y", "k1", "k2", "p1",
-               "p2"]
+PARAM_NAMES = ["fx", "fy", "cx", "cy", "n_x", "n_y", "n_z", "a_x", "a_y", "s_x", "s_y", "s_z",
+               "k1", "k2", "p1", "p2"]
+N_BASE = 12  # parameters before the distortion terms
 
 
 @dataclass
@@ -41,6 +56,7 @@ class Motion:
     moved_points: np.ndarray                 # (N, 2) correspondences, or curve points
     moved_normals: np.ndarray | None = None  # (M, 2) unit normals: curve mode
     label: str = ""
+    groups: np.ndarray | None = None         # (N,) contour id of each reference point
     _tree: cKDTree | None = field(default=None, repr=False)
 
     @property
@@ -63,8 +79,8 @@ def _unpack(x: np.ndarray, n_dist: int):
     N = rot_axis(x[4:7], np.linalg.norm(x[4:7])) if np.linalg.norm(x[4:7]) > 0 else np.eye(3)
     a = rot_x(x[7]) @ rot_y(x[8]) @ np.array([0.0, 0.0, 1.0])
     k = np.zeros(4)  # k1, k2, p1, p2 (OpenCV's convention)
-    k[:n_dist] = x[9:9 + n_dist]
-    return fx, fy, cx, cy, N, a, k
+    k[:n_dist] = x[N_BASE:N_BASE + n_dist]
+    return fx, fy, cx, cy, N, a, x[9:12], k
 
 
 def _radial(r2, k):
@@ -107,16 +123,16 @@ def predict_many(motions: list[Motion], x: np.ndarray, n_dist: int,
     """``predict`` for several motions at once: the reference points of all of them
     (``refs``, their concatenation, if already built) are undistorted and distorted in
     one pass each; only the rotation differs per motion."""
-    fx, fy, cx, cy, N, a, k = _unpack(x, n_dist)
+    fx, fy, cx, cy, N, a, s, k = _unpack(x, n_dist)
     if refs is None:
         refs = np.concatenate([m.ref_points for m in motions])
-    rays = np.c_[_undistort(refs, fx, fy, cx, cy, k), np.ones(len(refs))]
+    rays = np.c_[_undistort(refs, fx, fy, cx, cy, k), np.ones(len(refs))] + s
     moved, start = np.empty_like(rays), 0
     for motion in motions:
         R = camera_orientation(motion.angles0, N, a).T @ \
             camera_orientation(motion.angles1, N, a)
         end = start + len(motion.ref_points)
-        moved[start:end] = rays[start:end] @ R
+        moved[start:end] = rays[start:end] @ R - s
         start = end
     # A trial step may turn points behind the camera: keep the residuals finite (and
     # large) so the optimiser backs off instead of failing.
@@ -144,12 +160,14 @@ class RefineResult:
     inliers: int
     outliers: int
     residuals_by_motion: dict[str, float]
+    parallax: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     def as_dict(self) -> dict:
         return {"fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy, "k1": self.k1,
                 "k2": self.k2, "p1": self.p1, "p2": self.p2,
                 "mount_rotvec": self.mount_rotvec.tolist(), "roll_axis": self.roll_axis.tolist(),
-                "sigma": self.sigma, "rms_px": self.rms_px, "inliers": self.inliers,
+                "parallax": self.parallax.tolist(), "sigma": self.sigma, "rms_px": self.rms_px,
+                "inliers": self.inliers,
                 "outliers": self.outliers, "residuals_by_motion": self.residuals_by_motion}
 
 
@@ -168,26 +186,133 @@ def _residuals(x, motions, n_dist, masks, associations, refs=None):
     return np.concatenate(out)
 
 
+def _prior_sigmas(n_dist: int, prior_deg: float, parallax_prior: float) -> np.ndarray:
+    """Per-parameter prior sigma (inf: no prior): the mounting rotation and the roll-axis
+    tilt near the nominal head, the parallax near zero."""
+    prior = np.full(N_BASE + n_dist, np.inf)
+    prior[4:9] = np.radians(prior_deg)
+    prior[9:12] = parallax_prior
+    return prior
+
+
+def _clusters(motions: list[Motion], masks: list[np.ndarray]) -> np.ndarray:
+    """A cluster id per residual row: one per contour and motion (one per point when the
+    points carry no contour id, e.g. synthetic correspondences)."""
+    ids, base = [], 0
+    for motion, mask in zip(motions, masks, strict=True):
+        groups = motion.groups[mask] if motion.groups is not None else \
+            np.arange(int(mask.sum()))
+        _, local = np.unique(groups, return_inverse=True)
+        if not motion.curve_mode:
+            local = np.repeat(local, 2)
+        ids.append(base + local)
+        base += int(local.max()) + 1 if len(local) else 0
+    return np.concatenate(ids)
+
+
+def _covariance(J: np.ndarray, r: np.ndarray, clusters: np.ndarray,
+                prior: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Cluster-robust (sandwich) covariance ``A^-1 (sum_c g_c g_c^T + P) A^-1`` with
+    ``A = J^T J + P``, ``g_c = J_c^T r_c`` and ``P`` the prior information, scaled for
+    the number of clusters; never smaller than the classical ``s^2 A^-1``. Returns it
+    and ``A^-1``."""
+    n_params = J.shape[1]
+    P = np.diag(1.0 / prior ** 2)
+    A = J.T @ J + P
+    try:
+        A_inv = np.linalg.inv(A)
+    except np.linalg.LinAlgError:
+        raise SolveError("refinement: singular normal equations (degenerate motions)") from None
+    s2 = float(np.sum(r ** 2) / max(len(r) - n_params, 1))
+    classical = A_inv @ (J.T @ J * s2 + P) @ A_inv
+    n_clusters = int(clusters.max()) + 1
+    G = np.zeros((n_clusters, n_params))
+    np.add.at(G, clusters, J * r[:, None])
+    correction = n_clusters / max(n_clusters - 1, 1) * (len(r) - 1) / max(len(r) - n_params, 1)
+    sandwich = A_inv @ (G.T @ G * correction + P) @ A_inv
+    return _larger(sandwich, classical), A_inv
+
+
+def _larger(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Of two covariances, the one with the larger variances, parameter by parameter
+    (correlations from the sandwich where it wins)."""
+    da, db = np.sqrt(np.clip(np.diag(a), 0, None)), np.sqrt(np.clip(np.diag(b), 0, None))
+    scale = np.maximum(db / np.maximum(da, 1e-300), 1.0)
+    return a * np.outer(scale, scale)
+
+
+def _reject_outliers(r: np.ndarray, motions: list[Motion], masks: list[np.ndarray],
+                     outlier_sigmas: float) -> bool:
+    """Drops points beyond ``outlier_sigmas`` robust sigmas; True if any was dropped."""
+    scale = 1.4826 * np.median(np.abs(r)) + 1e-9
+    changed, offset = False, 0
+    for m, motion in enumerate(motions):
+        count = int(masks[m].sum()) * (1 if motion.curve_mode else 2)
+        rm = r[offset:offset + count]
+        offset += count
+        per_point = np.abs(rm) if motion.curve_mode else np.hypot(rm[0::2], rm[1::2])
+        keep = per_point <= outlier_sigmas * scale * (1 if motion.curve_mode else 1.5)
+        if not keep.all():
+            idx = np.flatnonzero(masks[m])
+            masks[m][idx[~keep]] = False
+            changed = True
+    return changed
+
+
+def _rms_by_motion(r: np.ndarray, motions: list[Motion], masks: list[np.ndarray]) -> dict:
+    by_motion, offset = {}, 0
+    for m, motion in enumerate(motions):
+        count = int(masks[m].sum()) * (1 if motion.curve_mode else 2)
+        rm = r[offset:offset + count]
+        offset += count
+        by_motion[motion.label or f"motion {m}"] = float(np.sqrt(np.mean(rm ** 2))) \
+            if count else 0.0
+    return by_motion
+
+
+def _consider(J_free: np.ndarray, J_consider: np.ndarray, cov_free: np.ndarray,
+              A_inv: np.ndarray, sigma_consider: np.ndarray) -> np.ndarray:
+    """Consider covariance: parameters held at their nominal value in the fit but
+    uncertain (sigma ``sigma_consider``) bias the estimate by ``S dc`` with
+    ``S = -A^-1 J^T J_c``; their spread adds ``S diag(sigma^2) S^T``."""
+    S = -A_inv @ (J_free.T @ J_consider)
+    return cov_free + S @ np.diag(sigma_consider ** 2) @ S.T
+
+
 def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
            outlier_sigmas: float = 3.0, outer_iterations: int = 4,
-           prior_deg: float = 5.0) -> RefineResult:
-    """Joint refinement of fx, fy, cx, cy, the mounting rotation and the roll axis
-    (and ``n_dist`` distortion terms: k1; k1, k2; or k1, k2, p1, p2) over all motions,
-    from ``initial`` (fx, fy, cx, cy; e.g. Strategy D), with a soft-L1 robust loss,
-    then 3-sigma outlier rejection. 1-sigma uncertainties come from the Jacobian at the
-    solution, scaled by the residual variance."""
+           prior_deg: float = 5.0, parallax_sigma: float = 0.003) -> RefineResult:
+    """Joint refinement of fx, fy, cx, cy, the mounting rotation and the roll axis (and
+    ``n_dist`` distortion terms: k1; k1, k2; or k1, k2, p1, p2) over all motions with the
+    exact rotation model (thesis Lemma 3.1, eq. 3.3), from ``initial`` (fx, fy, cx, cy;
+    e.g. Strategy D), with a soft-L1 robust loss, then 3-sigma outlier rejection.
+
+    The parallax ``s`` (module docstring) is held at zero: estimating it trades the
+    focal length and the centre against the scene's unknown depths and made the fit
+    unstable on random rigs. It is a *consider* parameter instead: ``parallax_sigma``
+    (per axis; 0.003: 3 mm off the axes with the scene at 1 m) enters the reported
+    sigma through its effect on the solution. 1-sigma uncertainties: the cluster-robust
+    covariance plus that consider term."""
     if len(motions) < 2:
         raise SolveError("refinement: needs at least two motions")
     if sum(len(m.ref_points) for m in motions) < 20:
         raise SolveError("refinement: too few contour points")
     if n_dist not in (0, 1, 2, 4):
         raise SolveError(f"refinement: n_dist must be 0, 1, 2 or 4, got {n_dist}")
-    n_params = 9 + n_dist
+    n_params = N_BASE + n_dist
+    free = np.ones(n_params, bool)
+    free[9:12] = False  # the parallax: consider parameters
     x = np.zeros(n_params)
     x[:4] = [initial["fx"], initial["fy"], initial["cx"], initial["cy"]]
     masks = [np.ones(len(m.ref_points), bool) for m in motions]
-    prior = np.radians(prior_deg)
+    prior = _prior_sigmas(n_dist, prior_deg, parallax_sigma)[free]
+    has_prior = np.isfinite(prior)
     refs = np.concatenate([m.ref_points for m in motions])
+
+    def full(xf):
+        xv = x.copy()
+        xv[free] = xf
+        return xv
 
     def associate(xv):
         out = []
@@ -200,60 +325,48 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
                 out.append(None)
         return out
 
-    def fun(xv, assoc):
-        r = _residuals(xv, motions, n_dist, masks, assoc, refs)
-        # weak priors keep the rotation parameters near the nominal head (5 deg sigma)
-        return np.concatenate([r, xv[4:9] / prior])
+    def fun(xf, assoc):
+        r = _residuals(full(xf), motions, n_dist, masks, assoc, refs)
+        return np.concatenate([r, xf[has_prior] / prior[has_prior]])
 
-    result = None
     for _ in range(outer_iterations):
         assoc = associate(x)
-        result = least_squares(fun, x, args=(assoc,), loss="soft_l1", f_scale=1.0,
-                               x_scale="jac", max_nfev=200)
-        x = result.x
+        x = full(least_squares(fun, x[free], args=(assoc,), loss="soft_l1", f_scale=1.0,
+                               x_scale="jac", max_nfev=200).x)
         r = _residuals(x, motions, n_dist, masks, assoc, refs)
-        scale = 1.4826 * np.median(np.abs(r)) + 1e-9
-        changed = False
-        offset = 0
-        for m, motion in enumerate(motions):
-            count = int(masks[m].sum()) * (1 if motion.curve_mode else 2)
-            rm = r[offset:offset + count]
-            offset += count
-            per_point = np.abs(rm) if motion.curve_mode else np.hypot(rm[0::2], rm[1::2])
-            keep = per_point <= outlier_sigmas * scale * (1 if motion.curve_mode else 1.5)
-            if not keep.all():
-                idx = np.flatnonzero(masks[m])
-                masks[m][idx[~keep]] = False
-                changed = True
-        if not changed:
+        if not _reject_outliers(r, motions, masks, outlier_sigmas):
             break
     assoc = associate(x)
-    final = least_squares(fun, x, args=(assoc,), loss="linear", x_scale="jac", max_nfev=100)
-    x = final.x
+    final = least_squares(fun, x[free], args=(assoc,), loss="linear", x_scale="jac",
+                          max_nfev=100)
+    x = full(final.x)
     r = _residuals(x, motions, n_dist, masks, assoc, refs)
     if not np.all(np.isfinite(x)) or not np.all(np.isfinite(r)):
         raise SolveError("refinement diverged (non-finite parameters)")
-    dof = max(len(r) - n_params, 1)
-    s2 = float(np.sum(r ** 2) / dof)
     J = final.jac[:len(r)]
-    JtJ = J.T @ J + np.diag(np.r_[np.zeros(4), np.full(5, 1 / prior ** 2),
-                                  np.zeros(n_params - 9)])
-    try:
-        cov = np.linalg.inv(JtJ) * s2
-    except np.linalg.LinAlgError:
-        raise SolveError("refinement: singular normal equations (degenerate motions)") from None
-    sig = np.sqrt(np.clip(np.diag(cov), 0, None))
-    fx, fy, cx, cy, _, a, k = _unpack(x, n_dist)
-    by_motion, offset = {}, 0
-    for m, motion in enumerate(motions):
-        count = int(masks[m].sum()) * (1 if motion.curve_mode else 2)
-        rm = r[offset:offset + count]
-        offset += count
-        rms = float(np.sqrt(np.mean(rm ** 2))) if count else 0.0
-        by_motion[motion.label or f"motion {m}"] = rms
+    cov, A_inv = _covariance(J, r, _clusters(motions, masks), prior)
+    J_s = _jacobian_columns(lambda xv: _residuals(xv, motions, n_dist, masks, assoc, refs),
+                            x, np.flatnonzero(~free), r)
+    cov = _consider(J, J_s, cov, A_inv, np.full(3, parallax_sigma))
+    sig = np.full(n_params, np.nan)
+    sig[free] = np.sqrt(np.clip(np.diag(cov), 0, None))
+    sig[~free] = parallax_sigma
+    fx, fy, cx, cy, _, a, parallax, k = _unpack(x, n_dist)
     total = sum(len(m.ref_points) for m in motions)
     inliers = int(sum(mk.sum() for mk in masks))
     return RefineResult(float(fx), float(fy), float(cx), float(cy), float(k[0]), float(k[1]),
                         float(k[2]), float(k[3]), x[4:7].copy(),
                         a, {name: float(s) for name, s in zip(PARAM_NAMES, sig, strict=False)},
-                        float(np.sqrt(np.mean(r ** 2))), inliers, total - inliers, by_motion)
+                        float(np.sqrt(np.mean(r ** 2))), inliers, total - inliers,
+                        _rms_by_motion(r, motions, masks), parallax.copy())
+
+
+def _jacobian_columns(residuals, x: np.ndarray, columns, r0: np.ndarray,
+                      step: float = 1e-6) -> np.ndarray:
+    """Forward-difference columns of the residuals' Jacobian (at fixed associations)."""
+    out = np.empty((len(r0), len(columns)))
+    for j, c in enumerate(columns):
+        xv = x.copy()
+        xv[c] += step
+        out[:, j] = (residuals(xv) - r0) / step
+    return out

@@ -1,0 +1,121 @@
+"""Random plausible rigs: worlds nobody tuned the solvers for.
+
+``random_world(seed)`` draws one world file (as a dict, validated by ``WorldFile``), so
+that every solver and planner can be judged on a distribution of rigs rather than on
+``default.yaml``. The ranges are those of lab rigs:
+
+- camera: 1280x720, 1024x768 or 1280x960, focal 600-1600 px, aspect within +-2 %,
+  principal point within 30 px of the image centre; radial k1, k2, k3 and small
+  tangential terms (rejected if the distortion folds over inside the image); blur and
+  noise;
+- head: roll axis tilted up to 0.5 deg, centre of projection off the axes by up to 3 mm;
+- arm: UR3e, UR5e or UR10e with kinematic errors at the spread of factory variation
+  (encoder offsets ~0.1 deg, lengths ~1 mm, twists ~0.08 deg; Hayati beta on the
+  parallel joints 2-3 and 3-4);
+- hand-eye: any yaw, a few degrees of tilt, tens of millimetres of offset;
+- scene: shapes from 0.6-2 m out to 2-5 times that, in a cone just wider than the view;
+- target: a checkerboard sized for the arm, on or near the table anywhere in the arm's
+  comfortable reach around the front half, turned about its normal and tilted.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from mocks.world import WorldFile, rpy_matrix
+
+REACH_M = {"ur3e": 0.50, "ur5e": 0.85, "ur10e": 1.30}
+SIZES = ((1280, 720), (1280, 720), (1024, 768), (1280, 960))
+
+
+def _distortion(rng: np.random.Generator, fx: float, size: tuple[int, int]) -> list[float]:
+    """[k1, k2, p1, p2, k3] whose radial map stays monotonic past the image corner."""
+    r_max = 1.15 * math.hypot(size[0] / 2, size[1] / 2) / fx
+    while True:
+        k1, k2, k3 = rng.uniform(-0.30, 0.08), rng.uniform(-0.05, 0.15), rng.uniform(-0.05, 0.05)
+        p1, p2 = rng.normal(0, 5e-4, 2)
+        r = np.linspace(0, r_max, 200)
+        slope = 1 + 3 * k1 * r ** 2 + 5 * k2 * r ** 4 + 7 * k3 * r ** 6
+        factor = 1 + k1 * r ** 2 + k2 * r ** 4 + k3 * r ** 6
+        if slope.min() > 0.3 and factor.min() > 0.75 and factor.max() < 1.25:
+            return [round(float(v), 7) for v in (k1, k2, p1, p2, k3)]
+
+
+def _camera(rng: np.random.Generator) -> dict:
+    width, height = SIZES[rng.integers(len(SIZES))]
+    fx = rng.uniform(600, 1600)
+    fy = fx * (1 + rng.uniform(-0.02, 0.02))
+    return {"width": int(width), "height": int(height), "fx": round(fx, 2), "fy": round(fy, 2),
+            "cx": round((width - 1) / 2 + rng.uniform(-30, 30), 2),
+            "cy": round((height - 1) / 2 + rng.uniform(-30, 30), 2),
+            "distortion": _distortion(rng, fx, (width, height)),
+            "pixel_noise": round(rng.uniform(0.2, 1.5), 2),
+            "jpeg_quality": int(rng.integers(85, 99)), "fps": 15,
+            "blur_sigma": round(rng.uniform(0.3, 1.2), 2)}
+
+
+def _within(rng: np.random.Generator, radius: float, dims: int) -> list[float]:
+    """A vector of length up to ``radius``, uniform in direction."""
+    v = rng.normal(size=dims)
+    return (v / np.linalg.norm(v) * radius * rng.uniform() ** (1 / dims)).tolist()
+
+
+def _arm_errors(rng: np.random.Generator) -> dict:
+    beta = np.zeros(6)
+    beta[1:3] = rng.normal(0, 0.08, 2)  # joints 2-3 and 3-4 are parallel on a UR
+    return {"theta_deg": rng.normal(0, 0.1, 6).round(4).tolist(),
+            "d_mm": rng.normal(0, 1.0, 6).round(3).tolist(),
+            "a_mm": rng.normal(0, 1.2, 6).round(3).tolist(),
+            "alpha_deg": rng.normal(0, 0.08, 6).round(4).tolist(),
+            "beta_deg": beta.round(4).tolist()}
+
+
+def _target(rng: np.random.Generator, model: str) -> dict:
+    reach = REACH_M[model]
+    square = rng.uniform(0.025, 0.045) * reach  # 12-22 mm on a UR3e, 33-58 mm on a UR10e
+    rows, cols = int(rng.integers(5, 9)), int(rng.integers(6, 11))
+    radius = rng.uniform(0.45, 0.75) * reach
+    azimuth = rng.uniform(-math.pi / 2, math.pi / 2) + math.pi  # in front: -x side
+    centre = np.array([radius * math.cos(azimuth), radius * math.sin(azimuth),
+                       rng.uniform(-0.02, 0.08) * reach])
+    # Board facing up (z into the board points down), turned about its normal, tilted.
+    yaw = rng.uniform(-180, 180)
+    tilt = _within(rng, 15.0, 2)
+    rpy = [180.0 + tilt[0], tilt[1], yaw]
+    R = rpy_matrix(rpy)
+    half = np.array([cols * square / 2, rows * square / 2, 0.0])
+    origin = centre - R @ half
+    return {"rows": rows, "cols": cols, "square_mm": round(1000 * square, 2),
+            "xyz_mm": (1000 * origin).round(1).tolist(), "rpy_deg": np.round(rpy, 3).tolist()}
+
+
+def random_world(seed: int) -> dict:
+    """One plausible rig drawn from ``seed`` (deterministic), as world-file data."""
+    rng = np.random.default_rng([seed, 20261123])
+    model = ("ur3e", "ur5e", "ur10e")[rng.integers(3)]
+    near = rng.uniform(0.6, 2.0)  # the nearest scene shapes, metres from the camera
+    cam = _camera(rng)
+    # the scene fills the view (a lab has texture everywhere), whatever the lens
+    cone = min(75.0, 1.3 * math.degrees(math.atan(math.hypot(cam["width"], cam["height"]) / 2
+                                                  / cam["fx"])))
+    data = {
+        "seed": int(seed),
+        "camera": cam,
+        "head": {"mount": "flange",
+                 "roll_axis_tilt_deg": np.round(_within(rng, 0.5, 2), 4).tolist(),
+                 "camera_offset_mm": np.round(_within(rng, 3.0, 3), 3).tolist(),
+                 "encoder_noise_deg": 0.0},
+        "arm": {"model": model, "home_deg": [0.0, -90.0, 90.0, -90.0, -90.0, 0.0],
+                "errors": _arm_errors(rng)},
+        "hand_eye": {"xyz_mm": np.round([*rng.uniform(-30, 30, 2), rng.uniform(30, 90)],
+                                        1).tolist(),
+                     "rpy_deg": np.round([*_within(rng, 4.0, 2), rng.uniform(-180, 180)],
+                                         3).tolist()},
+        "target": _target(rng, model),
+        "scene": {"depth_m": [round(near, 2), round(near * rng.uniform(2, 5), 2)],
+                  "shapes": int(rng.integers(30, 60)), "cone_deg": round(cone, 1)},
+    }
+    WorldFile.model_validate(data)
+    return data

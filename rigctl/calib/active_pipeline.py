@@ -1,0 +1,267 @@
+"""The active-camera solve as a pure pipeline: images and head angles in, intrinsics out.
+
+Called by the ``active-camera`` procedure (on a run's captures) and by the benchmarks (on
+images rendered from a world), so both measure the same code.
+
+Stages (thesis chapter 3, automated):
+
+1. contours in the reference image; the thesis's shift search through pan+ and tilt+;
+   Strategy B for a first K (eqs. 3.19-3.22);
+2. every pan/tilt motion tracked again by prediction from that K, a refinement on them
+   alone, then the rolls tracked by prediction from the refined K;
+3. Strategies A-D (eqs. 3.14-3.35) on the tracked contours;
+4. the nonlinear refinement over every motion (``active_refine.refine``), started from
+   D (or C, or the first K).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from rigctl.calib import active
+from rigctl.calib.active import ContourStats
+from rigctl.calib.active_refine import Motion, RefineResult, refine
+from rigctl.calib.synthetic import intrinsics, rot_x, rot_y, rot_z
+from rigctl.errors import SolveError
+from rigctl.vision.contours import edge_map, extract_contours
+from rigctl.vision.tracking import track_by_prediction, track_by_shift
+
+MOTIONS = ("pan+", "pan-", "tilt+", "tilt-")
+
+
+@dataclass
+class ActiveSettings:
+    """The solve's knobs (the procedure's parameters without the motion plan)."""
+
+    window: float = 0.8
+    min_points: int = 40
+    distortion_terms: int = 2
+    assumed_centre: list[float] | None = None
+    nodal_offset_mm: float = 3.0   # how far the centre of projection may be off the axes
+    scene_depth_m: float = 1.0     # the scene's (inverse-mean) depth from the camera
+
+    @property
+    def parallax_sigma(self) -> float:
+        """Per-axis sigma of the consider parameter ``s = o / depth`` of the refinement."""
+        return self.nodal_offset_mm / 1000.0 / self.scene_depth_m
+
+
+@dataclass
+class ActiveSolution:
+    result: dict[str, Any]
+    refined: RefineResult
+    contours: list
+    matches: dict[str, list]
+    order: list[str]
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+
+def _predictor(K: dict, rel_angles):
+    """Maps reference pixels to the moved image with the nominal head (pure rotation,
+    thesis eq. 3.3 with a distortion-free K)."""
+    Km = intrinsics(K["fx"], K["fy"], K["cx"], K["cy"])
+    Kinv = np.linalg.inv(Km)
+    p, t, r = rel_angles
+    R = rot_y(p) @ rot_x(t) @ rot_z(r)
+
+    def predict(points: np.ndarray) -> np.ndarray:
+        rays = (Kinv @ np.c_[points, np.ones(len(points))].T).T
+        moved = (Km @ (R.T @ rays.T)).T
+        return moved[:, :2] / moved[:, 2:3]
+
+    return predict
+
+
+class _Tracker:
+    """Contours of the reference image followed through the other captures."""
+
+    def __init__(self, images: dict, angles: dict, settings: ActiveSettings) -> None:
+        self.angles = angles
+        self.emaps = {k: edge_map(img) for k, img in images.items()}
+        h, w = images["ref"].shape[:2]
+        self.size = (w, h)
+        self.centre = np.array(settings.assumed_centre or [(w - 1) / 2, (h - 1) / 2], float)
+        self.contours = extract_contours(images["ref"], settings.window, settings.min_points,
+                                         emap=self.emaps["ref"])
+        if len(self.contours) < 3:
+            raise SolveError(f"active-camera: too few contours in the reference image "
+                             f"({len(self.contours)}; need 3)")
+        self.rel = {k: tuple(np.subtract(v, angles["ref"])) for k, v in angles.items()}
+        self.matches: dict[str, list] = {}
+        self.report: dict[str, Any] = {"contours": len(self.contours), "motions": {}}
+
+    def first_K(self) -> dict:
+        """The thesis's shift search through pan+ and tilt+, then Strategy B."""
+        w = self.size[0]
+        thesis = {}
+        for label, direction, theta in (("pan+", "x", self.rel["pan+"][0]),
+                                        ("tilt+", "y", self.rel["tilt+"][1])):
+            max_shift = abs(theta) * 2.0 * w + 10
+            thesis[label] = [track_by_shift(c, self.emaps[label], direction, max_shift)
+                             for c in self.contours]
+        both = [i for i in range(len(self.contours))
+                if thesis["pan+"][i].ok and thesis["tilt+"][i].ok]
+        if len(both) < 2:
+            raise SolveError("active-camera: contours lost in the pan/tilt images "
+                             f"({len(both)} tracked through both)")
+        of = ContourStats.of
+        self.report["thesis_shift_tracked"] = len(both)
+        try:
+            first = active.strategy_b(
+                [of(self.contours[i].points, self.centre) for i in both],
+                [of(thesis["tilt+"][i].points, self.centre) for i in both],
+                [of(thesis["pan+"][i].points, self.centre) for i in both],
+                self.rel["tilt+"][1], self.rel["pan+"][0])
+        except SolveError as exc:
+            # Strategy B's quadratic has no root when distortion or a wide lens bends
+            # the shifts: start from the shifts themselves; the refinement takes over.
+            first = {"fx": self._focal_from_shifts(thesis["pan+"], both, 0),
+                     "fy": self._focal_from_shifts(thesis["tilt+"], both, 1)}
+            self.report["first_K"] = f"from the median shift ({exc})"
+        return {"fx": first["fx"], "fy": first["fy"], "cx": self.centre[0],
+                "cy": self.centre[1]}
+
+    def _focal_from_shifts(self, matches: list, idx: list[int], axis: int) -> float:
+        """Focal length from pure-rotation shifts: a contour at ``u = (x - c) / f`` moves
+        by ``f theta (1 + u^2)`` to first order (thesis eq. 3.3 linearised)."""
+        theta = abs(self.rel["pan+" if axis == 0 else "tilt+"][axis])
+        shifts = np.array([abs(matches[i].offset[axis]) for i in idx])
+        centres = np.array([self.contours[i].points[:, axis].mean() for i in idx])
+        f = np.median(shifts) / theta
+        for _ in range(3):
+            u = (centres - self.centre[axis]) / f
+            f = float(np.median(shifts / (theta * (1 + u * u))))
+        if not np.isfinite(f) or f <= 0:
+            raise SolveError("active-camera: no first focal length from the pan/tilt shifts")
+        return f
+
+    def track(self, label: str, K: dict, window: float) -> None:
+        predictor = _predictor(K, self.rel[label])
+        self.matches[label] = [track_by_prediction(c, self.emaps[label], predictor,
+                                                   window=window) for c in self.contours]
+        rejected: dict[str, int] = {}
+        for m in self.matches[label]:
+            if not m.ok:
+                key = m.reason.split(" (")[0]
+                rejected[key] = rejected.get(key, 0) + 1
+        self.report["motions"][label] = {
+            "tracked": sum(m.ok for m in self.matches[label]), "rejected": rejected,
+            "angles_deg": np.degrees(self.rel[label]).tolist()}
+
+    def motion(self, label: str) -> Motion | None:
+        idx = [i for i, m in enumerate(self.matches[label]) if m.ok]
+        if not idx:
+            return None
+        return Motion(self.angles["ref"], self.angles[label],
+                      np.concatenate([self.contours[i].points for i in idx]),
+                      np.concatenate([self.matches[label][i].points for i in idx]),
+                      np.concatenate([self.matches[label][i].normals for i in idx]),
+                      label=label,
+                      groups=np.concatenate([np.full(len(self.contours[i].points), i)
+                                             for i in idx]))
+
+    def stats(self, label: str, idx: list[int]) -> list[ContourStats]:
+        if label == "ref":
+            return [ContourStats.of(self.contours[i].points, self.centre) for i in idx]
+        return [ContourStats.of(self.matches[label][i].points, self.centre) for i in idx]
+
+    def ok_in(self, *labels: str) -> list[int]:
+        return [i for i in range(len(self.contours))
+                if all(lb in self.matches and self.matches[lb][i].ok for lb in labels)]
+
+
+def _strategies(tr: _Tracker, roll_labels: list[str]) -> dict[str, Any]:
+    """Strategies A-D of the thesis (eqs. 3.14-3.35) on the tracked contours."""
+    th_p, th_t = tr.rel["pan+"][0], tr.rel["tilt+"][1]
+    pt = tr.ok_in("pan+", "tilt+")
+    ref, tilt, pan = tr.stats("ref", pt), tr.stats("tilt+", pt), tr.stats("pan+", pt)
+    out: dict[str, Any] = {}
+
+    def record(name: str, fn) -> None:
+        try:
+            est = fn()
+            out[name] = {"fx": est["fx"], "fy": est["fy"], "cx": tr.centre[0] + est["dx"],
+                         "cy": tr.centre[1] + est["dy"]}
+        except SolveError as exc:
+            out[name] = {"error": str(exc)}
+
+    record("A", lambda: active.strategy_a(ref, tilt, pan, th_t, th_p))
+    record("B", lambda: active.strategy_b(ref, tilt, pan, th_t, th_p))
+    roll_pairs = []
+    for label in roll_labels:
+        idx = tr.ok_in(label)
+        roll_pairs += list(zip(tr.stats("ref", idx), tr.stats(label, idx),
+                               [tr.rel[label][2]] * len(idx), strict=True))
+    record("C", lambda: active.strategy_c(ref, tilt, pan, th_t, th_p, roll_pairs))
+    half = [m for m in roll_labels if abs(abs(tr.rel[m][2]) - math.pi) < math.radians(2)]
+    if half:
+        idx = tr.ok_in(half[0])
+        record("D", lambda: active.strategy_d(
+            ref, tilt, pan, th_t, th_p,
+            list(zip(tr.stats("ref", idx), tr.stats(half[0], idx), strict=True))))
+    else:
+        out["D"] = {"error": "no 180-degree roll captured"}
+    return out
+
+
+def solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, float, float]],
+                 settings: ActiveSettings | None = None) -> ActiveSolution:
+    """Intrinsics from images taken at known head angles (radians; labels ``ref``,
+    ``pan+``, ``pan-``, ``tilt+``, ``tilt-``, ``roll...``): thesis chapter 3 with the
+    refinement beyond it. Raises ``SolveError`` with the stage that failed."""
+    import time
+
+    settings = settings or ActiveSettings()
+    if "ref" not in images:
+        raise SolveError("active-camera: no reference capture recorded")
+    missing = [m for m in ("pan+", "tilt+") if m not in images]
+    if missing:
+        raise SolveError(f"active-camera: captures missing: {missing}")
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    tr = _Tracker(images, angles, settings)
+    K0 = tr.first_K()
+    timings["contours_and_first_K"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    order = [m for m in MOTIONS if m in images] + [m for m in images if m.startswith("roll")]
+    roll_labels = [m for m in order if m.startswith("roll")]
+    for label in (m for m in order if not m.startswith("roll")):
+        tr.track(label, K0, 12.0)
+    pan_tilt = [m for m in (tr.motion(lb) for lb in order if not lb.startswith("roll")) if m]
+    K1 = dict(K0)
+    if len(pan_tilt) >= 2:
+        first_refine = refine(pan_tilt, K0, n_dist=settings.distortion_terms)
+        K1 = {"fx": first_refine.fx, "fy": first_refine.fy, "cx": first_refine.cx,
+              "cy": first_refine.cy}
+    tr.report["K_for_rolls"] = K1
+    for label in roll_labels:
+        tr.track(label, K1, 24.0)
+    timings["tracking"] = time.perf_counter() - t0
+
+    strategies = _strategies(tr, roll_labels)
+    start = next((strategies[s] for s in ("D", "C") if "error" not in strategies[s]), K0)
+
+    t0 = time.perf_counter()
+    motions = [m for m in (tr.motion(lb) for lb in order) if m is not None]
+    refined = refine(motions, start, n_dist=settings.distortion_terms,
+                     parallax_sigma=settings.parallax_sigma)
+    timings["refinement"] = time.perf_counter() - t0
+    strategies["refined"] = refined.as_dict()
+    w, h = tr.size
+    result = {
+        "fx": refined.fx, "fy": refined.fy, "cx": refined.cx, "cy": refined.cy,
+        "sigma": {k: refined.sigma[k] for k in ("fx", "fy", "cx", "cy")},
+        "width": w, "height": h,
+        "distortion": [refined.k1, refined.k2, refined.p1, refined.p2, 0.0],
+        "roll_axis_in_cam": refined.roll_axis.tolist(),
+        "assumed_centre": tr.centre.tolist(),
+        "strategies": strategies, "tracking": tr.report,
+        "summary": {"fx": refined.fx, "fy": refined.fy, "cx": refined.cx, "cy": refined.cy,
+                    "rms_px": refined.rms_px, "contours": len(tr.contours)},
+    }
+    return ActiveSolution(result, refined, tr.contours, tr.matches, order, timings)
