@@ -33,8 +33,9 @@ class ActiveCameraParams(Params):
     min_points: int = Field(40, ge=10)
     # k1, k2 by default: from rotations alone the tangential terms are nearly degenerate
     # with the principal point (on the default world, 4 terms moved cx by -1.5 px).
-    distortion_terms: Literal[0, 1, 2, 4] = Field(
-        2, description="0; 1: k1; 2: k1, k2; 4: k1, k2, p1, p2 (tangential)")
+    distortion_terms: Literal[0, 1, 2, 3, 4, 5] = Field(
+        2, description="0; 1: k1; 2: k1, k2; 3: k1, k2, k3; 4: k1, k2, p1, p2 "
+        "(tangential); 5: all five")
     assumed_centre: list[float] | None = Field(None, description="default: image centre")
     nodal_offset_mm: float = Field(
         3.0, ge=0, le=100, description="how far the camera's centre of projection may be "

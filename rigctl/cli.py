@@ -583,8 +583,8 @@ def bench_active_worlds(as_json: bool = typer.Option(False, "--json"),
     from rigctl.bench import active_worlds
     from rigctl.bench.common import print_table
 
-    if distortion_terms not in (0, 1, 2, 4):
-        _fail(ConfigError(f"--distortion-terms: 0, 1, 2 or 4, got {distortion_terms}"),
+    if distortion_terms not in (0, 1, 2, 3, 4, 5):
+        _fail(ConfigError(f"--distortion-terms: 0 to 5, got {distortion_terms}"),
               as_json)
     result = active_worlds.run(n, first_seed, distortion_terms, workers)
     if as_json:

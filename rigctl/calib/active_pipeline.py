@@ -139,8 +139,12 @@ class _Tracker:
             raise SolveError("active-camera: no first focal length from the pan/tilt shifts")
         return f
 
-    def track(self, label: str, K: dict, window: float) -> None:
-        predictor = _predictor(K, self.rel[label])
+    def track(self, label: str, K: dict | RefineResult, window: float) -> None:
+        """Follows every reference contour into ``label``'s image: predicted by a pinhole
+        ``K`` or by a refinement's whole model (distortion included), then searched
+        +-``window`` px around the prediction."""
+        predictor = K.predictor(self.angles["ref"], self.angles[label]) \
+            if isinstance(K, RefineResult) else _predictor(K, self.rel[label])
         self.matches[label] = [track_by_prediction(c, self.emaps[label], predictor,
                                                    window=window) for c in self.contours]
         rejected: dict[str, int] = {}
@@ -233,12 +237,11 @@ def solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, f
     for label in (m for m in order if not m.startswith("roll")):
         tr.track(label, K0, 12.0)
     pan_tilt = [m for m in (tr.motion(lb) for lb in order if not lb.startswith("roll")) if m]
-    K1 = dict(K0)
+    K1: dict | RefineResult = dict(K0)
     if len(pan_tilt) >= 2:
-        first_refine = refine(pan_tilt, K0, n_dist=settings.distortion_terms)
-        K1 = {"fx": first_refine.fx, "fy": first_refine.fy, "cx": first_refine.cx,
-              "cy": first_refine.cy}
-    tr.report["K_for_rolls"] = K1
+        K1 = refine(pan_tilt, K0, n_dist=settings.distortion_terms)
+        tr.report["K_for_rolls"] = {"fx": K1.fx, "fy": K1.fy, "cx": K1.cx, "cy": K1.cy,
+                                    "distortion": [K1.k1, K1.k2, K1.p1, K1.p2, K1.k3]}
     for label in roll_labels:
         tr.track(label, K1, 24.0)
     timings["tracking"] = time.perf_counter() - t0
@@ -257,7 +260,7 @@ def solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, f
         "fx": refined.fx, "fy": refined.fy, "cx": refined.cx, "cy": refined.cy,
         "sigma": {k: refined.sigma[k] for k in ("fx", "fy", "cx", "cy")},
         "width": w, "height": h,
-        "distortion": [refined.k1, refined.k2, refined.p1, refined.p2, 0.0],
+        "distortion": [refined.k1, refined.k2, refined.p1, refined.p2, refined.k3],
         "roll_axis_in_cam": refined.roll_axis.tolist(),
         "assumed_centre": tr.centre.tolist(),
         "strategies": strategies, "tracking": tr.report,

@@ -44,6 +44,13 @@ from rigctl.errors import SolveError
 PARAM_NAMES = ["fx", "fy", "cx", "cy", "n_x", "n_y", "n_z", "a_x", "a_y", "s_x", "s_y", "s_z",
                "k1", "k2", "p1", "p2"]
 N_BASE = 12  # parameters before the distortion terms
+DIST_NAMES = ("k1", "k2", "p1", "p2", "k3")  # OpenCV's order
+# which of DIST_NAMES each choice of ``n_dist`` estimates
+DIST_SLOTS = {0: (), 1: (0,), 2: (0, 1), 3: (0, 1, 4), 4: (0, 1, 2, 3), 5: (0, 1, 2, 3, 4)}
+
+
+def param_names(n_dist: int) -> list[str]:
+    return PARAM_NAMES[:N_BASE] + [DIST_NAMES[i] for i in DIST_SLOTS[n_dist]]
 
 
 @dataclass
@@ -78,13 +85,13 @@ def _unpack(x: np.ndarray, n_dist: int):
     fx, fy, cx, cy = x[:4]
     N = rot_axis(x[4:7], np.linalg.norm(x[4:7])) if np.linalg.norm(x[4:7]) > 0 else np.eye(3)
     a = rot_x(x[7]) @ rot_y(x[8]) @ np.array([0.0, 0.0, 1.0])
-    k = np.zeros(4)  # k1, k2, p1, p2 (OpenCV's convention)
-    k[:n_dist] = x[N_BASE:N_BASE + n_dist]
+    k = np.zeros(5)  # k1, k2, p1, p2, k3 (OpenCV's convention)
+    k[list(DIST_SLOTS[n_dist])] = x[N_BASE:N_BASE + n_dist]
     return fx, fy, cx, cy, N, a, x[9:12], k
 
 
 def _radial(r2, k):
-    return 1 + k[0] * r2 + k[1] * r2 * r2
+    return 1 + r2 * (k[0] + r2 * (k[1] + r2 * k[4]))
 
 
 def _distort(xn, k):
@@ -161,10 +168,20 @@ class RefineResult:
     outliers: int
     residuals_by_motion: dict[str, float]
     parallax: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    k3: float = 0.0
+    x: np.ndarray | None = field(default=None, repr=False)  # the full parameter vector
+    n_dist: int = 0
+
+    def predictor(self, angles0, angles1):
+        """Where reference pixels land after the head moves from ``angles0`` to
+        ``angles1`` under this solution (eq. 3.3 with distortion): for tracking."""
+        def predict_points(points: np.ndarray) -> np.ndarray:
+            return predict(Motion(angles0, angles1, points, points), self.x, self.n_dist)
+        return predict_points
 
     def as_dict(self) -> dict:
         return {"fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy, "k1": self.k1,
-                "k2": self.k2, "p1": self.p1, "p2": self.p2,
+                "k2": self.k2, "p1": self.p1, "p2": self.p2, "k3": self.k3,
                 "mount_rotvec": self.mount_rotvec.tolist(), "roll_axis": self.roll_axis.tolist(),
                 "parallax": self.parallax.tolist(), "sigma": self.sigma, "rms_px": self.rms_px,
                 "inliers": self.inliers,
@@ -297,8 +314,8 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
         raise SolveError("refinement: needs at least two motions")
     if sum(len(m.ref_points) for m in motions) < 20:
         raise SolveError("refinement: too few contour points")
-    if n_dist not in (0, 1, 2, 4):
-        raise SolveError(f"refinement: n_dist must be 0, 1, 2 or 4, got {n_dist}")
+    if n_dist not in DIST_SLOTS:
+        raise SolveError(f"refinement: n_dist must be one of {sorted(DIST_SLOTS)}, got {n_dist}")
     n_params = N_BASE + n_dist
     free = np.ones(n_params, bool)
     free[9:12] = False  # the parallax: consider parameters
@@ -356,9 +373,11 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
     inliers = int(sum(mk.sum() for mk in masks))
     return RefineResult(float(fx), float(fy), float(cx), float(cy), float(k[0]), float(k[1]),
                         float(k[2]), float(k[3]), x[4:7].copy(),
-                        a, {name: float(s) for name, s in zip(PARAM_NAMES, sig, strict=False)},
+                        a, {name: float(s) for name, s in zip(param_names(n_dist), sig,
+                                                               strict=True)},
                         float(np.sqrt(np.mean(r ** 2))), inliers, total - inliers,
-                        _rms_by_motion(r, motions, masks), parallax.copy())
+                        _rms_by_motion(r, motions, masks), parallax.copy(), float(k[4]),
+                        x.copy(), n_dist)
 
 
 def _jacobian_columns(residuals, x: np.ndarray, columns, r0: np.ndarray,
