@@ -114,6 +114,37 @@ def plan_target_views(config: RigConfig, n: int, distance_m: float = 0.45,
     return poses, notes
 
 
+MIN_VIEWS = 3
+CLOSER = (0.8, 0.65, 0.5)  # viewing distances tried when too few views are reachable
+
+
+def reachable_views(config: RigConfig, count: int, distance_m: float, max_tilt_deg: float,
+                    seed: int, label: str) -> tuple[list[np.ndarray], list[str]]:
+    """``plan_target_views`` at ``distance_m``; when fewer than ``count`` views are
+    reachable (a small arm, a far target), closer distances in turn, keeping the plan
+    with the most views. Fewer than ``MIN_VIEWS`` is refused here, before any motion."""
+    poses, notes = plan_target_views(config, count, distance_m, max_tilt_deg, seed)
+    first = len(poses)
+    best = (poses, distance_m)
+    for factor in CLOSER:
+        if len(best[0]) >= count:
+            break
+        more, _ = plan_target_views(config, count, distance_m * factor, max_tilt_deg, seed)
+        if len(more) > len(best[0]):
+            best = (more, distance_m * factor)
+    poses, used = best
+    if used != distance_m:
+        notes = [f"{label}s: only {first} "
+                 f"of {count} views reachable at {distance_m:.2f} m; planned at {used:.2f} m "
+                 f"instead ({len(poses)} views)"]
+    if len(poses) < MIN_VIEWS:
+        raise SolveError(f"{label}s: only {len(poses)} of {count} views of the target are "
+                         f"reachable at {distance_m:.2f} m or closer (down to "
+                         f"{distance_m * CLOSER[-1]:.2f} m) within the soft limits; move the "
+                         "target within the arm's reach or change view_distance_m")
+    return poses, notes
+
+
 def view_steps(config: RigConfig, count: int, distance_m: float, max_tilt_deg: float,
                seed: int, label: str, kind: str, settle_s: float) -> list:
     """Steps visiting ``count`` planned views of the target (head at home first when there
@@ -124,7 +155,7 @@ def view_steps(config: RigConfig, count: int, distance_m: float, max_tilt_deg: f
     steps: list = []
     if config.devices.head is not None:
         steps.append(MoveHead(0.0, 0.0, 0.0, "head home"))
-    poses, notes = plan_target_views(config, count, distance_m, max_tilt_deg, seed)
+    poses, notes = reachable_views(config, count, distance_m, max_tilt_deg, seed, label)
     steps += [Note(n) for n in notes]
     for k, q in enumerate(poses):
         name = f"{label} {k + 1}"

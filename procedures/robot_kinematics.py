@@ -41,7 +41,7 @@ from .base import (
     Settle,
     SolveContext,
 )
-from .planning import informative_views, plan_target_views
+from .planning import CLOSER, informative_views, plan_target_views
 from .robot_common import (
     board_observations,
     camera_matrix,
@@ -69,6 +69,30 @@ class RobotKinematicsParams(Params):
     seed: int = 0
 
 
+def _scaled_to_reach(config, params: RobotKinematicsParams):
+    """The parameters with the sweep and view distances brought closer (``CLOSER``)
+    when the arm cannot reach a straight view of the target from the asked ones (a small
+    arm such as a UR3e), the first sweep base, and a note saying so."""
+    for factor in (1.0, *CLOSER):
+        base, notes = plan_target_views(config, 1, params.sweep_distance_m * factor, 0.0,
+                                        params.seed)
+        if base:
+            break
+    else:
+        raise SolveError("robot-kinematics: no reachable view of the target from "
+                         f"{params.sweep_distance_m:.2f} m or closer (down to "
+                         f"{params.sweep_distance_m * CLOSER[-1]:.2f} m); move the target "
+                         "within the arm's reach or change sweep_distance_m")
+    if factor != 1.0:
+        params = params.model_copy(update={
+            "sweep_distance_m": params.sweep_distance_m * factor,
+            "view_distance_m": params.view_distance_m * factor})
+        notes = [f"no straight view of the target is reachable from the asked distances: "
+                 f"sweeps at {params.sweep_distance_m:.2f} m and views at "
+                 f"{params.view_distance_m:.2f} m ({factor:g} times)"]
+    return params, base, notes
+
+
 class RobotKinematics(Procedure):
     name = "robot-kinematics"
     summary = "UR kinematic calibration: sweeps (link-by-link) + joint refinement."
@@ -82,9 +106,7 @@ class RobotKinematics(Procedure):
         if config.devices.head is not None:
             steps.append(MoveHead(0.0, 0.0, 0.0, "head home"))
         # the sweeps start from a farther view, so the board stays in sight longer
-        base, notes = plan_target_views(config, 1, params.sweep_distance_m, 0.0, params.seed)
-        if not base:
-            raise SolveError("robot-kinematics: no reachable view of the target")
+        params, base, notes = _scaled_to_reach(config, params)
         q_base = base[0]
         K = planning_K(config, params.intrinsics)
         bases = [q_base]

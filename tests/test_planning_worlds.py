@@ -1,0 +1,53 @@
+"""Planning on rigs nobody tuned for: on a UR3e (random world 3) the default viewing
+distances are out of reach; hand-eye plans closer, inside the soft limits, and
+robot-kinematics scales its distances the same way. A target out of reach is refused
+before any motion, by name."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+from mocks.random_world import random_world
+from mocks.sim import rig_text
+from mocks.world import World, WorldFile
+from procedures import get_procedure
+from procedures.robot_kinematics import RobotKinematicsParams, _scaled_to_reach
+from rigctl.config import parse_rig
+from rigctl.errors import SolveError
+from rigctl.runner import check_plan
+
+
+def rig_for(world_data: dict):
+    world = World(WorldFile.model_validate(world_data))
+    rig = rig_text(Path("world.yaml"), "127.0.0.1", Path("/nonexistent"),
+                   "http://127.0.0.1:9/", "records", world)
+    return parse_rig(yaml.safe_dump(rig))
+
+
+def test_a_small_arm_is_planned_closer():
+    data = random_world(3)
+    assert data["arm"]["model"] == "ur3e"
+    config = rig_for(data)
+    proc = get_procedure("hand-eye")
+    steps = proc.plan(proc.params_model(poses=4), config)
+    assert len([s for s in steps if type(s).__name__ == "CaptureStep"]) == 4
+    assert not check_plan(config, steps, proc.devices)
+    notes = " ".join(s.text for s in steps if type(s).__name__ == "Note")
+    assert "only 0 of 4 views reachable at 0.45 m; planned at" in notes
+    params, base, notes = _scaled_to_reach(config, RobotKinematicsParams())
+    assert len(base) == 1 and params.sweep_distance_m < 0.7 and params.view_distance_m < 0.45
+    assert "no straight view" in notes[0]
+
+
+def test_target_out_of_reach_is_refused_before_motion():
+    data = random_world(3)
+    data["target"]["xyz_mm"] = [-3000.0, 0.0, 0.0]
+    config = rig_for(data)
+    proc = get_procedure("hand-eye")
+    with pytest.raises(SolveError, match=r"reachable at 0\.45 m or closer"):
+        proc.plan(proc.params_model(poses=4), config)
+    with pytest.raises(SolveError, match=r"no reachable view of the target from 0\.70 m"):
+        _scaled_to_reach(config, RobotKinematicsParams())
