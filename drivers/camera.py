@@ -4,7 +4,9 @@
 Freshness: a grabber thread reads frames continuously and keeps only the newest one
 with its arrival time (``time.time()``). ``capture(not_before=t)`` returns the first
 frame that *arrived* at least one frame period (plus ``FRESH_MARGIN_S`` and the rig
-file's ``latency_s``) after ``t``:
+file's ``latency_s``) after ``t``, and arrived live: the grabber had waited for it (see
+``LIVE_GAP``). A grabber descheduled on a busy host reads a backlog of older frames in a
+burst, each stamped late; a loaded run once took a frame of the head mid-roll that way.
 a frame arriving that late was exposed after ``t``, even counting the exposure, encode
 and transport latency of a USB or network camera. We chose the grabber over flushing
 buffered frames because the depth of V4L2 and FFMPEG buffers differs by driver and
@@ -28,6 +30,9 @@ from drivers.base import Camera, DeviceError, Frame, load_note
 log = logging.getLogger(__name__)
 
 FRESH_MARGIN_S = 0.02
+# After a motion only a *live* frame counts: one the grabber waited for (at least this
+# fraction of a frame period since the previous read), not one drained from a backlog.
+LIVE_GAP = 0.3
 CONTROL_PROPS = {
     "exposure": cv2.CAP_PROP_EXPOSURE, "gain": cv2.CAP_PROP_GAIN,
     "focus": cv2.CAP_PROP_FOCUS, "white_balance": cv2.CAP_PROP_WB_TEMPERATURE,
@@ -47,7 +52,7 @@ class OpenCVCamera(Camera):
         self.is_stream = isinstance(cfg.device, str) and "://" in cfg.device
         self.settings: dict[str, Any] = {}
         self._cond = threading.Condition()
-        self._latest: tuple[Any, float, int] | None = None
+        self._latest: tuple[Any, float, int, bool] | None = None
         self._error: str | None = None
         self._running = False
         self._thread: threading.Thread | None = None
@@ -137,9 +142,14 @@ class OpenCVCamera(Camera):
 
     def _grab(self) -> None:
         seq = 0
+        previous = time.time()
         while self._running:
             ok, image = self.cap.read()
             arrived = time.time()
+            # A read that returned at once came from the backlog of the decoder or the
+            # socket (the grabber was descheduled): exposed earlier than it arrived.
+            live = arrived - previous >= LIVE_GAP * (1.0 / self.fps)
+            previous = arrived
             if not ok:
                 with self._cond:
                     self._error = "read failed (stream stalled or device gone)"
@@ -148,7 +158,7 @@ class OpenCVCamera(Camera):
                 continue
             seq += 1
             with self._cond:
-                self._latest = (image, arrived, seq)
+                self._latest = (image, arrived, seq, live)
                 self._error = None
                 self._cond.notify_all()
 
@@ -164,7 +174,8 @@ class OpenCVCamera(Camera):
         with self._cond:
             while True:
                 latest = self._latest
-                if latest is not None and latest[1] >= threshold:
+                if latest is not None and latest[1] >= threshold and \
+                        (latest[3] or not_before is None):
                     break
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
@@ -172,7 +183,7 @@ class OpenCVCamera(Camera):
                     raise DeviceError(f"{self.name}: {why} within {self.cfg.timeout_s:.1f} s; "
                                       f"{load_note('devices.camera.timeout_s')}")
                 self._cond.wait(remaining)
-        image, arrived, seq = latest
+        image, arrived, seq, _live = latest
         h, w = image.shape[:2]
         if (w, h) != (self.cfg.width, self.cfg.height):
             raise DeviceError(f"{self.name}: frames are {w}x{h}, the rig file says "
