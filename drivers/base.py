@@ -12,7 +12,6 @@ import math
 import os
 import threading
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -85,7 +84,6 @@ class Status:
         self._lock = threading.Lock()
         self._exception: BaseException | None = None
         self._progress = 0.0
-        self._watchers: list[Callable[[float], None]] = []
 
     @classmethod
     def finished(cls, description: str = "") -> Status:
@@ -106,17 +104,8 @@ class Status:
     def exception(self) -> BaseException | None:
         return self._exception
 
-    def watch(self, callback: Callable[[float], None]) -> None:
-        """Call ``callback(fraction)`` on every progress update."""
-        with self._lock:
-            self._watchers.append(callback)
-
     def set_progress(self, fraction: float) -> None:
         self._progress = float(min(max(fraction, 0.0), 1.0))
-        with self._lock:
-            watchers = list(self._watchers)
-        for callback in watchers:
-            callback(self._progress)
 
     def set_finished(self) -> None:
         if not self._event.is_set():
@@ -151,9 +140,6 @@ class HeadAngles:
     tilt: float
     roll: float
     timestamp: float
-
-    def as_array(self) -> np.ndarray:
-        return np.array([self.pan, self.tilt, self.roll])
 
 
 @dataclass(frozen=True)
@@ -272,9 +258,6 @@ class Arm(Device):
             raise SafetyError(f"arm: expected {len(limits)} joint values, got {len(q)}")
         for i, (value, (lo, hi)) in enumerate(zip(q, limits, strict=True)):
             check_axis_limit(f"arm.joint{i + 1}", value, lo, hi)
-
-    def safety_state(self) -> str:
-        return self.read_state().safety
 
 
 class Camera(Device):

@@ -11,7 +11,7 @@ import time
 
 import numpy as np
 
-from drivers.base import Arm, ArmState, Camera, DeviceError, Frame, Head, HeadAngles, Status
+from drivers.base import Camera, DeviceError, Frame, Head, HeadAngles, Status
 
 
 class DoubleHead(Head):
@@ -81,40 +81,6 @@ class DoubleHead(Head):
 
         threading.Thread(target=motion, daemon=True).start()
         return status
-
-
-class DoubleArm(Arm):
-    def __init__(self, cfg) -> None:
-        self.cfg = cfg
-        self.q = [math.radians(v) for v in cfg.home_deg]
-        self.calls: list[str] = []
-
-    def open(self) -> None:
-        self.calls.append("open")
-
-    def close(self) -> None:
-        self.calls.append("close")
-
-    def describe(self) -> dict:
-        return {"model": "double arm"}
-
-    def stop(self) -> None:
-        self.calls.append("stop")
-
-    def joint_limits(self):
-        return self.cfg.joint_limits_rad()
-
-    def move_joints(self, q) -> Status:
-        self.check_limits(q)
-        self.q = list(q)
-        self.calls.append("move_joints")
-        return Status.finished()
-
-    def move_linear(self, pose) -> Status:
-        return Status.finished()
-
-    def read_state(self) -> ArmState:
-        return ArmState(tuple(self.q), (0.0,) * 6, time.time())
 
 
 class DoubleCamera(Camera):

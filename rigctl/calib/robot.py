@@ -337,10 +337,6 @@ class Measurements:
     sigma_rot: float = 0.001
     sigma_t: float = 0.001
 
-    def subset(self, idx) -> Measurements:
-        pick = lambda v: None if v is None else [v[i] for i in idx]  # noqa: E731
-        return Measurements([self.q[i] for i in idx], pick(self.C), pick(self.corners),
-                            self.obj, self.K, self.dist, self.sigma_rot, self.sigma_t)
 
 
 @dataclass

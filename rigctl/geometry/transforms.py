@@ -29,15 +29,6 @@ def R_to_rotvec(R) -> np.ndarray:
     return Rotation.from_matrix(np.asarray(R, float)).as_rotvec()
 
 
-def pose_to_T(pose) -> np.ndarray:
-    """UR pose ``[x, y, z, rx, ry, rz]`` (m, rotation vector) to 4x4."""
-    return make_T(rotvec_to_R(pose[3:6]), pose[:3])
-
-
-def T_to_pose(T) -> np.ndarray:
-    return np.concatenate([T[:3, 3], R_to_rotvec(T[:3, :3])])
-
-
 def rpy_deg_to_R(rpy_deg) -> np.ndarray:
     """``[roll, pitch, yaw]`` in degrees to ``Rz(yaw) Ry(pitch) Rx(roll)``."""
     return Rotation.from_euler("ZYX", np.asarray(rpy_deg, float)[::-1], degrees=True).as_matrix()
