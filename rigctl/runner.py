@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 from importlib import metadata as importlib_metadata
 from typing import Any
 
+import numpy as np
 from rich.console import Console
 from rich.progress import (
     BarColumn,
@@ -122,6 +123,38 @@ class RunOutcome:
                 "run_dir": self.run_dir, "result": self.result}
 
 
+def linear_path_q(arm, q_from: list[float], pose, samples: int = 24) -> list[float]:
+    """The joints along a straight TCP line (``moveL``) from ``q_from`` to the UR
+    ``pose`` (flange, nominal model; position interpolated, rotation slerped), each
+    checked against the soft limits; the final joints. ``SafetyError`` names the first
+    point out of reach or out of limits."""
+    from scipy.spatial.transform import Rotation, Slerp
+
+    from rigctl.geometry.kinematics import nominal_ur
+    from rigctl.geometry.transforms import make_T, rotvec_to_R
+
+    model = nominal_ur(arm.model)
+    limits = arm.joint_limits_rad()
+    T0 = model.fk(q_from)
+    R1 = rotvec_to_R(pose[3:6])
+    slerp = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([T0[:3, :3], R1])))
+    q = np.asarray(q_from, float)
+    for s in np.linspace(0.0, 1.0, samples + 1)[1:]:
+        T = make_T(slerp(s).as_matrix(), (1 - s) * T0[:3, 3] + s * np.asarray(pose[:3]))
+        try:
+            q = model.ik(T, q)
+        except RigError:
+            raise SafetyError(f"arm: the straight line leaves the arm's reach at "
+                              f"{100 * s:.0f} % of the way") from None
+        for i, value in enumerate(q):
+            lo, hi = limits[i]
+            if not lo <= value <= hi:
+                raise SafetyError(f"arm.joint{i + 1} would reach {math.degrees(value):.1f} deg "
+                                  f"at {100 * s:.0f} % of the straight line, outside the soft "
+                                  f"limits [{math.degrees(lo):.1f}, {math.degrees(hi):.1f}] deg")
+    return q.tolist()
+
+
 def check_plan(config: RigConfig, steps: list[Step], needs: tuple[str, ...]) -> list[str]:
     """Every soft-limit violation and missing device of a plan, as operator messages."""
     problems = []
@@ -147,6 +180,8 @@ def check_plan(config: RigConfig, steps: list[Step], needs: tuple[str, ...]) -> 
                 limits = arm.joint_limits_rad()
                 for i, value in targets:
                     check_axis_limit(f"arm.joint{i + 1}", value, *limits[i])
+            elif isinstance(step, MoveArmLinear) and arm is not None and arm_q is not None:
+                arm_q = linear_path_q(arm, arm_q, step.pose)
         except SafetyError as exc:
             problems.append(f"step {n} ({step.describe()}): {exc}")
     return problems
