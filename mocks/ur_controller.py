@@ -26,6 +26,7 @@ import struct
 import sys
 import threading
 import time
+from enum import IntEnum
 from pathlib import Path
 
 import numpy as np
@@ -252,107 +253,95 @@ class Controller:
             self._async_progress(0)
 
     def process(self, cmd: int) -> None:
-        """One command of the control script; sets ``pending_done`` for blocking ones."""
-        async_flag = self.rint(1) == 1
-        if cmd in (1, 2, 3, 4):
-            v, a = self.rdouble(6), self.rdouble(7)
-            self._kill_async()
-            target_q = self.q_from(0) if cmd in (1, 4) else None
-            if cmd == 1:
-                self._start_joint_move(target_q, v, a, not async_flag)
-            elif cmd == 2:
-                q = self.ctrl_model.ik(pose_to_matrix(self.q_from(0)), self.q, self.tcp)
-                if q is None:
-                    self.stop_program("moveJ_IK: no inverse kinematics solution")
-                    return
-                self._start_joint_move(q, v, a, not async_flag)
-            else:
-                T1 = pose_to_matrix(self.q_from(0)) if cmd == 3 else \
-                    self.ctrl_model.tool(target_q, self.tcp)
-                self.motion = LinearMove(self.ctrl_model, self.tcp, self.q, T1,
-                                         min(v, 3.0), min(a, 15.0), self.t)
-                self._begin(not async_flag)
-            self.pending_done = not async_flag
-            return
-        if cmd in (33, 34):  # stopL, stopJ
-            decel = max(self.rdouble(0), 0.1)
-            self._kill_async()
-            self.motion = StopMove(self.q, self.qd, decel, self.t)
-            if async_flag:
-                self.motion_kind = "stop_async"
-                self._async_progress(0)
-            else:
-                self.motion_kind = "sync"
-                self.pending_done = True
-            return
-        if cmd in (15, 16):  # speedStop, servoStop
-            self.motion = StopMove(self.q, self.qd, max(self.rdouble(0), 0.1), self.t)
+        """One command of the control script (``SCRIPT_HANDLERS``); sets
+        ``pending_done`` for blocking ones. Unknown commands are ignored, as the real
+        script ignores commands it has no branch for."""
+        handler = SCRIPT_HANDLERS.get(cmd)
+        if handler is not None:
+            handler(self, self.rint(1) == 1)
+
+    # -- script commands (the register layout is ur_rtde's control script) -----------
+
+    def _cmd_move(self, cmd: int, async_flag: bool) -> None:
+        v, a = self.rdouble(6), self.rdouble(7)
+        self._kill_async()
+        if cmd == Cmd.MOVEJ:
+            self._start_joint_move(self.q_from(0), v, a, not async_flag)
+        elif cmd == Cmd.MOVEJ_IK:
+            q = self.ctrl_model.ik(pose_to_matrix(self.q_from(0)), self.q, self.tcp)
+            if q is None:
+                self.stop_program("moveJ_IK: no inverse kinematics solution")
+                return
+            self._start_joint_move(q, v, a, not async_flag)
+        else:  # MOVEL to a pose, MOVEL_FK to joints
+            T1 = pose_to_matrix(self.q_from(0)) if cmd == Cmd.MOVEL else \
+                self.ctrl_model.tool(self.q_from(0), self.tcp)
+            self.motion = LinearMove(self.ctrl_model, self.tcp, self.q, T1,
+                                     min(v, 3.0), min(a, 15.0), self.t)
+            self._begin(not async_flag)
+        self.pending_done = not async_flag
+
+    def _cmd_stop_move(self, async_flag: bool) -> None:  # stopL, stopJ
+        decel = max(self.rdouble(0), 0.1)
+        self._kill_async()
+        self.motion = StopMove(self.q, self.qd, decel, self.t)
+        if async_flag:
+            self.motion_kind = "stop_async"
+            self._async_progress(0)
+        else:
             self.motion_kind = "sync"
             self.pending_done = True
+
+    def _cmd_stop_realtime(self, _async: bool) -> None:  # speedStop, servoStop
+        self.motion = StopMove(self.q, self.qd, max(self.rdouble(0), 0.1), self.t)
+        self.motion_kind = "sync"
+        self.pending_done = True
+
+    def _cmd_speedj(self, _async: bool) -> None:
+        target, accel = self.q_from(0), max(self.rdouble(6), 1e-3)
+        target = np.clip(target, -JOINT_SPEED_MAX, JOINT_SPEED_MAX)
+        if isinstance(self.motion, SpeedMove):
+            self.motion.update(target, accel)
+        else:
+            self.motion = SpeedMove(self.q, self.qd, target, accel, self.t)
+        self.motion_kind = "rt"
+
+    def _cmd_servoj(self, _async: bool) -> None:
+        target = self.q_from(0)
+        if not self._check_joints(target):
+            self.protective_stop("servoJ target outside the joint limits")
             return
-        if cmd == 9:  # speedJ
-            target, accel = self.q_from(0), max(self.rdouble(6), 1e-3)
-            target = np.clip(target, -JOINT_SPEED_MAX, JOINT_SPEED_MAX)
-            if isinstance(self.motion, SpeedMove):
-                self.motion.update(target, accel)
-            else:
-                self.motion = SpeedMove(self.q, self.qd, target, accel, self.t)
-            self.motion_kind = "rt"
-            return
-        if cmd == 11:  # servoJ
-            target = self.q_from(0)
-            if not self._check_joints(target):
-                self.protective_stop("servoJ target outside the joint limits")
-                return
-            if isinstance(self.motion, ServoMove):
-                self.motion.update(target, self.rdouble(9))
-            else:
-                self.motion = ServoMove(self.q, target, self.rdouble(9), JOINT_SPEED_MAX,
-                                        self.t)
-            self.motion_kind = "rt"
-            return
-        if cmd == 17:
-            self.payload = self.rdouble(0)
-        elif cmd == 29:
-            self.tcp = pose_to_matrix(self.q_from(0))
-        elif cmd in (30, 46, 60, 61):
-            q_near = self.q_from(6) if cmd in (30, 61) else self.q
-            q = self.ctrl_model.ik(pose_to_matrix(self.q_from(0)), q_near, self.tcp)
-            if cmd in (60, 61):
-                self.wint(1, 1 if q is not None else 0)
-            elif q is not None:
-                self.to_out(0, q)
-            else:
-                self.stop_program("get_inverse_kin: no solution")
-        elif cmd == 31:
-            self.protective_stop("triggerProtectiveStop")
-        elif cmd == 35:
-            self.watchdog_hz = self.rdouble(0)
-            self.last_input = time.monotonic()
-        elif cmd == 36:
-            pose = self.q_from(0)
-            q = self.ctrl_model.ik(pose_to_matrix(pose), self.q, self.tcp)
-            self.wint(1, int(q is not None and self._check_joints(q)))
-        elif cmd == 37:
-            self.wint(1, int(self._check_joints(self.q_from(0))))
-        elif cmd == 39:
-            T = pose_to_matrix(self.q_from(0)) @ pose_to_matrix(self.q_from(6))
-            self.to_out(0, matrix_to_pose(T))
-        elif cmd == 40:
-            self.to_out(0, matrix_to_pose(self.tcp))
-        elif cmd == 43:
-            self.to_out(0, matrix_to_pose(self.ctrl_model.tool(self.q, self.tcp)))
-        elif cmd == 44:
-            tcp = pose_to_matrix(self.q_from(6))
-            self.to_out(0, matrix_to_pose(self.ctrl_model.tool(self.q_from(0), tcp)))
-        elif cmd == 47:
-            self.wint(1, int(self.is_steady()))
-        elif cmd == 58:
-            self.to_out(0, matrix_to_pose(self.ctrl_model.flange(self.q)))
-        elif cmd == 255:
-            self.messages.append("received stop script")
-            self.runtime_state = RUNTIME_STOPPED
-            self._stop_motion(4.0)
+        if isinstance(self.motion, ServoMove):
+            self.motion.update(target, self.rdouble(9))
+        else:
+            self.motion = ServoMove(self.q, target, self.rdouble(9), JOINT_SPEED_MAX, self.t)
+        self.motion_kind = "rt"
+
+    def _cmd_inverse_kinematics(self, cmd: int) -> None:
+        with_q_near = cmd in (Cmd.GET_INVERSE_KINEMATICS_ARGS,
+                              Cmd.GET_INVERSE_KINEMATICS_HAS_SOLUTION_ARGS)
+        q_near = self.q_from(6) if with_q_near else self.q
+        q = self.ctrl_model.ik(pose_to_matrix(self.q_from(0)), q_near, self.tcp)
+        if cmd in (Cmd.GET_INVERSE_KINEMATICS_HAS_SOLUTION_DEFAULT,
+                   Cmd.GET_INVERSE_KINEMATICS_HAS_SOLUTION_ARGS):
+            self.wint(1, 1 if q is not None else 0)
+        elif q is not None:
+            self.to_out(0, q)
+        else:
+            self.stop_program("get_inverse_kin: no solution")
+
+    def _cmd_set_watchdog(self) -> None:
+        self.watchdog_hz = self.rdouble(0)
+        self.last_input = time.monotonic()
+
+    def _cmd_pose_within_limits(self) -> None:
+        q = self.ctrl_model.ik(pose_to_matrix(self.q_from(0)), self.q, self.tcp)
+        self.wint(1, int(q is not None and self._check_joints(q)))
+
+    def _cmd_stop_script(self) -> None:
+        self.messages.append("received stop script")
+        self.runtime_state = RUNTIME_STOPPED
+        self._stop_motion(4.0)
 
     def _kill_async(self) -> None:
         if self.motion_kind in ("async", "stop_async") and self.motion is not None:
@@ -857,5 +846,89 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+
+class Cmd(IntEnum):
+    """Control-script command numbers (ur_rtde's ``RobotCommand::Type``) the stand-in
+    serves."""
+
+    MOVEJ = 1
+    MOVEJ_IK = 2
+    MOVEL = 3
+    MOVEL_FK = 4
+    SPEEDJ = 9
+    SERVOJ = 11
+    SPEED_STOP = 15
+    SERVO_STOP = 16
+    SET_PAYLOAD = 17
+    SET_TCP = 29
+    GET_INVERSE_KINEMATICS_ARGS = 30
+    PROTECTIVE_STOP = 31
+    STOPL = 33
+    STOPJ = 34
+    SET_WATCHDOG = 35
+    IS_POSE_WITHIN_SAFETY_LIMITS = 36
+    IS_JOINTS_WITHIN_SAFETY_LIMITS = 37
+    POSE_TRANS = 39
+    GET_TCP_OFFSET = 40
+    GET_FORWARD_KINEMATICS_DEFAULT = 43
+    GET_FORWARD_KINEMATICS_ARGS = 44
+    GET_INVERSE_KINEMATICS_DEFAULT = 46
+    IS_STEADY = 47
+    GET_ACTUAL_TOOL_FLANGE_POSE = 58
+    GET_INVERSE_KINEMATICS_HAS_SOLUTION_DEFAULT = 60
+    GET_INVERSE_KINEMATICS_HAS_SOLUTION_ARGS = 61
+    STOP_SCRIPT = 255
+
+
+def _set_payload(c, _a):
+    c.payload = c.rdouble(0)
+
+
+def _set_tcp(c, _a):
+    c.tcp = pose_to_matrix(c.q_from(0))
+
+
+def _pose_trans(c, _a):
+    c.to_out(0, matrix_to_pose(pose_to_matrix(c.q_from(0)) @ pose_to_matrix(c.q_from(6))))
+
+
+def _forward_kinematics_args(c, _a):
+    c.to_out(0, matrix_to_pose(c.ctrl_model.tool(c.q_from(0), pose_to_matrix(c.q_from(6)))))
+
+
+# command -> handler(controller, async_flag)
+SCRIPT_HANDLERS = {
+    **{cmd: (lambda c, a, cmd=cmd: c._cmd_move(cmd, a))
+       for cmd in (Cmd.MOVEJ, Cmd.MOVEJ_IK, Cmd.MOVEL, Cmd.MOVEL_FK)},
+    Cmd.STOPL: lambda c, a: c._cmd_stop_move(a),
+    Cmd.STOPJ: lambda c, a: c._cmd_stop_move(a),
+    Cmd.SPEED_STOP: lambda c, a: c._cmd_stop_realtime(a),
+    Cmd.SERVO_STOP: lambda c, a: c._cmd_stop_realtime(a),
+    Cmd.SPEEDJ: lambda c, a: c._cmd_speedj(a),
+    Cmd.SERVOJ: lambda c, a: c._cmd_servoj(a),
+    Cmd.SET_PAYLOAD: _set_payload,
+    Cmd.SET_TCP: _set_tcp,
+    **{cmd: (lambda c, a, cmd=cmd: c._cmd_inverse_kinematics(cmd))
+       for cmd in (Cmd.GET_INVERSE_KINEMATICS_ARGS, Cmd.GET_INVERSE_KINEMATICS_DEFAULT,
+                   Cmd.GET_INVERSE_KINEMATICS_HAS_SOLUTION_DEFAULT,
+                   Cmd.GET_INVERSE_KINEMATICS_HAS_SOLUTION_ARGS)},
+    Cmd.PROTECTIVE_STOP: lambda c, a: c.protective_stop("triggerProtectiveStop"),
+    Cmd.SET_WATCHDOG: lambda c, a: c._cmd_set_watchdog(),
+    Cmd.IS_POSE_WITHIN_SAFETY_LIMITS: lambda c, a: c._cmd_pose_within_limits(),
+    Cmd.IS_JOINTS_WITHIN_SAFETY_LIMITS:
+        lambda c, a: c.wint(1, int(c._check_joints(c.q_from(0)))),
+    Cmd.POSE_TRANS: _pose_trans,
+    Cmd.GET_TCP_OFFSET: lambda c, a: c.to_out(0, matrix_to_pose(c.tcp)),
+    Cmd.GET_FORWARD_KINEMATICS_DEFAULT:
+        lambda c, a: c.to_out(0, matrix_to_pose(c.ctrl_model.tool(c.q, c.tcp))),
+    Cmd.GET_FORWARD_KINEMATICS_ARGS: _forward_kinematics_args,
+    Cmd.IS_STEADY: lambda c, a: c.wint(1, int(c.is_steady())),
+    Cmd.GET_ACTUAL_TOOL_FLANGE_POSE:
+        lambda c, a: c.to_out(0, matrix_to_pose(c.ctrl_model.flange(c.q))),
+    Cmd.STOP_SCRIPT: lambda c, a: c._cmd_stop_script(),
+}
+
+
 if __name__ == "__main__":
     sys.exit(main())
+
