@@ -705,57 +705,14 @@ class Server:
         self.forget(sock)
 
     def dashboard(self, command: str) -> str:
-        ctrl = self.ctrl
-        with ctrl.lock:
+        """One dashboard-server command (port 29999): a fixed answer, or a handler of
+        ``DASHBOARD_HANDLERS`` that may change the controller's state."""
+        with self.ctrl.lock:
             if command in DASHBOARD_ANSWERS:
                 return DASHBOARD_ANSWERS[command]
-            if command == "stop":
-                ctrl.stop_program("dashboard stop")
-                return "Stopped"
-            if command == "play":
-                if ctrl.runtime_state == RUNTIME_PAUSED and ctrl.safety_mode == SAFETY_NORMAL:
-                    ctrl.runtime_state = RUNTIME_PLAYING
-                    return "Starting program"
-                return "Failed to execute: play"
-            if command == "pause":
-                if ctrl.runtime_state == RUNTIME_PLAYING:
-                    ctrl.runtime_state = RUNTIME_PAUSED
-                return "Pausing program"
-            if command == "running":
-                return f"Program running: {str(ctrl.runtime_state == RUNTIME_PLAYING).lower()}"
-            if command == "programState":
-                state = {RUNTIME_PLAYING: "PLAYING", RUNTIME_PAUSED: "PAUSED"}.get(
-                    ctrl.runtime_state, "STOPPED")
-                return f"{state} rtde_control"
-            if command == "robotmode":
-                names = {ROBOT_POWER_OFF: "POWER_OFF", ROBOT_IDLE: "IDLE",
-                         ROBOT_RUNNING: "RUNNING"}
-                return f"Robotmode: {names.get(ctrl.robot_mode, 'RUNNING')}"
-            if command == "safetystatus" or command == "safetymode":
-                names = {SAFETY_NORMAL: "NORMAL", SAFETY_PROTECTIVE: "PROTECTIVE_STOP",
-                         SAFETY_ROBOT_ESTOP: "ROBOT_EMERGENCY_STOP"}
-                return f"Safetystatus: {names[ctrl.safety_mode]}"
-            if command == "power on":
-                if ctrl.estop:
-                    return "Failed to power on: emergency stop pressed"
-                ctrl.robot_mode = ROBOT_IDLE
-                return "Powering on"
-            if command == "power off":
-                ctrl.robot_mode = ROBOT_POWER_OFF
-                ctrl.stop_program("power off")
-                return "Powering off"
-            if command == "brake release":
-                if ctrl.robot_mode >= ROBOT_IDLE:
-                    ctrl.robot_mode = ROBOT_RUNNING
-                return "Brake releasing"
-            if command == "unlock protective stop":
-                if ctrl.safety_mode == SAFETY_PROTECTIVE:
-                    ctrl.safety_mode = SAFETY_NORMAL
-                    return "Protective stop releasing"
-                return "Cannot unlock protective stop until 5s after occurrence. " \
-                       "Always inspect cause of protective stop before unlocking"
-            if command == "quit":
-                return "Disconnected"
+            handler = DASHBOARD_HANDLERS.get(command)
+            if handler is not None:
+                return handler(self.ctrl)
         return f"could not understand: '{command}'"
 
     def on_control(self, sock: socket.socket) -> None:
@@ -926,6 +883,79 @@ SCRIPT_HANDLERS = {
     Cmd.GET_ACTUAL_TOOL_FLANGE_POSE:
         lambda c, a: c.to_out(0, matrix_to_pose(c.ctrl_model.flange(c.q))),
     Cmd.STOP_SCRIPT: lambda c, a: c._cmd_stop_script(),
+}
+
+
+def _dash_stop(ctrl) -> str:
+    ctrl.stop_program("dashboard stop")
+    return "Stopped"
+
+
+def _dash_play(ctrl) -> str:
+    if ctrl.runtime_state == RUNTIME_PAUSED and ctrl.safety_mode == SAFETY_NORMAL:
+        ctrl.runtime_state = RUNTIME_PLAYING
+        return "Starting program"
+    return "Failed to execute: play"
+
+
+def _dash_pause(ctrl) -> str:
+    if ctrl.runtime_state == RUNTIME_PLAYING:
+        ctrl.runtime_state = RUNTIME_PAUSED
+    return "Pausing program"
+
+
+def _dash_program_state(ctrl) -> str:
+    state = {RUNTIME_PLAYING: "PLAYING", RUNTIME_PAUSED: "PAUSED"}.get(ctrl.runtime_state,
+                                                                     "STOPPED")
+    return f"{state} rtde_control"
+
+
+def _dash_robot_mode(ctrl) -> str:
+    names = {ROBOT_POWER_OFF: "POWER_OFF", ROBOT_IDLE: "IDLE", ROBOT_RUNNING: "RUNNING"}
+    return f"Robotmode: {names.get(ctrl.robot_mode, 'RUNNING')}"
+
+
+def _dash_safety(ctrl) -> str:
+    names = {SAFETY_NORMAL: "NORMAL", SAFETY_PROTECTIVE: "PROTECTIVE_STOP",
+             SAFETY_ROBOT_ESTOP: "ROBOT_EMERGENCY_STOP"}
+    return f"Safetystatus: {names[ctrl.safety_mode]}"
+
+
+def _dash_power_on(ctrl) -> str:
+    if ctrl.estop:
+        return "Failed to power on: emergency stop pressed"
+    ctrl.robot_mode = ROBOT_IDLE
+    return "Powering on"
+
+
+def _dash_power_off(ctrl) -> str:
+    ctrl.robot_mode = ROBOT_POWER_OFF
+    ctrl.stop_program("power off")
+    return "Powering off"
+
+
+def _dash_brake_release(ctrl) -> str:
+    if ctrl.robot_mode >= ROBOT_IDLE:
+        ctrl.robot_mode = ROBOT_RUNNING
+    return "Brake releasing"
+
+
+def _dash_unlock(ctrl) -> str:
+    if ctrl.safety_mode == SAFETY_PROTECTIVE:
+        ctrl.safety_mode = SAFETY_NORMAL
+        return "Protective stop releasing"
+    return "Cannot unlock protective stop until 5s after occurrence. " \
+           "Always inspect cause of protective stop before unlocking"
+
+
+DASHBOARD_HANDLERS = {
+    "stop": _dash_stop, "play": _dash_play, "pause": _dash_pause,
+    "running": lambda c: f"Program running: {str(c.runtime_state == RUNTIME_PLAYING).lower()}",
+    "programState": _dash_program_state, "robotmode": _dash_robot_mode,
+    "safetystatus": _dash_safety, "safetymode": _dash_safety,
+    "power on": _dash_power_on, "power off": _dash_power_off,
+    "brake release": _dash_brake_release, "unlock protective stop": _dash_unlock,
+    "quit": lambda c: "Disconnected",
 }
 
 
