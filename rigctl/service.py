@@ -312,7 +312,7 @@ def _row(row: dict) -> dict:
             if k not in ("pid", "host")}
 
 
-def create_app(service: RigService, stop_service_on_shutdown: bool = False) -> FastAPI:
+def create_app(service: RigService, stop_service_on_shutdown: bool = False) -> FastAPI:  # noqa: C901
     """The HTTP API of ``service``. With ``stop_service_on_shutdown``, the server's
     graceful shutdown (SIGTERM, SIGINT) aborts the current run and waits for it to be
     recorded: uvicorn re-raises the signal once it has shut down, so code after
