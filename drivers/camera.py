@@ -33,6 +33,16 @@ FRESH_MARGIN_S = 0.02
 # After a motion only a *live* frame counts: one the grabber waited for (at least this
 # fraction of a frame period since the previous read), not one drained from a backlog.
 LIVE_GAP = 0.3
+
+
+def _mean_change(a, b) -> float:
+    """Mean absolute grey-level change between two frames, 8x downsampled (area), so
+    that sensor noise averages out (a noise of 2 grey levels leaves ~0.3)."""
+    def small(img):
+        grey = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if img.ndim == 3 else img
+        return cv2.resize(grey.astype("float32"), (grey.shape[1] // 8, grey.shape[0] // 8),
+                          interpolation=cv2.INTER_AREA)
+    return float(cv2.absdiff(small(a), small(b)).mean())
 CONTROL_PROPS = {
     "exposure": cv2.CAP_PROP_EXPOSURE, "gain": cv2.CAP_PROP_GAIN,
     "focus": cv2.CAP_PROP_FOCUS, "white_balance": cv2.CAP_PROP_WB_TEMPERATURE,
@@ -171,18 +181,10 @@ class OpenCVCamera(Camera):
         if not_before is not None:
             threshold += 1.0 / self.fps + FRESH_MARGIN_S + self.cfg.latency_s
         deadline = time.monotonic() + self.cfg.timeout_s
-        with self._cond:
-            while True:
-                latest = self._latest
-                if latest is not None and latest[1] >= threshold and \
-                        (latest[3] or not_before is None):
-                    break
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    why = self._error or "no new frame"
-                    raise DeviceError(f"{self.name}: {why} within {self.cfg.timeout_s:.1f} s; "
-                                      f"{load_note('devices.camera.timeout_s')}")
-                self._cond.wait(remaining)
+        latest = self._wait_frame(lambda f: f[1] >= threshold and (f[3] or not_before is None),
+                                  deadline)
+        if not_before is not None and self.cfg.still_threshold > 0:
+            latest = self._still(latest, deadline)
         image, arrived, seq, _live = latest
         h, w = image.shape[:2]
         if (w, h) != (self.cfg.width, self.cfg.height):
@@ -191,6 +193,41 @@ class OpenCVCamera(Camera):
         if image.ndim == 3:
             image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
         return Frame(image, arrived, seq, dict(self.settings))
+
+    def _wait_frame(self, accept, deadline: float):
+        """The newest frame once ``accept(frame)`` holds; ``DeviceError`` at the deadline."""
+        with self._cond:
+            while True:
+                latest = self._latest
+                if latest is not None and accept(latest):
+                    return latest
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    why = self._error or "no new frame"
+                    raise DeviceError(f"{self.name}: {why} within {self.cfg.timeout_s:.1f} s; "
+                                      f"{load_note('devices.camera.timeout_s')}")
+                self._cond.wait(remaining)
+
+    def _still(self, frame, deadline: float):
+        """The first frame that the next live frame barely differs from (mean absolute
+        change below ``still_threshold`` grey levels on 8x downsampled images): a frame
+        exposed while the arm or head was still moving, or delayed in the decoder's
+        pipeline past the arrival rule, is passed over."""
+        change = float("nan")
+        while True:
+            try:
+                newer = self._wait_frame(lambda f, seq=frame[2]: f[2] > seq and f[3], deadline)
+            except DeviceError:
+                raise DeviceError(
+                    f"{self.name}: the image did not keep still within "
+                    f"{self.cfg.timeout_s:.1f} s (mean change {change:.2f} grey levels between "
+                    f"frames, devices.camera.still_threshold {self.cfg.still_threshold}): is "
+                    f"something moving in view? {load_note('devices.camera.timeout_s')}"
+                ) from None
+            change = _mean_change(frame[0], newer[0])
+            if change < self.cfg.still_threshold:
+                return newer
+            frame = newer
 
     def close(self) -> None:
         self._running = False

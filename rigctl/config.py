@@ -216,6 +216,9 @@ class CameraConfig(_Strict):
     # much later than one period after the motion ended
     latency_s: float = Field(0.0, ge=0, le=5)
     open_retries: int = Field(0, ge=0, le=10)  # reopen attempts after a failed open
+    # after a motion a frame counts only once the next frame differs from it by less than
+    # this mean grey level (8x downsampled): the image is still. 0 turns the check off.
+    still_threshold: float = Field(1.0, ge=0, le=50)
 
     @field_validator("fourcc")
     @classmethod

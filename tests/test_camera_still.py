@@ -1,0 +1,32 @@
+"""The camera driver's stillness measure: frames of a still scene differ by sensor noise
+only; a scene that moved by a pixel or two differs by far more than the default
+``still_threshold`` (1 grey level). Pure image arithmetic, no device."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from drivers.camera import _mean_change
+from rigctl.config import CameraConfig
+
+
+def scene(rng, shift: float = 0.0) -> np.ndarray:
+    img = np.full((360, 640), 118, np.uint8)
+    for k in range(25):
+        x, y = 40 + 23 * k + shift, 60 + (k * 37) % 240
+        cv2.rectangle(img, (int(x * 16), int(y * 16)), (int((x + 18) * 16), int((y + 30) * 16)),
+                      20 if k % 2 else 235, -1, cv2.LINE_AA, shift=4)
+    return np.clip(img + rng.normal(0, 1.0, img.shape), 0, 255).astype(np.uint8)
+
+
+def test_noise_is_still_and_a_pixel_of_motion_is_not():
+    rng = np.random.default_rng(3)
+    threshold = CameraConfig(device=0).still_threshold
+    assert _mean_change(scene(rng), scene(rng)) < 0.3 * threshold
+    noisy = [np.clip(scene(rng) + rng.normal(0, 1.7, (360, 640)), 0, 255).astype(np.uint8)
+             for _ in range(2)]  # sensor noise of 2 grey levels in all
+    assert _mean_change(*noisy) < 0.5 * threshold
+    assert _mean_change(scene(rng), scene(rng, shift=1.5)) > threshold
+    colour = cv2.cvtColor(scene(rng), cv2.COLOR_GRAY2BGR)
+    assert _mean_change(colour, scene(rng)) < 0.3 * threshold
