@@ -17,6 +17,7 @@ Stages (thesis chapter 3, automated):
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -217,8 +218,6 @@ def solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, f
     """Intrinsics from images taken at known head angles (radians; labels ``ref``,
     ``pan+``, ``pan-``, ``tilt+``, ``tilt-``, ``roll...``): thesis chapter 3 with the
     refinement beyond it. Raises ``SolveError`` with the stage that failed."""
-    import time
-
     settings = settings or ActiveSettings()
     if "ref" not in images:
         raise SolveError("active-camera: no reference capture recorded")
