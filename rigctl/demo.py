@@ -23,6 +23,7 @@ from rich.console import Console
 from rich.table import Table
 
 from mocks.world import WORLDS, load_world
+from rigctl.bench.truth import model_against_truth
 from rigctl.config import load_rig
 from rigctl.runner import Runner
 from rigctl.simrig import SimulatedRig
@@ -64,34 +65,13 @@ def robot_table(result: dict, truth: dict) -> Table:
     return table
 
 
-def model_against_truth(result: dict, config, world) -> tuple[float, float, int]:
-    """Camera position in the target frame, ``W^-1 FK(q) X`` from the exported model
-    against the world's truth, over 34 planned views (35 deg tilt, 0.5 m) with the wrist
-    joints each perturbed three times (sigma 0.2 rad): RMS and max (mm), and the count."""
-    from procedures.planning import plan_target_views
-    from rigctl.geometry.kinematics import KinematicModel
-    from rigctl.geometry.transforms import inv_T
-
-    model = KinematicModel.from_export(result)
-    X, W = np.array(result["T_flange_cam"]), np.array(result["T_base_target"])
-    views, _ = plan_target_views(config, 34, 0.5, 35.0, seed=4242)
-    rng = np.random.default_rng(0)
-    errors = []
-    for q in views:
-        for _ in range(3):
-            qq = np.array(q) + np.r_[np.zeros(3), rng.normal(0, 0.2, 3)]
-            est = inv_T(W) @ model.fk(qq) @ X
-            true = inv_T(world.T_base_target) @ world.T_base_cam(qq, (0.0, 0.0, 0.0))
-            errors.append(1000 * np.linalg.norm(est[:3, 3] - true[:3, 3]))
-    return float(np.sqrt(np.mean(np.square(errors)))), float(np.max(errors)), len(errors)
-
-
 def main() -> int:
     records = Path("demo-records").resolve()
     world_path = WORLDS / "default.yaml"
     truth = load_world(world_path).truth()
     status = 0
-    with SimulatedRig(world_path, host="127.0.0.1", records=records) as rig_path:
+    with SimulatedRig(world_path, records=records) as sim:
+        rig_path = sim.rig_path
         runner = Runner(load_rig(rig_path))
         console.rule("1. active-camera on the simulated rig (pan/tilt 10 deg, rolls)")
         outcome = runner.run("active-camera", {"pan_deg": 10, "tilt_deg": 10})

@@ -1,34 +1,65 @@
-"""Run the simulated rig (`rigctl sim up`) as a child process for the demo and benches."""
+"""The one launcher of the simulated rig (`rigctl sim up` as a child process), for the
+demo, the benchmarks and the tests.
+
+Each rig gets its own loopback address (the UR protocols fix their ports) and an
+ephemeral camera port unless told otherwise, so several can run on one host. ``stop``
+ends `sim up` by PID and kills any stand-in that outlived it.
+"""
 
 from __future__ import annotations
 
 import tempfile
 from pathlib import Path
 
-from rigctl.bench.common import StandIn
+from mocks.world import WORLDS
+from rigctl.childproc import ChildProcess
+from rigctl.loopback import free_host
+
+
+def world_path(world: str | Path) -> Path:
+    """A world file: a path, or the name of one in ``mocks/worlds`` ("default", "ideal")."""
+    path = Path(world)
+    if path.suffix in (".yaml", ".yml"):
+        return path.resolve()
+    return WORLDS / f"{world}.yaml"
 
 
 class SimulatedRig:
-    """Context manager: starts `sim up` on a world, yields the rig file path; stops it."""
+    """`sim up` on ``world``; ``rig_path`` is the rig file it wrote, ``ready`` its ready
+    line (host, pids of the stand-ins, camera port, workdir)."""
 
-    def __init__(self, world: str | Path, host: str = "127.0.0.1", records: str | Path = "",
-                 port: int = 18080) -> None:
-        self.world, self.host, self.port = Path(world).resolve(), host, port
-        self.records = str(Path(records).resolve()) if records else ""
-        self.tmp = tempfile.TemporaryDirectory(prefix="rigctl-simrig-")
-        self.rig_path = Path(self.tmp.name) / "sim-rig.yaml"
-        self.proc: StandIn | None = None
-
-    def __enter__(self) -> Path:
-        args = ["-m", "rigctl.cli", "sim", "up", "--world", str(self.world), "--rig-out",
-                str(self.rig_path), "--host", self.host, "--camera-port", str(self.port)]
-        if self.records:
-            args += ["--records", self.records]
-        self.proc = StandIn(args, timeout=60)
+    def __init__(self, world: str | Path = "default", records: str | Path | None = None,
+                 host: str | None = None, camera_port: int = 0,
+                 workdir: str | Path | None = None, rig_out: str | Path | None = None,
+                 ready_timeout: float = 60.0) -> None:
+        self._tmp = tempfile.TemporaryDirectory(prefix="rigctl-simrig-")
+        tmp = Path(self._tmp.name)
+        self.host = host or free_host()
+        self.rig_path = Path(rig_out) if rig_out else tmp / "sim-rig.yaml"
+        records = Path(records).resolve() if records else tmp / "records"
+        args = ["-m", "rigctl.cli", "sim", "up", "--world", str(world_path(world)),
+                "--rig-out", str(self.rig_path), "--host", self.host, "--records",
+                str(records), "--camera-port", str(camera_port)]
+        if workdir:
+            args += ["--workdir", str(workdir)]
+        try:
+            self.proc = ChildProcess(args, ready_timeout, name=f"sim up ({world})",
+                                     capture_stderr=True)
+        except BaseException:
+            self._tmp.cleanup()
+            raise
         self.ready = self.proc.ready
-        return self.rig_path
+        self.orphans: list[int] = []
+
+    def stop(self, timeout: float = 20.0) -> list[int]:
+        """Stop `sim up` by PID; returns the stand-ins that outlived it (killed now)."""
+        self.proc.stop(timeout=timeout)
+        self.orphans = list(self.proc.orphans)
+        self._tmp.cleanup()
+        return self.orphans
+
+    def __enter__(self) -> SimulatedRig:
+        return self
 
     def __exit__(self, *exc) -> None:
-        if self.proc is not None:
-            self.proc.stop()
-        self.tmp.cleanup()
+        self.stop()

@@ -12,19 +12,21 @@ ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.fixture
 def start_sim(tmp_path: Path):
-    """Start ``rigctl sim up`` (``tests.simrig.SimRig`` keywords); every rig started is
-    stopped, with its stand-ins, by PID in teardown."""
-    from tests.simrig import SimRig
+    """Start ``rigctl sim up`` (``rigctl.simrig.SimulatedRig`` keywords, world "ideal" by
+    default); every rig started is stopped, with its stand-ins, by PID in teardown."""
+    from rigctl.simrig import SimulatedRig
 
     started = []
 
-    def start(**kwargs):
-        started.append(SimRig(tmp_path, **kwargs))
+    def start(world: str = "ideal", **kwargs):
+        kwargs.setdefault("records", tmp_path / "records")
+        kwargs.setdefault("rig_out", tmp_path / "sim-rig.yaml")
+        started.append(SimulatedRig(world, **kwargs))
         return started[-1]
 
     yield start
-    for rig in started:
-        rig.stop()
+    orphans = [pid for rig in started for pid in rig.stop()]
+    assert not orphans, f"stand-ins {orphans} outlived `sim up`"
 
 
 @pytest.fixture

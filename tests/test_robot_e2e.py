@@ -13,8 +13,8 @@ import pytest
 import yaml
 
 from mocks.world import load_world
+from rigctl.bench.truth import model_against_truth
 from rigctl.config import load_rig
-from rigctl.demo import model_against_truth
 from rigctl.geometry.kinematics import nominal_ur
 from tests.mockproc import ROOT
 from tests.resolve_check import assert_resolves_alone

@@ -13,8 +13,9 @@ import httpx
 import pytest
 import yaml
 
-from tests.loopback import free_host, free_port
-from tests.mockproc import ROOT, MockProcess
+from rigctl.loopback import free_port
+from rigctl.simrig import SimulatedRig
+from tests.mockproc import ROOT
 from tests.waiting import wait_until
 
 pytestmark = pytest.mark.integration
@@ -50,11 +51,8 @@ class Webhook:
 def start_sim(tmp, world, host=None, camera_port=0):
     """`sim up` on a fresh loopback address; a restart passes the old host and camera port
     so that the service's rig file still points at the stand-ins."""
-    return MockProcess(["-m", "rigctl.cli", "sim", "up", "--world",
-                        str(ROOT / "mocks" / "worlds" / f"{world}.yaml"), "--rig-out",
-                        str(tmp / "sim-rig.yaml"), "--host", host or free_host(), "--records",
-                        str(tmp / "records"), "--camera-port", str(camera_port), "--workdir",
-                        str(tmp / "simwork")], ready_timeout=40)
+    return SimulatedRig(world, records=tmp / "records", host=host, camera_port=camera_port,
+                        workdir=tmp / "simwork", rig_out=tmp / "sim-rig.yaml")
 
 
 class Stack:

@@ -12,8 +12,8 @@ import httpx
 import pytest
 import yaml
 
+from rigctl.loopback import free_port
 from rigctl.records import RecordIndex
-from tests.loopback import free_port
 from tests.mockproc import ROOT
 from tests.waiting import wait_until
 

@@ -21,8 +21,8 @@ from rigctl.errors import DeviceError
 from rigctl.records import RunDirectory
 from rigctl.rig import Rig
 from rigctl.runner import Runner
+from rigctl.simrig import SimulatedRig
 from tests.mockproc import ROOT, control
-from tests.simrig import SimRig
 from tests.waiting import wait_until
 
 pytestmark = pytest.mark.integration
@@ -30,9 +30,10 @@ pytestmark = pytest.mark.integration
 
 @pytest.fixture(scope="module")
 def sim(tmp_path_factory):
-    rig = SimRig(tmp_path_factory.mktemp("sim"))
+    tmp = tmp_path_factory.mktemp("sim")
+    rig = SimulatedRig("ideal", records=tmp / "records", rig_out=tmp / "sim-rig.yaml")
     yield rig
-    rig.stop()
+    assert not rig.stop(), "stand-ins outlived `sim up`"
 
 
 def corner_rms(world, image, q, head) -> float:

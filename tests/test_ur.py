@@ -11,9 +11,9 @@ import pytest
 from drivers.ur import URArm
 from rigctl.config import load_rig, parse_rig
 from rigctl.errors import DeviceError, SafetyError
+from rigctl.loopback import free_host
 from rigctl.records import RunDirectory
 from rigctl.runner import Runner
-from tests.loopback import free_host
 from tests.mockproc import MockProcess, control
 from tests.waiting import raises, wait_until
 

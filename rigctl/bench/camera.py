@@ -34,8 +34,8 @@ def run(world: str = "default") -> dict:
     world_path = WORLDS / f"{world}.yaml"
     out = {"world": world, "render": render_rate(world_path)}
     with tempfile.TemporaryDirectory() as tmp, \
-            SimulatedRig(world_path, host="127.0.0.9", records=tmp, port=18089) as rig_path:
-        config = load_rig(rig_path)
+            SimulatedRig(world_path, records=tmp) as sim:
+        config = load_rig(sim.rig_path)
         rig = Rig(config)
         latencies = []
         try:
