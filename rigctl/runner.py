@@ -117,10 +117,11 @@ class RunOutcome:
     reason: str | None
     run_dir: str
     result: dict[str, Any] | None
+    timings_s: dict[str, float] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, Any]:
         return {"run_id": self.run_id, "status": self.status, "reason": self.reason,
-                "run_dir": self.run_dir, "result": self.result}
+                "run_dir": self.run_dir, "result": self.result, "timings_s": self.timings_s}
 
 
 def linear_path_q(arm, q_from: list[float], pose, samples: int = 24) -> list[float]:
@@ -284,9 +285,12 @@ class Runner:
         self._emit(type="started", run_id=run_id, procedure=procedure.name,
                    total=len(plan.steps))
         status, reason, result = "running", None, None
+        timings: dict[str, float] = {}
+        started = time.monotonic()
         restore = self._install_sigterm()
         try:
             self._execute(rig, procedure, plan.steps, run, run_id)
+            timings["motion_s"] = time.monotonic() - started
             versions = {"software": _versions(),
                         "devices": {k: d.describe() for k, d in rig.devices.items()}}
             write_json(run.path / "versions.json", versions)
@@ -297,7 +301,9 @@ class Runner:
                 self._board.finish()
             self._emit(type="step", run_id=run_id, step="solve", index=len(plan.steps),
                        total=len(plan.steps))
+            solve_started = time.monotonic()
             result = procedure.solve(SolveContext(run, self.config, params, inputs))
+            timings["solve_s"] = time.monotonic() - solve_started
             run.write_result(result)
             status = "succeeded"
         except (AbortedError, KeyboardInterrupt) as exc:
@@ -319,11 +325,13 @@ class Runner:
             restore()
             self.index.update(run_id, status=status, reason=reason, ended_at=utcnow(),
                               result_summary=summarize(result) if result else None)
-            log.info("run %s %s%s", run_id, status, f": {reason}" if reason else "")
+            timings["run_s"] = time.monotonic() - started
+            log.info("run %s %s%s (%s)", run_id, status, f": {reason}" if reason else "",
+                     ", ".join(f"{k[:-2]} {v:.1f} s" for k, v in timings.items()))
             root.removeHandler(handler)
             handler.close()
             self._emit(type="finished", run_id=run_id, status=status, reason=reason)
-        return RunOutcome(run_id, status, reason, str(run.path), result)
+        return RunOutcome(run_id, status, reason, str(run.path), result, timings)
 
     def _safe_stop(self, rig: Rig, reason: str | None) -> None:
         """Stop every touched device, then close each (which applies its park policy)."""
