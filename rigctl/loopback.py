@@ -1,4 +1,5 @@
-"""Loopback addresses and ports for one test, so two suites can share a host.
+"""Loopback addresses and ports for a simulated rig, so two suites (or a suite and a
+benchmark) can share a host.
 
 The UR protocols fix their ports (RTDE 30004, dashboard 29999, script 30003), so each
 simulated controller gets its own address in 127.0.0.0/8 instead; everything else binds
