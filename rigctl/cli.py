@@ -600,6 +600,43 @@ def bench_active_worlds(as_json: bool = typer.Option(False, "--json"),
     out.print_json(json.dumps(result["summary"]))
 
 
+@bench_app.command("worlds")
+def bench_worlds(as_json: bool = typer.Option(False, "--json"),
+                 n: int = typer.Option(20, "--n", min=1, max=500),
+                 first_seed: int = typer.Option(1000, "--first-seed", min=0),
+                 plot: Path = typer.Option(Path("bench-worlds.png"), "--plot"),
+                 keep: Path | None = typer.Option(None, "--keep",
+                                                  help="keep world files and records here")
+                 ) -> None:
+    """The whole chain (active-camera, hand-eye, robot-kinematics, validate-arm) through
+    the stand-ins on N random worlds, with default parameters, against each world's truth."""
+    from rigctl.bench import worlds
+    from rigctl.bench.common import print_table
+
+    with stdout_to_stderr() as real_stdout:
+        result = worlds.run(n, first_seed, plot, keep, console=err)
+    if as_json:
+        _print_json(result, real_stdout)
+        return
+    rows = []
+    for r in result["worlds"]:
+        p = r["procedures"]
+        cam, arm = p.get("active-camera", {}), p.get("robot-kinematics", {})
+        failure = next((f"{k}: {v['reason']}" for k, v in p.items()
+                        if v["status"] != "succeeded"), "")
+        rows.append([r["seed"], r["model"], round(r["fx_true"]),
+                     cam.get("focal_pct", "-"), cam.get("centre_px", "-"),
+                     arm.get("model_rms_mm", "-"), arm.get("model_max_mm", "-"),
+                     arm.get("heldout_mm_after", "-"),
+                     p.get("validate-arm", {}).get("position_rms_mm_after", "-"),
+                     failure[:70]])
+    print_table(f"bench worlds ({n} worlds, seeds {first_seed}-{first_seed + n - 1})",
+                ["seed", "arm", "f", "f err %", "centre px", "model rms mm", "model max mm",
+                 "held-out mm", "validate mm", "failure"], rows, out)
+    out.print_json(json.dumps(result["summary"]))
+    out.print(f"plot: {result.get('plot')}")
+
+
 @bench_app.command("handeye")
 def bench_handeye(as_json: bool = typer.Option(False, "--json"),
                   trials: int = typer.Option(200, "--trials", min=1)) -> None:

@@ -1,0 +1,212 @@
+"""``rigctl bench worlds``: the whole calibration chain through the stand-ins, on random
+worlds, against each world's truth.
+
+For each seed, ``mocks.random_world`` draws a rig; `sim up` serves it (head bus over a
+pty, UR controller over TCP, camera over HTTP); the runner drives the real clients
+through ``active-camera``, ``hand-eye``, ``robot-kinematics`` and ``validate-arm`` with
+their default parameters, exactly as an operator would. Reports per world and as a
+distribution:
+
+- focal error (%) and centre error (px) of ``active-camera``, and error / sigma of each
+  intrinsic;
+- error / sigma of each identified link parameter of ``robot-kinematics``;
+- the exported arm model against the world's forward kinematics over configurations the
+  run never saw (``rigctl.bench.truth.model_against_truth``), the held-out error and
+  ``validate-arm``'s;
+- motion, solve and run time of every procedure.
+
+A world counts as failed when any procedure is refused or does not succeed.
+"""
+
+from __future__ import annotations
+
+import math
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import yaml
+from rich.console import Console
+
+from mocks.random_world import random_world
+from mocks.world import World, WorldFile
+from rigctl.bench.truth import intrinsics_errors, link_z, model_against_truth
+from rigctl.config import load_rig
+from rigctl.errors import RigError
+from rigctl.runner import Runner
+from rigctl.simrig import SimulatedRig
+
+PIPELINE = ("active-camera", "hand-eye", "robot-kinematics", "validate-arm")
+
+
+def _write_world(seed: int, folder: Path) -> tuple[Path, World]:
+    spec = random_world(seed)
+    path = folder / f"world-{seed}.yaml"
+    path.write_text(f"# rigctl sim world --random {seed}\n"
+                    + yaml.safe_dump(spec, sort_keys=False, default_flow_style=None))
+    return path, World(WorldFile.model_validate(spec))
+
+
+def _metrics(name: str, result: dict, truth: dict, config, world: World) -> dict:
+    if name == "active-camera":
+        return {**intrinsics_errors(result, truth), "rms_px": result["summary"]["rms_px"]}
+    if name == "hand-eye":
+        X, X_true = np.array(result["T_flange_cam"]), np.array(truth["T_flange_cam"])
+        return {"t_mm_nominal_arm": 1000 * float(np.linalg.norm(X[:3, 3] - X_true[:3, 3]))}
+    if name == "robot-kinematics":
+        rms, worst, count = model_against_truth(result, config, world)
+        s = result["summary"]
+        return {"model_rms_mm": rms, "model_max_mm": worst, "model_configs": count,
+                "heldout_mm_before": s["heldout_mm_before"],
+                "heldout_mm_after": s["heldout_mm_after"],
+                "training_views": s["training_views"], "z": link_z(result, truth),
+                "intrinsics_agree": result.get("intrinsics_check", {}).get("agrees")}
+    return {"position_rms_mm_before": result["before"]["position_rms_mm"],
+            "position_rms_mm_after": result["after"]["position_rms_mm"]}
+
+
+def world_run(seed: int, folder: Path, say: Callable[[str], None]) -> dict:
+    """The whole chain on world ``seed``; one row of the benchmark."""
+    path, world = _write_world(seed, folder)
+    spec, truth = world.spec, world.truth()
+    row = {"seed": seed, "model": spec.arm.model, "fx_true": spec.camera.fx,
+           "size": [spec.camera.width, spec.camera.height],
+           "distortion": list(spec.camera.distortion), "procedures": {}}
+    with SimulatedRig(path, records=folder / f"records-{seed}") as sim:
+        config = load_rig(sim.rig_path)
+        runner = Runner(config, show_progress=False, operator="bench-worlds")
+        for name in PIPELINE:
+            try:
+                outcome = runner.run(name, {})
+            except RigError as exc:  # refused before anything moved
+                row["procedures"][name] = {"status": "refused",
+                                           "reason": f"{type(exc).__name__}: {exc}"}
+                break
+            entry = {"status": outcome.status, "reason": outcome.reason,
+                     "timings_s": outcome.timings_s}
+            if outcome.result is not None:
+                entry.update(_metrics(name, outcome.result, truth, config, world))
+            row["procedures"][name] = entry
+            say(f"world {seed} ({spec.arm.model}): {name} {outcome.status} in "
+                f"{outcome.timings_s.get('run_s', 0):.0f} s"
+                + (f": {outcome.reason}" if outcome.reason else ""))
+            if outcome.status != "succeeded":
+                break
+    row["failed"] = any(p["status"] != "succeeded" for p in row["procedures"].values()) \
+        or len(row["procedures"]) < len(PIPELINE)
+    return row
+
+
+def _dist(values: list[float]) -> dict | None:
+    if not values:
+        return None
+    arr = np.asarray(values, float)
+    return {"median": float(np.median(arr)), "p90": float(np.percentile(arr, 90)),
+            "max": float(arr.max()), "n": len(arr)}
+
+
+def _coverage(z: list[float]) -> dict | None:
+    if not z:
+        return None
+    a = np.abs(np.asarray(z, float))
+    return {"within_1sigma": float(np.mean(a <= 1)), "within_3sigma": float(np.mean(a <= 3)),
+            "max_abs_z": float(a.max()), "n": len(a)}
+
+
+def summarise(rows: list[dict]) -> dict:
+    def values(proc: str, key: str) -> list[float]:
+        return [r["procedures"][proc][key] for r in rows
+                if key in r["procedures"].get(proc, {})]
+
+    z_cam = [v for r in rows for v in r["procedures"].get("active-camera", {})
+             .get("z", {}).values()]
+    z_arm = [v for r in rows for v in r["procedures"].get("robot-kinematics", {})
+             .get("z", {}).values()]
+    times = {name: {kind: _dist([r["procedures"][name]["timings_s"][kind] for r in rows
+                                 if kind in r["procedures"].get(name, {}).get("timings_s", {})])
+                    for kind in ("motion_s", "solve_s", "run_s")} for name in PIPELINE}
+    return {
+        "worlds": len(rows), "failed": sum(r["failed"] for r in rows),
+        "failed_seeds": [r["seed"] for r in rows if r["failed"]],
+        "focal_pct": _dist(values("active-camera", "focal_pct")),
+        "centre_px": _dist(values("active-camera", "centre_px")),
+        "model_rms_mm": _dist(values("robot-kinematics", "model_rms_mm")),
+        "model_max_mm": _dist(values("robot-kinematics", "model_max_mm")),
+        "heldout_mm_after": _dist(values("robot-kinematics", "heldout_mm_after")),
+        "validate_mm_after": _dist(values("validate-arm", "position_rms_mm_after")),
+        "coverage": {"intrinsics": _coverage(z_cam), "links": _coverage(z_arm),
+                     "all": _coverage(z_cam + z_arm)},
+        "times_s": times,
+    }
+
+
+def plot(rows: list[dict], path: Path) -> str:
+    """Distributions over the worlds: focal and centre error, the exported model's error,
+    |error / sigma| and solve times."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    def values(proc: str, key: str) -> list[float]:
+        return [r["procedures"][proc][key] for r in rows
+                if key in r["procedures"].get(proc, {})]
+
+    fig, axes = plt.subplots(2, 3, figsize=(13, 7.5), layout="constrained")
+    panels = [("active-camera", "focal_pct", "focal error (%)", 0.05),
+              ("active-camera", "centre_px", "centre error (px)", 0.5),
+              ("robot-kinematics", "model_rms_mm", "exported model vs truth, RMS (mm)", 0.12)]
+    for ax, (proc, key, label, target) in zip(axes[0], panels, strict=True):
+        data = values(proc, key)
+        ax.plot(sorted(data), np.arange(1, len(data) + 1) / max(len(data), 1), "o-")
+        ax.axvline(target, color="tab:red", ls="--", label=f"median target {target}")
+        ax.set_xlabel(label)
+        ax.set_ylabel("share of worlds")
+        ax.legend(loc="lower right")
+    ax = axes[1][0]
+    for proc, label in (("active-camera", "intrinsics"), ("robot-kinematics", "link params")):
+        z = np.abs([v for r in rows for v in r["procedures"].get(proc, {})
+                    .get("z", {}).values()])
+        if len(z):
+            ax.plot(np.sort(z), np.arange(1, len(z) + 1) / len(z), label=label)
+    ax.axvline(3, color="tab:red", ls="--", label="3 sigma")
+    ax.set_xscale("log")
+    ax.set_xlabel("|error / sigma|")
+    ax.set_ylabel("share of parameters")
+    ax.legend(loc="lower right")
+    ax = axes[1][1]
+    solve = [[r["procedures"][p]["timings_s"].get("solve_s", math.nan) for r in rows
+              if "timings_s" in r["procedures"].get(p, {})] for p in PIPELINE]
+    ax.boxplot([[v for v in s if not math.isnan(v)] or [0.0] for s in solve])
+    ax.set_xticks(range(1, len(PIPELINE) + 1), [p.replace("-", "\n") for p in PIPELINE])
+    ax.set_ylabel("solve time (s)")
+    ax = axes[1][2]
+    seeds = [r["seed"] for r in rows]
+    ax.bar(range(len(rows)), [r["procedures"].get("robot-kinematics", {})
+                              .get("heldout_mm_after", math.nan) for r in rows])
+    ax.set_xticks(range(len(rows)), [str(s) for s in seeds])
+    ax.set_xlabel("world seed")
+    ax.set_ylabel("held-out camera position RMS (mm)")
+    fig.suptitle(f"rigctl bench worlds: {len(rows)} random worlds through the stand-ins")
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return str(path)
+
+
+def run(n: int = 20, first_seed: int = 1000, plot_path: Path | None = None,
+        keep: Path | None = None, console: Console | None = None) -> dict:
+    """N random worlds from ``first_seed`` (the tests use seeds below 100). With ``keep``,
+    the world files and every run's records stay in that folder."""
+    console = console or Console(stderr=True)
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="rigctl-bench-worlds-") as tmp:
+        folder = Path(keep) if keep else Path(tmp)
+        folder.mkdir(parents=True, exist_ok=True)
+        for seed in range(first_seed, first_seed + n):
+            rows.append(world_run(seed, folder, console.print))
+    out = {"seeds": [first_seed, first_seed + n - 1], "pipeline": list(PIPELINE),
+           "summary": summarise(rows), "worlds": rows}
+    if plot_path is not None:
+        out["plot"] = plot(rows, plot_path)
+    return out
