@@ -19,22 +19,35 @@ from .planning import MIN_CLEARANCE_M, board_visible, clearance_m
 
 
 def intrinsics_from(config: RigConfig, given: dict | None) -> dict[str, Any]:
-    """``given`` (fx, fy, cx, cy, distortion) or the result of the latest accepted (or
-    succeeded) ``active-camera`` run of this rig. Read when a run is planned, never while
-    solving (``Procedure.resolve_inputs``)."""
+    """``given`` (fx, fy, cx, cy, distortion, optionally sigma) or the result of the latest
+    accepted (or succeeded) ``active-camera`` run of this rig, with its 1-sigma. Read when
+    a run is planned, never while solving (``Procedure.resolve_inputs``)."""
     if given:
         missing = [k for k in ("fx", "fy", "cx", "cy") if k not in given]
         if missing:
             raise ConfigError(f"intrinsics parameter lacks {missing}")
-        return {"fx": given["fx"], "fy": given["fy"], "cx": given["cx"], "cy": given["cy"],
-                "distortion": list(given.get("distortion", [0.0] * 5)), "source": "parameter"}
+        out = {"fx": given["fx"], "fy": given["fy"], "cx": given["cx"], "cy": given["cy"],
+               "distortion": list(given.get("distortion", [0.0] * 5)), "source": "parameter"}
+        if "sigma" in given:
+            out["sigma"] = {k: float(given["sigma"][k]) for k in ("fx", "fy", "cx", "cy")}
+        return out
     row = RecordIndex(config.database_url()).latest("active-camera", config.name)
     if row is None:
         raise ConfigError(f"{config.name}: no intrinsics: run active-camera first, or give "
                           "--param intrinsics='{fx: ..., fy: ..., cx: ..., cy: ...}'")
     result = RunDirectory(row["run_dir"]).result()
-    return {k: result[k] for k in ("fx", "fy", "cx", "cy")} | {
+    out = {k: result[k] for k in ("fx", "fy", "cx", "cy")} | {
         "distortion": result.get("distortion", [0.0] * 5), "source": f"run {row['run_id']}"}
+    if "sigma" in result:
+        out["sigma"] = {k: float(result["sigma"][k]) for k in ("fx", "fy", "cx", "cy")}
+    return out
+
+
+def default_prior_sigma(intr: dict) -> dict[str, float]:
+    """The 1-sigma given to intrinsics that came without one (a ``--param intrinsics``
+    without ``sigma``): a rough guess, 0.5 % on the focal lengths and 10 px on the centre,
+    so that the board views decide."""
+    return {"fx": 0.005 * intr["fx"], "fy": 0.005 * intr["fy"], "cx": 10.0, "cy": 10.0}
 
 
 def camera_matrix(intr: dict) -> tuple[np.ndarray, np.ndarray]:

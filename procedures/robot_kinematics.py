@@ -25,6 +25,7 @@ from pydantic import Field
 
 from rigctl.calib import handeye, robot
 from rigctl.calib.board import board_points
+from rigctl.calib.extrinsic import estimate_pose
 from rigctl.calib.intrinsics_check import board_intrinsics
 from rigctl.errors import SolveError
 from rigctl.geometry.kinematics import nominal_ur
@@ -45,6 +46,7 @@ from .planning import CLOSER, informative_views, plan_target_views
 from .robot_common import (
     board_observations,
     camera_matrix,
+    default_prior_sigma,
     export_model,
     intrinsics_from,
     plan_sweeps,
@@ -66,6 +68,9 @@ class RobotKinematicsParams(Params):
     # training views: the most informative of many candidates, or plain random ones
     pose_selection: Literal["d-optimal", "random"] = "d-optimal"
     settle_s: float = Field(0.2, ge=0)
+    # the final bundle adjustment frees intrinsics and distortion, with the intrinsics in
+    # use (and their sigma) as a prior; off: they are held as given
+    refine_camera: bool = True
     seed: int = 0
 
 
@@ -217,6 +222,13 @@ class RobotKinematics(Procedure):
         starts = [(nominal, he.X, he.W)] + ([(axis.model, axis.X, axis.W)] if axis else [])
         ref = robot.refine(start, he.X, W_start, meas, extra_starts=starts)
         dh = robot.refine(start, he.X, W_start, meas, mask=robot.dh_mask(nominal))
+        cam = None
+        if ctx.params.refine_camera:
+            ref, cam = robot.refine_with_camera(ref, meas, intr.get("sigma") or
+                                                default_prior_sigma(intr))
+            # held-out camera poses measured with the camera model the arm model now uses
+            held = [{**o, "C": estimate_pose(obj, o["corners"], cam.K, cam.dist).T_cam_target}
+                    for o in held]
 
         def heldout_errors(model, X, W):
             if not held:
@@ -236,6 +248,7 @@ class RobotKinematics(Procedure):
             lbl_err = heldout_errors(lbl.model, he.X, W_lbl)
         axis_heldout = heldout_errors(axis.model, axis.X, axis.W) if axis else None
         uncertainty = {"parameters": dict(zip(ref.names, ref.sigma.tolist(), strict=True)),
+                       "camera": cam.sigma if cam else None,
                        "condition_number": ref.condition,
                        "condition_number_kinematic": ref.condition_kinematic,
                        "plain_dh_smallest_singular_values": dh.singular_values[-3:].tolist(),
@@ -254,14 +267,24 @@ class RobotKinematics(Procedure):
                    "condition_number_kinematic": ref.condition_kinematic,
                    "residual_rms_px": ref.rms, "sweep_span_deg": sweep_span_deg}
         _plot(ctx, ref, meas)
-        cam = ctx.config.devices.camera
+        device = ctx.config.devices.camera
         try:
             intrinsics_check = board_intrinsics(obj, [o["corners"] for o in found],
-                                                (cam.width, cam.height), intr)
+                                                (device.width, device.height),
+                                                cam.intrinsics() if cam else intr)
         except (SolveError, cv2.error) as exc:
             intrinsics_check = {"error": str(exc)}
-        return {**export, "arm_model": ctx.config.devices.arm.model,
-                "intrinsics": intr, "intrinsics_check": intrinsics_check, "summary": summary,
+        camera = ({"intrinsics": {**cam.intrinsics(), "sigma": {k: cam.sigma[k] for k in
+                                                                 robot.CAMERA_KEYS},
+                                  "source": f"robot-kinematics joint refinement (prior: "
+                                            f"{intr.get('source')})"},
+                   "intrinsics_prior": intr, "intrinsics_moved_px": cam.moved(),
+                   "covariance": {"names": ref.names + [f"camera.{k}" for k in
+                                                        robot.CAMERA_KEYS + robot.DIST_KEYS],
+                                  "matrix": ref.covariance.tolist()}}
+                  if cam else {"intrinsics": intr})
+        return {**export, "arm_model": ctx.config.devices.arm.model, **camera,
+                "intrinsics_check": intrinsics_check, "summary": summary,
                 "before": {"heldout": before, "T_flange_cam": he.X.tolist(),
                            "T_base_target": he.W.tolist()},
                 "axis_based": {"heldout": axis_heldout, "error": axis_error,

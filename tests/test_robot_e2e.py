@@ -45,7 +45,9 @@ def test_robot_kinematics_end_to_end(tmp_path, start_sim):
     for key in ("convention", "units", "links", "T_base_link0", "T_flange_cam",
                 "T_base_target", "uncertainty", "heldout"):
         assert key in out, key
-    assert out["intrinsics"]["source"].startswith("run ")  # from the active-camera run
+    # the camera is free in the final bundle adjustment, the active-camera run its prior
+    assert out["intrinsics_prior"]["source"].startswith("run ")
+    assert out["intrinsics"]["source"].startswith("robot-kinematics joint refinement")
     summary = out["summary"]
     assert summary["heldout_mm_before"] > 1.5          # several mm before ...
     assert summary["heldout_mm_after"] <= 0.5          # ... at most 0.5 mm after
@@ -64,6 +66,12 @@ def test_robot_kinematics_end_to_end(tmp_path, start_sim):
     assert check["views"] >= 20 and abs(check["board"]["fx"] / truth["fx"] - 1) < 0.003
     for key in ("cx", "cy"):
         assert abs(check["board"][key] - truth[key]) < max(3 * check["sigma"][key], 1.0)
+
+    # the camera model the arm model was fitted with, against the truth, within its sigma
+    used = out["intrinsics"]
+    assert abs(used["fx"] / truth["fx"] - 1) < 0.002
+    for key in ("fx", "fy", "cx", "cy"):
+        assert abs(used[key] - truth[key]) < max(3 * used["sigma"][key], 0.5), key
 
     # The exported model against the truth, over views the calibration never saw
     rms, _, count = model_against_truth(out, load_rig(rig.rig_path), world)

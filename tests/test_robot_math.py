@@ -541,3 +541,67 @@ def test_axis_based_needs_no_hand_eye_and_is_exact_without_noise():
                          sweeps[2].C[:3])
     with pytest.raises(SolveError, match="joint 3's sweep moves other joints"):
         robot.axis_lines({2: moving})
+
+
+def board_views(world, X, n, rng, distance=0.45, tilt_deg=35.0, spread=0.1):
+    """Joint configurations (the simulated arm's own IK) whose camera sees the whole
+    board from ``distance`` (within +-``spread`` of it), tilted up to ``tilt_deg``, with
+    random spin."""
+    W = world.T_base_target
+    centre = (W @ np.r_[OBJ.mean(axis=0), 1.0])[:3]
+    normal = -W[:3, 2]
+    qs, q_near = [], np.radians([0, -90, -90, -90, 90, 0])
+    while len(qs) < n:
+        tilt = math.radians(tilt_deg) * math.sqrt(rng.uniform())
+        az = rng.uniform(0, 2 * math.pi)
+        u = np.cross(normal, [0.0, 1.0, 0.0])
+        u /= np.linalg.norm(u)
+        v = np.cross(normal, u)
+        direction = math.cos(tilt) * normal + math.sin(tilt) * (math.cos(az) * u
+                                                                + math.sin(az) * v)
+        z = -direction
+        x = np.cross(math.cos(rng.uniform(-1, 1)) * u + math.sin(rng.uniform(-1, 1)) * v, z)
+        x /= np.linalg.norm(x)
+        R = np.c_[x, np.cross(z, x), z]
+        T_base_cam = transform(R, centre + distance * rng.uniform(1 - spread, 1 + spread)
+                               * direction)
+        px = world.target_corner_pixels(T_base_cam)
+        if not np.all((px > 5) & (px < [1275, 715])):
+            continue
+        q = world.arm_true.ik(T_base_cam @ inv(X), q_near)
+        if q is not None:
+            qs.append(q)
+    return qs
+
+
+def test_camera_free_in_the_bundle_adjustment_recovers_biased_intrinsics():
+    """Board corners from the simulator's camera (true K, distortion DIST) in 60 views;
+    the solve starts from intrinsics 0.2 % / 2 px off (an active-camera result within its
+    3 px sigma) and no distortion. Held fixed, the bias goes into the arm model; free
+    with that prior, the board views pull the camera back and the arm model with it."""
+    nominal, world, X, W, rng = ur_truth(5)
+    qs = board_views(world, X, 60, rng, tilt_deg=45.0, spread=0.3)
+    corners = [view(world, T_cam_target(world, q), noise=0.2, rng=rng) for q in qs]
+    K_off = K.copy()
+    K_off[0, 0] *= 1.002
+    K_off[1, 1] *= 0.998
+    K_off[0, 2] += 2.0
+    K_off[1, 2] -= 1.5
+    meas = robot.Measurements(qs, corners=corners, obj=OBJ, K=K_off, dist=np.zeros(5))
+    held = robot.refine(nominal, X, W, meas)
+    free, cam = robot.refine_with_camera(held, meas, {"fx": 3.0, "fy": 3.0, "cx": 3.0,
+                                                      "cy": 3.0})
+    test_q = board_views(world, X, 20, rng)
+    pos_held, _ = held_out(held.model, held.X, held.W, world, test_q)
+    pos_free, _ = held_out(free.model, free.X, free.W, world, test_q)
+    assert pos_free < 1e-4 and pos_free < pos_held / 5  # about 0.05 and 1 mm
+    true = {"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2]}
+    got = cam.intrinsics()
+    for key, value in true.items():
+        assert abs(got[key] - value) < (0.3 if key in ("fx", "fy") else 1.0), key
+        assert abs(got[key] - value) < 3 * cam.sigma[key], key  # sigma covers the error
+    # k2 and k3 trade off against each other on these views; k1 is pinned
+    assert abs(got["distortion"][0] - DIST[0]) < 0.005
+    assert abs(got["distortion"][1] - DIST[1]) < 3 * cam.sigma["k2"]
+    assert cam.moved()["cx"] == pytest.approx(got["cx"] - K_off[0, 2])
+    assert free.covariance.shape == (len(free.names) + 9, len(free.names) + 9)

@@ -351,6 +351,7 @@ class RefineResult:
     singular_values: np.ndarray
     rms: float
     condition_kinematic: float = float("nan")  # link parameters only, X and W projected out
+    covariance: np.ndarray | None = None  # of every refined parameter (camera too, if free)
 
 
 def _pack(model, X, W, mask, free_XW):
@@ -381,7 +382,8 @@ def _unpack(p, model0, X0, W0, mask, free_XW):
     return model, X, W
 
 
-def residuals(model, X, W, meas: Measurements) -> np.ndarray:
+def residuals(model, X, W, meas: Measurements, K: np.ndarray | None = None,
+              dist: np.ndarray | None = None) -> np.ndarray:
     """Pose residuals (scaled by the sigmas) or pixel residuals for every capture. A pose
     residual is ``log(C_k W^-1 FK(q_k) X)``: measured times predicted-inverse, in the
     camera frame, where a camera's pose error lives (the loop of (4.11) closed at the
@@ -398,7 +400,8 @@ def residuals(model, X, W, meas: Measurements) -> np.ndarray:
         return np.c_[rv / meas.sigma_rot, E[:, :3, 3] / meas.sigma_t].ravel()
     corners = _cached(meas, "_corners",
                       lambda: np.array([np.asarray(c, float).reshape(-1, 2) for c in meas.corners]))
-    proj = project_batch(invert_batch(T_base_cam) @ W, meas.obj, meas.K, meas.dist)
+    proj = project_batch(invert_batch(T_base_cam) @ W, meas.obj,
+                         meas.K if K is None else K, meas.dist if dist is None else dist)
     return (proj - corners).ravel()
 
 
@@ -447,6 +450,81 @@ def refine(model0: KinematicModel, X0, W0, meas: Measurements, mask=None,
     return RefineResult(model, X, W, names, sol.x, sigma, condition, sv,
                         float(np.sqrt(np.mean(sol.fun ** 2))),
                         _kinematic_condition(J, 12 if free_XW else 0))
+
+
+CAMERA_KEYS = ("fx", "fy", "cx", "cy")
+DIST_KEYS = ("k1", "k2", "p1", "p2", "k3")
+
+
+@dataclass
+class CameraRefinement:
+    """The camera model the joint refinement ended with, against the prior it started
+    from (``prior_sigma`` is that prior's 1-sigma)."""
+
+    K: np.ndarray
+    dist: np.ndarray
+    sigma: dict[str, float]
+    prior: dict[str, float]
+    prior_sigma: dict[str, float]
+
+    def intrinsics(self) -> dict:
+        return {"fx": float(self.K[0, 0]), "fy": float(self.K[1, 1]),
+                "cx": float(self.K[0, 2]), "cy": float(self.K[1, 2]),
+                "distortion": self.dist.tolist()}
+
+    def moved(self) -> dict[str, float]:
+        now = self.intrinsics()
+        return {k: now[k] - self.prior[k] for k in CAMERA_KEYS}
+
+
+def refine_with_camera(ref: RefineResult, meas: Measurements, prior_sigma: dict[str, float],
+                       mask=None, max_nfev: int = 40) -> tuple[RefineResult, CameraRefinement]:
+    """The joint refinement of ``refine`` (pixel residuals of every capture) with the
+    camera free as well: fx, fy, cx, cy and the distortion terms k1 k2 p1 p2 k3 (eq. 2.3),
+    starting from ``ref`` (the same solve with the camera held). The intrinsics the
+    refinement started from (the active-camera result) enter as a prior with their
+    1-sigma ``prior_sigma``; distortion has no prior, the board views determine it. The
+    prior's rows are scaled by the pixel noise of ``ref`` so that both weigh as they
+    should. Returns the refinement (sigma now includes the camera's uncertainty) and
+    the camera model with its sigma."""
+    mask = mask or identifiable_mask(ref.model, absorb=True)
+    p_arm, names = _pack(ref.model, ref.X, ref.W, mask, True)
+    n_arm = len(p_arm)
+    K0, dist0 = meas.K, np.zeros(5)
+    dist0[:min(5, len(meas.dist))] = np.asarray(meas.dist, float)[:5]
+    prior = np.array([K0[0, 0], K0[1, 1], K0[0, 2], K0[1, 2]])
+    sig = np.array([max(float(prior_sigma.get(k, 0.0)), 1e-6) for k in CAMERA_KEYS])
+    scale = max(ref.rms, 0.02)
+
+    def camera(p):
+        c = p[n_arm:]
+        return np.array([[c[0], 0, c[2]], [0, c[1], c[3]], [0, 0, 1.0]]), c[4:]
+
+    def fun(p):
+        model, X, W = _unpack(p[:n_arm], ref.model, ref.X, ref.W, mask, True)
+        K, dist = camera(p)
+        return np.r_[residuals(model, X, W, meas, K, dist),
+                     (p[n_arm:n_arm + 4] - prior) / sig * scale]
+
+    sol = least_squares(fun, np.r_[p_arm, prior, dist0], x_scale="jac", max_nfev=max_nfev)
+    model, X, W = _unpack(sol.x[:n_arm], ref.model, ref.X, ref.W, mask, True)
+    K, dist = camera(sol.x)
+    n_px = len(sol.fun) - 4
+    J = sol.jac
+    s2 = float(np.sum(sol.fun[:n_px] ** 2) / max(n_px - len(sol.x), 1))
+    cov = np.linalg.pinv(J.T @ J) * s2
+    sigma = np.sqrt(np.clip(np.diag(cov), 0, None))
+    sv = scaled_singular_values(J[:n_px, :n_arm])
+    result = RefineResult(model, X, W, names, sol.x[:n_arm], sigma[:n_arm],
+                          condition_number(sv), sv,
+                          float(np.sqrt(np.mean(sol.fun[:n_px] ** 2))),
+                          _kinematic_condition(J[:n_px, :n_arm], 12))
+    result.covariance = cov
+    cam = CameraRefinement(K, dist, dict(zip(CAMERA_KEYS + DIST_KEYS,
+                                             sigma[n_arm:].tolist(), strict=True)),
+                           dict(zip(CAMERA_KEYS, prior.tolist(), strict=True)),
+                           dict(zip(CAMERA_KEYS, sig.tolist(), strict=True)))
+    return result, cam
 
 
 def scaled_singular_values(J: np.ndarray) -> np.ndarray:
