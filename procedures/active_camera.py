@@ -69,8 +69,9 @@ class ActiveCamera(Procedure):
     def solve(self, ctx: SolveContext) -> dict[str, Any]:
         """Thesis chapter 3 on the run's captures (``rigctl.calib.active_pipeline``)."""
         params: ActiveCameraParams = ctx.params
-        caps = {c.meta["label"]: c for c in ctx.captures() if c.image_path is not None}
-        images = {k: c.load_image() for k, c in caps.items()}
+        with ctx.stage("load images"):
+            caps = {c.meta["label"]: c for c in ctx.captures() if c.image_path is not None}
+            images = {k: c.load_image() for k, c in caps.items()}
         angles = {k: tuple(c.meta["head"][a] for a in ("pan", "tilt", "roll"))
                   for k, c in caps.items()}
         settings = ActiveSettings(window=params.window, min_points=params.min_points,
@@ -78,10 +79,13 @@ class ActiveCamera(Procedure):
                                   assumed_centre=params.assumed_centre,
                                   nodal_offset_mm=params.nodal_offset_mm,
                                   scene_depth_m=params.scene_depth_m)
-        solution = solve_active(images, angles, settings)
-        _plots(ctx, images, solution.contours, solution.matches, solution.refined,
-               solution.order)
-        _exports(ctx, solution.result)
+        with ctx.stage("pipeline"):
+            solution = solve_active(images, angles, settings)
+        ctx.timings_s.update({f"pipeline: {k}": v for k, v in solution.timings_s.items()})
+        with ctx.stage("plots and exports"):
+            _plots(ctx, images, solution.contours, solution.matches, solution.refined,
+                   solution.order)
+            _exports(ctx, solution.result)
         return solution.result
 
 

@@ -23,13 +23,12 @@ import cv2
 import numpy as np
 from pydantic import Field
 
-from rigctl.calib import handeye, robot
+from rigctl.calib import robot
 from rigctl.calib.board import board_points
-from rigctl.calib.extrinsic import estimate_pose
 from rigctl.calib.intrinsics_check import board_intrinsics
+from rigctl.calib.robot_pipeline import BoardView, RobotSolution, solve_robot
 from rigctl.errors import SolveError
 from rigctl.geometry.kinematics import nominal_ur
-from rigctl.geometry.transforms import inv_T
 
 from .base import (
     CaptureStep,
@@ -165,136 +164,81 @@ class RobotKinematics(Procedure):
         return {"intrinsics": intrinsics_from(config, params.intrinsics)}
 
     def solve(self, ctx: SolveContext) -> dict[str, Any]:
+        """Thesis 4.3 on the run's board views (``rigctl.calib.robot_pipeline``)."""
         intr = ctx.input("intrinsics")
         K, dist = camera_matrix(intr)
-        obs = board_observations(ctx, intr)
-        lost = [o["label"] for o in obs if not o["found"]]
-        found = [o for o in obs if o["found"]]
-        train = [o for o in found if o["kind"] in ("sweep", "train")]
-        held = [o for o in found if o["kind"] == "heldout"]
-        if len(train) < 8:
-            raise SolveError(f"robot-kinematics: only {len(train)} training views with the "
-                             "board found (need 8)")
-        nominal = nominal_ur(ctx.config.devices.arm.model)
         tg = ctx.config.target
         obj = board_points(tg.rows, tg.cols, tg.square_mm / 1000.0)
-        meas = robot.Measurements([o["q"] for o in train], C=[o["C"] for o in train],
-                                  corners=[o["corners"] for o in train], obj=obj, K=K, dist=dist)
+        with ctx.stage("board poses"):
+            obs = board_observations(ctx, intr)
+        views = [BoardView(o["label"], o["kind"], o["joint"], o["q"], o["corners"], o["C"])
+                 for o in obs if o["found"]]
+        sol = solve_robot(views, nominal_ur(ctx.config.devices.arm.model), obj, K, dist,
+                          intr.get("sigma") or default_prior_sigma(intr),
+                          ctx.params.refine_camera)
+        ctx.timings_s.update(sol.timings_s)
+        with ctx.stage("intrinsics check"):
+            used = sol.camera.intrinsics() if sol.camera else intr
+            device = ctx.config.devices.camera
+            try:
+                check = board_intrinsics(obj, [v.corners for v in views],
+                                         (device.width, device.height), used)
+            except (SolveError, cv2.error) as exc:
+                check = {"error": str(exc)}
+        with ctx.stage("plots"):
+            _plot(ctx, sol.ref, sol.meas)
+        return {**_export(sol, intr), "arm_model": ctx.config.devices.arm.model,
+                "intrinsics_check": check, "summary": _summary(sol),
+                "lost_views": [o["label"] for o in obs if not o["found"]]}
 
-        # hand-eye with the nominal model: the "before calibration" state
-        F = [nominal.fk(o["q"]) for o in train]
-        closed = handeye.closed_form(F, [o["C"] for o in train])
-        he = handeye.refine_pixels(F, meas.corners, obj, K, dist, closed["park"],
-                                   C=[o["C"] for o in train])
 
-        # link-by-link from the sweeps (X from the hand-eye); each sweep starts with the
-        # base capture (joint None) it moved away from
-        bases = [o for o in train if o["kind"] == "sweep" and o["joint"] is None]
-        sweeps = {}
-        for j in range(6):
-            moved = [o for o in train if o["kind"] == "sweep" and o["joint"] == j]
-            if not moved:
-                continue
-            own = [b for b in bases if np.all(np.abs(np.delete(b["q"] - moved[0]["q"], j))
-                                              < robot.OTHER_JOINTS_TOL)]
-            members = own[:1] + moved
-            if len(members) >= 3:
-                sweeps[j] = robot.Sweep(j, [o["q"] for o in members], [o["C"] for o in members])
-        sweep_span_deg = {f"joint{j + 1}": float(np.degrees(np.ptp([q[j] for q in sw.q])))
-                          for j, sw in sweeps.items()}
-        lbl, lbl_error = None, None
-        try:
-            lbl = robot.link_by_link(sweeps, he.X, nominal)
-        except SolveError as exc:
-            lbl_error = str(exc)
-        # axis-based, free of X: every joint's axis line in the target frame, the link
-        # parameters fitted to the lines, then X and W alone on every training view
-        axis, axis_error = None, None
-        try:
-            axis_model, W_axis = robot.axis_based(sweeps, nominal, he.W)
-            axis = robot.refine(axis_model, he.X, W_axis, meas,
-                                mask=robot.frames_only_mask(nominal))
-        except SolveError as exc:
-            axis_error = str(exc)
-        start = lbl.model if lbl is not None else nominal
-        W_start = handeye.average_W([start.fk(o["q"]) for o in train], [o["C"] for o in train],
-                                    he.X)
-        starts = [(nominal, he.X, he.W)] + ([(axis.model, axis.X, axis.W)] if axis else [])
-        ref = robot.refine(start, he.X, W_start, meas, extra_starts=starts)
-        dh = robot.refine(start, he.X, W_start, meas, mask=robot.dh_mask(nominal))
-        cam = None
-        if ctx.params.refine_camera:
-            ref, cam = robot.refine_with_camera(ref, meas, intr.get("sigma") or
-                                                default_prior_sigma(intr))
-            # held-out camera poses measured with the camera model the arm model now uses
-            held = [{**o, "C": estimate_pose(obj, o["corners"], cam.K, cam.dist).T_cam_target}
-                    for o in held]
+def _mm(errors: dict | None) -> float | None:
+    return None if errors is None else 1000 * errors["position_rms_m"]
 
-        def heldout_errors(model, X, W):
-            if not held:
-                return None
-            pos, rot = robot.pose_deviations(model, X, W, [o["q"] for o in held],
-                                             [inv_T(o["C"]) for o in held])
-            return {"position_rms_m": float(np.sqrt(np.mean(pos ** 2))),
-                    "rotation_rms_rad": float(np.sqrt(np.mean(rot ** 2))),
-                    "views": len(held)}
 
-        before = heldout_errors(nominal, he.X, he.W)
-        after = heldout_errors(ref.model, ref.X, ref.W)
-        lbl_err = None
-        if lbl is not None:
-            W_lbl = handeye.average_W([lbl.model.fk(o["q"]) for o in train],
-                                      [o["C"] for o in train], he.X)
-            lbl_err = heldout_errors(lbl.model, he.X, W_lbl)
-        axis_heldout = heldout_errors(axis.model, axis.X, axis.W) if axis else None
-        uncertainty = {"parameters": dict(zip(ref.names, ref.sigma.tolist(), strict=True)),
-                       "camera": cam.sigma if cam else None,
-                       "condition_number": ref.condition,
-                       "condition_number_kinematic": ref.condition_kinematic,
-                       "plain_dh_smallest_singular_values": dh.singular_values[-3:].tolist(),
-                       "plain_dh_condition_number": dh.condition,
-                       "residual_rms_px": ref.rms}
-        export = export_model(ref.model, ref.X, ref.W, uncertainty, after or {})
-        summary = {"training_views": len(train), "heldout_views": len(held),
-                   "heldout_mm_before": None if before is None else
-                   1000 * before["position_rms_m"],
-                   "heldout_mm_after": None if after is None else 1000 * after["position_rms_m"],
-                   "heldout_mm_link_by_link": None if lbl_err is None else
-                   1000 * lbl_err["position_rms_m"],
-                   "heldout_mm_axis_based": None if axis_heldout is None else
-                   1000 * axis_heldout["position_rms_m"],
+def _summary(sol: RobotSolution) -> dict[str, Any]:
+    ref, held = sol.ref, sol.heldout
+    return {"training_views": sol.training_views, "heldout_views": sol.heldout_views,
+            "heldout_mm_before": _mm(held["before"]), "heldout_mm_after": _mm(held["after"]),
+            "heldout_mm_link_by_link": _mm(held["link_by_link"]),
+            "heldout_mm_axis_based": _mm(held["axis_based"]),
+            "condition_number": ref.condition,
+            "condition_number_kinematic": ref.condition_kinematic,
+            "residual_rms_px": ref.rms, "sweep_span_deg": sol.sweep_span_deg}
+
+
+def _export(sol: RobotSolution, intr: dict) -> dict[str, Any]:
+    """The arm model (``export_model``), its uncertainty and covariance, the camera model
+    it was fitted with, and the single methods and closed forms beside it."""
+    ref, cam, lbl, axis = sol.ref, sol.camera, sol.link_by_link, sol.axis
+    uncertainty = {"parameters": dict(zip(ref.names, ref.sigma.tolist(), strict=True)),
+                   "camera": cam.sigma if cam else None,
                    "condition_number": ref.condition,
                    "condition_number_kinematic": ref.condition_kinematic,
-                   "residual_rms_px": ref.rms, "sweep_span_deg": sweep_span_deg}
-        _plot(ctx, ref, meas)
-        device = ctx.config.devices.camera
-        try:
-            intrinsics_check = board_intrinsics(obj, [o["corners"] for o in found],
-                                                (device.width, device.height),
-                                                cam.intrinsics() if cam else intr)
-        except (SolveError, cv2.error) as exc:
-            intrinsics_check = {"error": str(exc)}
-        camera = ({"intrinsics": {**cam.intrinsics(), "sigma": {k: cam.sigma[k] for k in
-                                                                 robot.CAMERA_KEYS},
-                                  "source": f"robot-kinematics joint refinement (prior: "
-                                            f"{intr.get('source')})"},
-                   "intrinsics_prior": intr, "intrinsics_moved_px": cam.moved(),
-                   "covariance": {"names": ref.names + [f"camera.{k}" for k in
-                                                        robot.CAMERA_KEYS + robot.DIST_KEYS],
-                                  "matrix": ref.covariance.tolist()}}
-                  if cam else {"intrinsics": intr})
-        return {**export, "arm_model": ctx.config.devices.arm.model, **camera,
-                "intrinsics_check": intrinsics_check, "summary": summary,
-                "before": {"heldout": before, "T_flange_cam": he.X.tolist(),
-                           "T_base_target": he.W.tolist()},
-                "axis_based": {"heldout": axis_heldout, "error": axis_error,
-                               "links": axis.model.links() if axis else None},
-                "link_by_link": {"heldout": lbl_err, "error": lbl_error,
-                                 "links": lbl.model.links() if lbl else None,
-                                 "identified": lbl.identified if lbl else None,
-                                 "notes": lbl.notes if lbl else None},
-                "hand_eye_closed_form": {k: v.tolist() for k, v in closed.items()},
-                "lost_views": lost}
+                   "plain_dh_smallest_singular_values": sol.plain_dh.singular_values[-3:].tolist(),
+                   "plain_dh_condition_number": sol.plain_dh.condition,
+                   "residual_rms_px": ref.rms}
+    camera = ({"intrinsics": {**cam.intrinsics(),
+                              "sigma": {k: cam.sigma[k] for k in robot.CAMERA_KEYS},
+                              "source": "robot-kinematics joint refinement (prior: "
+                                        f"{intr.get('source')})"},
+               "intrinsics_prior": intr, "intrinsics_moved_px": cam.moved(),
+               "covariance": {"names": ref.names + [f"camera.{k}" for k in
+                                                    robot.CAMERA_KEYS + robot.DIST_KEYS],
+                              "matrix": ref.covariance.tolist()}}
+              if cam else {"intrinsics": intr})
+    return {**export_model(ref.model, ref.X, ref.W, uncertainty, sol.heldout["after"] or {}),
+            **camera,
+            "before": {"heldout": sol.heldout["before"], "T_flange_cam": sol.hand_eye.X.tolist(),
+                       "T_base_target": sol.hand_eye.W.tolist()},
+            "axis_based": {"heldout": sol.heldout["axis_based"], "error": sol.axis_error,
+                           "links": axis.model.links() if axis else None},
+            "link_by_link": {"heldout": sol.heldout["link_by_link"],
+                             "error": sol.link_by_link_error,
+                             "links": lbl.model.links() if lbl else None,
+                             "identified": lbl.identified if lbl else None,
+                             "notes": lbl.notes if lbl else None},
+            "hand_eye_closed_form": {k: v.tolist() for k, v in sol.closed_form.items()}}
 
 
 def _plot(ctx, ref, meas) -> None:

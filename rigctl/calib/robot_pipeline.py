@@ -1,0 +1,171 @@
+"""The robot-kinematics solve as a pure pipeline: board views in, arm model out.
+
+The procedure (``procedures/robot_kinematics.py``) reads the run's captures into
+``BoardView``s and calls ``solve_robot``; benchmarks can call it on views of their own.
+Stages (thesis 4.3, generalised; ``rigctl.calib.robot``):
+
+1. hand-eye with the nominal arm model (the "before calibration" state);
+2. link-by-link from the single-joint sweeps (4.11)-(4.35), X from step 1;
+3. axis-based: each swept joint's axis line in the target frame, no X;
+4. the joint refinement (4.11) of the minimal parameter set over every training view,
+   from the best of those starts, and plain D-H beside it (its rank deficiency);
+5. the camera free as well (``refine_with_camera``), the intrinsics in use as a prior;
+6. held-out errors of every model.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from rigctl.calib import handeye, robot
+from rigctl.calib.extrinsic import estimate_pose
+from rigctl.errors import SolveError
+from rigctl.geometry.kinematics import KinematicModel
+
+MIN_TRAINING_VIEWS = 8
+
+
+@dataclass
+class BoardView:
+    """One capture with the board found: joints, corners, the board pose measured with
+    the intrinsics in use, and what the plan took it for (``sweep``, ``train``,
+    ``heldout``; ``joint`` is the swept joint, None for a sweep's base)."""
+
+    label: str
+    kind: str
+    joint: int | None
+    q: np.ndarray
+    corners: np.ndarray
+    C: np.ndarray
+
+
+@dataclass
+class RobotSolution:
+    ref: robot.RefineResult
+    camera: robot.CameraRefinement | None
+    hand_eye: Any
+    closed_form: dict[str, np.ndarray]
+    heldout: dict[str, dict | None]
+    link_by_link: Any
+    link_by_link_error: str | None
+    axis: robot.RefineResult | None
+    axis_error: str | None
+    plain_dh: robot.RefineResult
+    sweep_span_deg: dict[str, float]
+    meas: robot.Measurements
+    training_views: int = 0
+    heldout_views: int = 0
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+
+def _sweeps(train: list[BoardView]) -> dict[int, robot.Sweep]:
+    """Each swept joint's captures, starting with the base capture it moved away from."""
+    bases = [v for v in train if v.kind == "sweep" and v.joint is None]
+    sweeps = {}
+    for j in range(6):
+        moved = [v for v in train if v.kind == "sweep" and v.joint == j]
+        if not moved:
+            continue
+        own = [b for b in bases if np.all(np.abs(np.delete(b.q - moved[0].q, j))
+                                          < robot.OTHER_JOINTS_TOL)]
+        members = own[:1] + moved
+        if len(members) >= 3:
+            sweeps[j] = robot.Sweep(j, [v.q for v in members], [v.C for v in members])
+    return sweeps
+
+
+def heldout_errors(model: KinematicModel, X, W, held: list[BoardView]) -> dict | None:
+    """RMS camera position (m) and rotation (rad) error on the held-out views."""
+    if not held:
+        return None
+    pos, rot = robot.pose_deviations(model, X, W, [v.q for v in held],
+                                     [np.linalg.inv(v.C) for v in held])
+    return {"position_rms_m": float(np.sqrt(np.mean(pos ** 2))),
+            "rotation_rms_rad": float(np.sqrt(np.mean(rot ** 2))), "views": len(held)}
+
+
+def _timer(timings: dict[str, float]) -> Callable:
+    import time
+
+    @contextlib.contextmanager
+    def stage(name: str):
+        started = time.perf_counter()
+        try:
+            yield
+        finally:
+            timings[name] = timings.get(name, 0.0) + time.perf_counter() - started
+    return stage
+
+
+def _single_methods(sweeps, he, nominal, meas):
+    """Link-by-link (X from the hand-eye) and axis-based (no X): each alone, and as
+    starts of the joint refinement. A method that cannot run says why."""
+    lbl, lbl_error = None, None
+    try:
+        lbl = robot.link_by_link(sweeps, he.X, nominal)
+    except SolveError as exc:
+        lbl_error = str(exc)
+    axis, axis_error = None, None
+    try:
+        axis_model, W_axis = robot.axis_based(sweeps, nominal, he.W)
+        axis = robot.refine(axis_model, he.X, W_axis, meas,
+                            mask=robot.frames_only_mask(nominal))
+    except SolveError as exc:
+        axis_error = str(exc)
+    return lbl, lbl_error, axis, axis_error
+
+
+def solve_robot(views: list[BoardView], nominal: KinematicModel, obj: np.ndarray,
+                K: np.ndarray, dist: np.ndarray, prior_sigma: dict[str, float] | None,
+                refine_camera: bool = True) -> RobotSolution:
+    """Stages 1-6 above on the board views. ``prior_sigma``: 1-sigma of the intrinsics
+    ``K`` (their prior weight when ``refine_camera``)."""
+    timings: dict[str, float] = {}
+    stage = _timer(timings)
+    train = [v for v in views if v.kind in ("sweep", "train")]
+    held = [v for v in views if v.kind == "heldout"]
+    if len(train) < MIN_TRAINING_VIEWS:
+        raise SolveError(f"robot-kinematics: only {len(train)} training views with the "
+                         f"board found (need {MIN_TRAINING_VIEWS})")
+    meas = robot.Measurements([v.q for v in train], C=[v.C for v in train],
+                              corners=[v.corners for v in train], obj=obj, K=K, dist=dist)
+    with stage("hand-eye (nominal arm)"):
+        F = [nominal.fk(v.q) for v in train]
+        closed = handeye.closed_form(F, meas.C)
+        he = handeye.refine_pixels(F, meas.corners, obj, K, dist, closed["park"], C=meas.C)
+    sweeps = _sweeps(train)
+    with stage("link-by-link and axis-based"):
+        lbl, lbl_error, axis, axis_error = _single_methods(sweeps, he, nominal, meas)
+    with stage("joint refinement"):
+        start = lbl.model if lbl is not None else nominal
+        W_start = handeye.average_W([start.fk(v.q) for v in train], meas.C, he.X)
+        starts = [(nominal, he.X, he.W)] + ([(axis.model, axis.X, axis.W)] if axis else [])
+        ref = robot.refine(start, he.X, W_start, meas, extra_starts=starts)
+    with stage("plain D-H"):
+        dh = robot.refine(start, he.X, W_start, meas, mask=robot.dh_mask(nominal))
+    cam = None
+    if refine_camera:
+        with stage("camera free"):
+            ref, cam = robot.refine_with_camera(ref, meas, prior_sigma or {})
+            # held-out poses measured with the camera model the arm model now uses
+            held = [BoardView(v.label, v.kind, v.joint, v.q, v.corners,
+                              estimate_pose(obj, v.corners, cam.K, cam.dist).T_cam_target)
+                    for v in held]
+    with stage("held-out"):
+        heldout = {"before": heldout_errors(nominal, he.X, he.W, held),
+                   "after": heldout_errors(ref.model, ref.X, ref.W, held),
+                   "link_by_link": None, "axis_based": None}
+        if lbl is not None:
+            W_lbl = handeye.average_W([lbl.model.fk(v.q) for v in train], meas.C, he.X)
+            heldout["link_by_link"] = heldout_errors(lbl.model, he.X, W_lbl, held)
+        if axis is not None:
+            heldout["axis_based"] = heldout_errors(axis.model, axis.X, axis.W, held)
+    spans = {f"joint{j + 1}": float(np.degrees(np.ptp([q[j] for q in sw.q])))
+             for j, sw in sweeps.items()}
+    return RobotSolution(ref, cam, he, closed, heldout, lbl, lbl_error, axis, axis_error, dh,
+                         spans, meas, len(train), len(held), timings)
