@@ -637,6 +637,32 @@ def bench_worlds(as_json: bool = typer.Option(False, "--json"),
     out.print(f"plot: {result.get('plot')}")
 
 
+@bench_app.command("solve")
+def bench_solve(run_dirs: list[Path] | None = typer.Argument(None, help="run directories"),
+                as_json: bool = typer.Option(False, "--json"),
+                records: Path = typer.Option(Path("demo-records"), "--records",
+                                             help="without run directories: the newest "
+                                                  "calibration runs here")) -> None:
+    """Re-solve recorded runs (copies) and time each stage of each solve."""
+    from rigctl.bench import solve
+    from rigctl.bench.common import print_table
+
+    try:
+        with stdout_to_stderr() as real_stdout:
+            result = solve.run(run_dirs, records)
+    except RigError as exc:
+        _fail(exc, as_json)
+    if as_json:
+        _print_json(result, real_stdout)
+        return
+    rows = []
+    for r in result["runs"]:
+        rows.append([r["run"], "total", r["total_s"], r["target_s"] or "-",
+                     {None: "-", True: "yes", False: "no"}[r["met"]]])
+        rows += [["", stage, seconds, "", ""] for stage, seconds in r["stages_s"].items()]
+    print_table("bench solve (s)", ["run", "stage", "seconds", "target", "met"], rows, out)
+
+
 @bench_app.command("handeye")
 def bench_handeye(as_json: bool = typer.Option(False, "--json"),
                   trials: int = typer.Option(200, "--trials", min=1)) -> None:

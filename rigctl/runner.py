@@ -463,10 +463,12 @@ def _whoami() -> str:
         return "unknown"
 
 
-def solve_recorded(run_path, index: RecordIndex | None = None) -> dict[str, Any]:
+def solve_recorded(run_path, index: RecordIndex | None = None,
+                   timings_s: dict[str, float] | None = None) -> dict[str, Any]:
     """Solve a recorded run again, offline, from its run directory alone.
 
-    The previous ``result.json`` is kept as ``result.<n>.json``.
+    The previous ``result.json`` is kept as ``result.<n>.json``. ``timings_s``, when
+    given, receives the time of each stage of the solve.
     """
     run = RunDirectory(run_path)
     if not run.path.is_dir():
@@ -480,7 +482,10 @@ def solve_recorded(run_path, index: RecordIndex | None = None) -> dict[str, Any]
     procedure = procedures.get_procedure(params_doc["procedure"])
     params = procedure.params_model.model_validate(params_doc["params"])
     inputs = run.read_json("inputs.json") if (run.path / "inputs.json").exists() else {}
-    result = procedure.solve(SolveContext(run, config, params, inputs))
+    ctx = SolveContext(run, config, params, inputs)
+    result = procedure.solve(ctx)
+    if timings_s is not None:
+        timings_s.update(ctx.timings_s)
     run.write_result(result)
     if index is not None:
         try:
