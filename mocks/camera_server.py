@@ -64,6 +64,15 @@ class LineClient:
         return None
 
 
+# A real camera's frame reaches the host within tens of milliseconds of its exposure. A
+# stand-in descheduled on a busy host could publish a frame rendered from a state sampled
+# a second earlier; such a frame is dropped instead (as a camera drops frames when its
+# bus is busy), so that no frame older than this is ever sent. Seen once at load 7 on
+# 2 cores: a frame sampled >1 s before a joint move ended passed the driver's arrival
+# and stillness rules and showed the previous pose.
+MAX_FRAME_AGE_S = 0.5
+
+
 class Camera:
     """Renders frames at the world's fps from the live head and arm state."""
 
@@ -75,6 +84,7 @@ class Camera:
         self.stall_until = 0.0
         self.running = True
         self.rendered = 0
+        self.dropped = 0
         self.render_s: list[float] = []
 
     def state(self) -> tuple[tuple[float, float, float], np.ndarray]:
@@ -106,10 +116,13 @@ class Camera:
                 _ok, jpeg = cv2.imencode(".jpg", image, quality)
                 self.render_s.append(time.perf_counter() - t0)
                 self.render_s = self.render_s[-200:]
-                with self.cond:
-                    self.frame = {"seq": index, "t_sample": t_sample, "jpeg": jpeg.tobytes(),
-                                  "head": angles, "q": q.tolist()}
-                    self.cond.notify_all()
+                if time.time() - t_sample > MAX_FRAME_AGE_S:
+                    self.dropped += 1
+                else:
+                    with self.cond:
+                        self.frame = {"seq": index, "t_sample": t_sample,
+                                      "jpeg": jpeg.tobytes(), "head": angles, "q": q.tolist()}
+                        self.cond.notify_all()
                 index += 1
                 self.rendered = index
             delay = next_t - time.monotonic()
@@ -142,6 +155,9 @@ def make_handler(camera: Camera):
                     if frame is None or frame["seq"] == seq:
                         continue
                     seq = frame["seq"]
+                    if time.time() - frame["t_sample"] > MAX_FRAME_AGE_S:
+                        camera.dropped += 1
+                        continue
                     part = (b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: %d\r\n"
                             b"X-Sequence: %d\r\nX-Timestamp: %.6f\r\n\r\n"
                             % (len(frame["jpeg"]), seq, frame["t_sample"]))
@@ -194,6 +210,7 @@ def serve_control(path: Path, camera: Camera) -> socket.socket:
                     elif req.get("cmd") == "dump":
                         times = camera.render_s or [0.0]
                         answer = {"ok": True, "rendered": camera.rendered,
+                                  "dropped_stale": camera.dropped,
                                   "render_ms_median": 1000 * float(np.median(times))}
                     else:
                         answer = {"ok": False, "error": f"unknown cmd {req.get('cmd')!r}"}
