@@ -226,7 +226,7 @@ def _export(sol: RobotSolution, intr: dict) -> dict[str, Any]:
                "covariance": {"names": ref.names + [f"camera.{k}" for k in
                                                     robot.CAMERA_KEYS + robot.DIST_KEYS],
                               "matrix": ref.covariance.tolist()}}
-              if cam else {"intrinsics": intr})
+              if cam else {"intrinsics": intr, "camera_note": sol.camera_note})
     return {**export_model(ref.model, ref.X, ref.W, uncertainty, sol.heldout["after"] or {}),
             **camera,
             "before": {"heldout": sol.heldout["before"], "T_flange_cam": sol.hand_eye.X.tolist(),

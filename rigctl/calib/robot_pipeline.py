@@ -61,6 +61,7 @@ class RobotSolution:
     training_views: int = 0
     heldout_views: int = 0
     timings_s: dict[str, float] = field(default_factory=dict)
+    camera_note: str | None = None  # why the camera stayed held, when it was to be free
 
 
 def _sweeps(train: list[BoardView]) -> dict[int, robot.Sweep]:
@@ -148,10 +149,17 @@ def solve_robot(views: list[BoardView], nominal: KinematicModel, obj: np.ndarray
         ref = robot.refine(start, he.X, W_start, meas, extra_starts=starts)
     with stage("plain D-H"):
         dh = robot.refine(start, he.X, W_start, meas, mask=robot.dh_mask(nominal))
-    cam = None
+    cam, camera_note = None, None
     if refine_camera:
         with stage("camera free"):
-            ref, cam = robot.refine_with_camera(ref, meas, prior_sigma or {})
+            free, cam = robot.refine_with_camera(ref, meas, prior_sigma or {})
+        if free.rms > 1.05 * ref.rms + 0.01:  # a superset of ref's model cannot fit worse
+            camera_note = (f"the refinement with the camera free ended worse ({free.rms:.3f} "
+                           f"px RMS) than with it held ({ref.rms:.3f} px); the camera is "
+                           "held as given")
+            cam = None
+        else:
+            ref = free
             # held-out poses measured with the camera model the arm model now uses
             held = [BoardView(v.label, v.kind, v.joint, v.q, v.corners,
                               estimate_pose(obj, v.corners, cam.K, cam.dist).T_cam_target)
@@ -168,4 +176,4 @@ def solve_robot(views: list[BoardView], nominal: KinematicModel, obj: np.ndarray
     spans = {f"joint{j + 1}": float(np.degrees(np.ptp([q[j] for q in sw.q])))
              for j, sw in sweeps.items()}
     return RobotSolution(ref, cam, he, closed, heldout, lbl, lbl_error, axis, axis_error, dh,
-                         spans, meas, len(train), len(held), timings)
+                         spans, meas, len(train), len(held), timings, camera_note)
