@@ -1,5 +1,10 @@
 """Drift of a new calibration against the last accepted one, with the rig file's
-thresholds (focal %, principal point px, link mm/deg, hand-eye mm/deg)."""
+thresholds (focal %, principal point px, link mm/deg, hand-eye mm/deg).
+
+Where both calibrations report a 1-sigma for a quantity, a change over its threshold is
+drift only if it is also significant: ``|new - old| > SIGNIFICANT * sqrt(s_new^2 +
+s_old^2)`` (the difference's own sigma, the two runs independent). A change within that
+band is noise of the two measurements, and the metrics say so (``*_z``)."""
 
 from __future__ import annotations
 
@@ -12,6 +17,26 @@ from rigctl.config import DriftThresholds
 from rigctl.geometry.transforms import rotation_angle
 
 CALIBRATIONS = ("active-camera", "hand-eye", "robot-kinematics")
+SIGNIFICANT = 3.0
+
+
+def _z(new: dict, old: dict, keys, new_sigma: dict | None, old_sigma: dict | None
+       ) -> float | None:
+    """The largest |difference| / sigma of the difference over ``keys``; None when a
+    sigma is missing."""
+    if not new_sigma or not old_sigma:
+        return None
+    zs = []
+    for key in keys:
+        sn, so = new_sigma.get(key), old_sigma.get(key)
+        if sn is None or so is None or sn + so <= 0:
+            return None
+        zs.append(abs(new[key] - old[key]) / math.hypot(sn, so))
+    return max(zs)
+
+
+def _significant(z: float | None) -> bool:
+    return z is None or z > SIGNIFICANT
 LENGTH_KEYS = ("d", "a")
 ANGLE_KEYS = ("theta_offset", "alpha", "beta")
 
@@ -30,11 +55,17 @@ def compare(procedure: str, new: dict[str, Any], old: dict[str, Any],
         focal = 100 * max(abs(new["fx"] / old["fx"] - 1), abs(new["fy"] / old["fy"] - 1))
         pp = max(abs(new["cx"] - old["cx"]), abs(new["cy"] - old["cy"]))
         metrics = {"focal_pct": focal, "principal_point_px": pp}
-        if focal > limits.focal_pct:
-            breaches.append(f"focal length changed {focal:.3f} % (limit {limits.focal_pct} %)")
-        if pp > limits.principal_point_px:
+        z_f = _z(new, old, ("fx", "fy"), new.get("sigma"), old.get("sigma"))
+        z_c = _z(new, old, ("cx", "cy"), new.get("sigma"), old.get("sigma"))
+        if z_f is not None:
+            metrics |= {"focal_z": z_f, "principal_point_z": z_c}
+        if focal > limits.focal_pct and _significant(z_f):
+            breaches.append(f"focal length changed {focal:.3f} % (limit {limits.focal_pct} %"
+                            + (f", {z_f:.1f} sigma of the difference)" if z_f else ")"))
+        if pp > limits.principal_point_px and _significant(z_c):
             breaches.append(f"principal point moved {pp:.2f} px "
-                            f"(limit {limits.principal_point_px} px)")
+                            f"(limit {limits.principal_point_px} px"
+                            + (f", {z_c:.1f} sigma of the difference)" if z_c else ")"))
     if procedure in ("hand-eye", "robot-kinematics") and "T_flange_cam" in new \
             and "T_flange_cam" in old:
         mm, deg = _transform_delta(new["T_flange_cam"], old["T_flange_cam"])

@@ -143,3 +143,21 @@ def test_missing_pieces_and_other_procedures_compare_nothing():
     assert compare("robot-kinematics", {"links": links()}, {}, LIMITS) == ([], {})
     assert compare("hand-eye", {}, {"T_flange_cam": BASE.tolist()}, LIMITS) == ([], {})
     assert compare("head-sweep", {"fx": 1.0}, {"fx": 2.0}, LIMITS) == ([], {})
+
+
+def test_a_change_within_the_uncertainty_of_the_difference_is_not_drift():
+    """1.0 % focal change: drift when both runs are sure to 0.1 px, noise when each has
+    a 6 px sigma (difference sigma 8.5 px, change 9 px: 1.06 sigma)."""
+    new = {**CAMERA, "fx": CAMERA["fx"] * 1.01}
+    sure = {k: 0.1 for k in CAMERA}
+    breaches, metrics = compare("active-camera", {**new, "sigma": sure},
+                                {**CAMERA, "sigma": sure}, LIMITS)
+    assert len(breaches) == 1 and "focal length changed 1.000 %" in breaches[0]
+    assert metrics["focal_z"] == pytest.approx(9.0 / math.hypot(0.1, 0.1))
+    unsure = {k: 6.0 for k in CAMERA}
+    breaches, metrics = compare("active-camera", {**new, "sigma": unsure},
+                                {**CAMERA, "sigma": unsure}, LIMITS)
+    assert breaches == [] and metrics["focal_z"] == pytest.approx(9.0 / math.hypot(6, 6))
+    # without a sigma on one side, the threshold alone decides, as before
+    breaches, _ = compare("active-camera", {**new, "sigma": unsure}, dict(CAMERA), LIMITS)
+    assert len(breaches) == 1
