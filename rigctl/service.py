@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from fastapi import Depends, FastAPI, Header, HTTPException, Query, Request
+from fastapi import APIRouter, Depends, FastAPI, Header, HTTPException, Query, Request
 from fastapi import Path as PathParam
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import (
@@ -312,7 +312,7 @@ def _row(row: dict) -> dict:
             if k not in ("pid", "host")}
 
 
-def create_app(service: RigService, stop_service_on_shutdown: bool = False) -> FastAPI:  # noqa: C901
+def create_app(service: RigService, stop_service_on_shutdown: bool = False) -> FastAPI:
     """The HTTP API of ``service``. With ``stop_service_on_shutdown``, the server's
     graceful shutdown (SIGTERM, SIGINT) aborts the current run and waits for it to be
     recorded: uvicorn re-raises the signal once it has shut down, so code after
@@ -342,11 +342,62 @@ def create_app(service: RigService, stop_service_on_shutdown: bool = False) -> F
             raise HTTPException(401, "missing or wrong bearer token",
                                 headers={"WWW-Authenticate": "Bearer"})
 
-    @app.get("/health")
+    guarded = [Depends(require_token)]
+    app.include_router(_rig_routes(service))
+    app.include_router(_run_routes(service, guarded))
+    app.include_router(_calibration_routes(service, guarded))
+    app.include_router(_page_routes(service))
+    return app
+
+
+def _own_run(service: RigService, run_id: str) -> dict:
+    """The run with this id (or unique prefix) of this rig; 404 otherwise."""
+    try:
+        row = service.index.get(run_id)
+    except RigError:
+        raise HTTPException(404, f"no run {run_id}") from None
+    if row["rig_name"] != service.config.name:
+        raise HTTPException(404, f"no run {run_id} on rig {service.config.name} (it belongs "
+                                 f"to rig {row['rig_name']})")
+    return row
+
+
+def _calibration_names(procedure: str | None) -> list[str]:
+    if procedure is None:
+        return list(drift.CALIBRATIONS)
+    if procedure not in drift.CALIBRATIONS:
+        raise HTTPException(422, f"procedure {procedure!r} is not a calibration; one of "
+                                 f"{', '.join(drift.CALIBRATIONS)}")
+    return [procedure]
+
+
+def _calibration_rows(service: RigService, procedure: str | None,
+                      limit: int = 200) -> list[dict]:
+    rows = []
+    for name in _calibration_names(procedure):
+        rows += [r for r in service.runs(limit, name) if r["status"] == "succeeded"]
+    return sorted(rows, key=lambda r: r["started_at"], reverse=True)
+
+
+def _set_decision(service: RigService, run_id: str, decision: str) -> dict:
+    row = _own_run(service, run_id)
+    if row["procedure"] not in drift.CALIBRATIONS or row["status"] != "succeeded":
+        raise HTTPException(409, f"run {run_id} is not a finished calibration")
+    service.index.update(row["run_id"], decision=decision)
+    service.events.publish({"type": "decision", "run_id": row["run_id"],
+                            "decision": decision, "by": "operator"})
+    return {"run_id": row["run_id"], "decision": decision}
+
+
+def _rig_routes(service: RigService) -> APIRouter:
+    """Health, the rig's devices and readings, the procedures with their schemas."""
+    config, router = service.config, APIRouter()
+
+    @router.get("/health")
     def health() -> dict:
         return {"status": "ok", "rig": config.name, "version": __version__}
 
-    @app.get("/rig")
+    @router.get("/rig")
     def rig_state() -> dict:
         """Device status read without moving anything: configuration, lock holder, the
         last recorded readings."""
@@ -365,7 +416,7 @@ def create_app(service: RigService, stop_service_on_shutdown: bool = False) -> F
         return {"rig": config.name, "busy": service.busy_reason(), "lock": lock.holder(),
                 "devices": devices, "last_readings": last}
 
-    @app.get("/procedures")
+    @router.get("/procedures")
     def list_procedures() -> list[dict]:
         out = []
         for name in procedures.procedure_names():
@@ -374,7 +425,14 @@ def create_app(service: RigService, stop_service_on_shutdown: bool = False) -> F
                         "params_schema": proc.params_model.model_json_schema()})
         return out
 
-    @app.post("/runs", status_code=202, dependencies=[Depends(require_token)])
+    return router
+
+
+def _run_routes(service: RigService, guarded: list) -> APIRouter:
+    """Queue, list, inspect and abort runs; a run's captures."""
+    router = APIRouter()
+
+    @router.post("/runs", status_code=202, dependencies=guarded)
     def queue_run(request: RunRequest) -> dict:
         try:
             job = service.submit(request.procedure, request.params,
@@ -383,22 +441,19 @@ def create_app(service: RigService, stop_service_on_shutdown: bool = False) -> F
             raise HTTPException(422, str(exc)) from None
         return {"run_id": job.run_id, "status": "queued", "position": len(service.queue)}
 
-    @app.get("/runs")
+    @router.get("/runs")
     def list_runs(limit: int = Query(50, ge=1, le=MAX_LIMIT),
                   procedure: str | None = Query(None, pattern=NAME)) -> list[dict]:
         queued = [{"run_id": j.run_id, "procedure": j.procedure, "status": "queued"}
                   for j in list(service.queue) if procedure in (None, j.procedure)]
         return queued + [_row(r) for r in service.runs(limit, procedure)]
 
-    @app.get("/runs/{run_id}")
+    @router.get("/runs/{run_id}")
     def get_run(run_id: str = RUN_ID) -> dict:
         for job in list(service.queue):
             if job.run_id == run_id:
                 return {"run_id": run_id, "procedure": job.procedure, "status": "queued"}
-        try:
-            row = _row(own_run(run_id))
-        except RigError:
-            raise HTTPException(404, f"no run {run_id}") from None
+        row = _row(_own_run(service, run_id))
         current = service.current
         if current is not None and current.run_id == row["run_id"]:
             row["progress"] = current.progress
@@ -406,47 +461,30 @@ def create_app(service: RigService, stop_service_on_shutdown: bool = False) -> F
             row["result"] = RunDirectory(row["run_dir"]).result()
         return row
 
-    @app.post("/runs/{run_id}/abort", dependencies=[Depends(require_token)])
+    @router.post("/runs/{run_id}/abort", dependencies=guarded)
     def abort_run(run_id: str = RUN_ID) -> dict:
         return {"run_id": run_id, "status": service.abort(run_id)}
 
-    @app.get("/runs/{run_id}/captures/{n}")
+    @router.get("/runs/{run_id}/captures/{n}")
     def capture_image(run_id: str = RUN_ID, n: int = PathParam(ge=0, le=99_999)
                       ) -> FileResponse:
-        try:
-            row = own_run(run_id)
-        except RigError:
-            raise HTTPException(404, f"no run {run_id}") from None
+        row = _own_run(service, run_id)
         path = Path(row["run_dir"]) / "captures" / f"{n:03d}.png" if row["run_dir"] else None
         if path is None or not path.is_file():
             raise HTTPException(404, f"run {run_id} has no capture {n}")
         return FileResponse(path, media_type="image/png")
 
-    def own_run(run_id: str) -> dict:
-        """The run with this id (or unique prefix) of this rig; ``RigError`` otherwise."""
-        row = service.index.get(run_id)
-        if row["rig_name"] != config.name:
-            raise RigError(f"run {run_id} belongs to rig {row['rig_name']}")
-        return row
+    return router
 
-    def calibration_name(procedure: str | None) -> list[str]:
-        if procedure is None:
-            return list(drift.CALIBRATIONS)
-        if procedure not in drift.CALIBRATIONS:
-            raise HTTPException(422, f"procedure {procedure!r} is not a calibration; one of "
-                                     f"{', '.join(drift.CALIBRATIONS)}")
-        return [procedure]
 
-    def calibration_rows(procedure: str | None, limit: int = 200) -> list[dict]:
-        rows = []
-        for name in calibration_name(procedure):
-            rows += [r for r in service.runs(limit, name) if r["status"] == "succeeded"]
-        return sorted(rows, key=lambda r: r["started_at"], reverse=True)
+def _calibration_routes(service: RigService, guarded: list) -> APIRouter:
+    """The accepted calibrations, their history, and the operator's decisions."""
+    router = APIRouter()
 
-    @app.get("/calibrations/latest")
+    @router.get("/calibrations/latest")
     def latest_calibration(procedure: str | None = Query(None, pattern=NAME)) -> dict:
         out = {}
-        for name in calibration_name(procedure):
+        for name in _calibration_names(procedure):
             row = service._last_accepted(name)
             if row is not None:
                 out[name] = {**_row(row), "result": RunDirectory(row["run_dir"]).result()}
@@ -454,31 +492,26 @@ def create_app(service: RigService, stop_service_on_shutdown: bool = False) -> F
             raise HTTPException(404, f"no accepted {procedure} calibration")
         return out
 
-    @app.get("/calibrations/history")
+    @router.get("/calibrations/history")
     def calibration_history(procedure: str | None = Query(None, pattern=NAME)) -> list[dict]:
-        return [_row(r) for r in calibration_rows(procedure)]
+        return [_row(r) for r in _calibration_rows(service, procedure)]
 
-    def set_decision(run_id: str, decision: str) -> dict:
-        try:
-            row = own_run(run_id)
-        except RigError:
-            raise HTTPException(404, f"no run {run_id}") from None
-        if row["procedure"] not in drift.CALIBRATIONS or row["status"] != "succeeded":
-            raise HTTPException(409, f"run {run_id} is not a finished calibration")
-        service.index.update(row["run_id"], decision=decision)
-        service.events.publish({"type": "decision", "run_id": row["run_id"],
-                                "decision": decision, "by": "operator"})
-        return {"run_id": row["run_id"], "decision": decision}
-
-    @app.post("/calibrations/{run_id}/accept", dependencies=[Depends(require_token)])
+    @router.post("/calibrations/{run_id}/accept", dependencies=guarded)
     def accept(run_id: str = RUN_ID) -> dict:
-        return set_decision(run_id, "accepted")
+        return _set_decision(service, run_id, "accepted")
 
-    @app.post("/calibrations/{run_id}/reject", dependencies=[Depends(require_token)])
+    @router.post("/calibrations/{run_id}/reject", dependencies=guarded)
     def reject(run_id: str = RUN_ID) -> dict:
-        return set_decision(run_id, "rejected")
+        return _set_decision(service, run_id, "rejected")
 
-    @app.get("/events")
+    return router
+
+
+def _page_routes(service: RigService) -> APIRouter:
+    """The event stream, the history plot and the status page."""
+    router = APIRouter()
+
+    @router.get("/events")
     async def events(request: Request) -> StreamingResponse:
         queue = service.events.subscribe()
 
@@ -499,15 +532,15 @@ def create_app(service: RigService, stop_service_on_shutdown: bool = False) -> F
 
         return StreamingResponse(stream(), media_type="text/event-stream")
 
-    @app.get("/plots/history.png")
+    @router.get("/plots/history.png")
     def history_plot() -> Response:
-        return Response(_history_png(calibration_rows(None)), media_type="image/png")
+        return Response(_history_png(_calibration_rows(service, None)), media_type="image/png")
 
-    @app.get("/", response_class=HTMLResponse)
+    @router.get("/", response_class=HTMLResponse)
     def status_page() -> str:
-        return STATUS_PAGE.replace("{{rig}}", config.name)
+        return STATUS_PAGE.replace("{{rig}}", service.config.name)
 
-    return app
+    return router
 
 
 def _history_png(rows: list[dict]) -> bytes:
