@@ -606,7 +606,9 @@ def bench_worlds(as_json: bool = typer.Option(False, "--json"),
                  first_seed: int = typer.Option(1000, "--first-seed", min=0),
                  plot: Path = typer.Option(Path("bench-worlds.png"), "--plot"),
                  keep: Path | None = typer.Option(None, "--keep",
-                                                  help="keep world files and records here")
+                                                  help="keep world files and records here"),
+                 from_kept: Path | None = typer.Option(
+                     None, "--from-kept", help="report on a --keep folder, run nothing")
                  ) -> None:
     """The whole chain (active-camera, hand-eye, robot-kinematics, validate-arm) through
     the stand-ins on N random worlds, with default parameters, against each world's truth."""
@@ -614,7 +616,11 @@ def bench_worlds(as_json: bool = typer.Option(False, "--json"),
     from rigctl.bench.common import print_table
 
     with stdout_to_stderr() as real_stdout:
-        result = worlds.run(n, first_seed, plot, keep, console=err)
+        if from_kept is not None:
+            result = worlds.report(worlds.rows_from_kept(from_kept), plot)
+            n = len(result["worlds"])
+        else:
+            result = worlds.run(n, first_seed, plot, keep, console=err)
     if as_json:
         _print_json(result, real_stdout)
         return
@@ -630,7 +636,7 @@ def bench_worlds(as_json: bool = typer.Option(False, "--json"),
                      arm.get("heldout_mm_after", "-"),
                      p.get("validate-arm", {}).get("position_rms_mm_after", "-"),
                      failure[:70]])
-    print_table(f"bench worlds ({n} worlds, seeds {first_seed}-{first_seed + n - 1})",
+    print_table(f"bench worlds ({n} worlds, seeds {', '.join(map(str, result['seeds']))})",
                 ["seed", "arm", "f", "f err %", "centre px", "model rms mm", "model max mm",
                  "held-out mm", "validate mm", "failure"], rows, out)
     out.print_json(json.dumps(result["summary"]))

@@ -20,7 +20,9 @@ A world counts as failed when any procedure is refused or does not succeed.
 
 from __future__ import annotations
 
+import json
 import math
+import re
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
@@ -32,7 +34,7 @@ from rich.console import Console
 from mocks.random_world import random_world
 from mocks.world import World, WorldFile
 from rigctl.bench.truth import intrinsics_errors, link_z, model_against_truth
-from rigctl.config import load_rig
+from rigctl.config import load_rig, parse_rig
 from rigctl.errors import RigError
 from rigctl.runner import Runner
 from rigctl.simrig import SimulatedRig
@@ -64,6 +66,55 @@ def _metrics(name: str, result: dict, truth: dict, config, world: World) -> dict
                 "intrinsics_agree": result.get("intrinsics_check", {}).get("agrees")}
     return {"position_rms_mm_before": result["before"]["position_rms_mm"],
             "position_rms_mm_after": result["after"]["position_rms_mm"]}
+
+
+LAST_LINE = re.compile(r"run (?P<run>\S+) (?P<status>succeeded|failed|aborted)(: (?P<reason>.*?))?"
+                       r"( \((?P<timings>[^()]*)\))?$")
+
+
+def _from_run_dir(name: str, run_dir: Path, truth: dict, world: World) -> dict:
+    """One procedure's entry of a row, read back from its run directory (the run log's
+    last line has the status, reason and times; the result its numbers)."""
+    lines = (run_dir / "run.log").read_text().strip().splitlines() if \
+        (run_dir / "run.log").exists() else []
+    match = LAST_LINE.search(lines[-1].split("rigctl.run: ", 1)[-1]) if lines else None
+    entry = {"status": match["status"] if match else "unfinished",
+             "reason": match["reason"] if match else None, "timings_s": {}}
+    if match and match["timings"]:
+        for part in match["timings"].split(", "):
+            key, value, _unit = part.split(" ")
+            entry["timings_s"][f"{key}_s"] = float(value)
+    if (run_dir / "result.json").exists():
+        config = parse_rig((run_dir / "rig.yaml").read_text(), name=str(run_dir / "rig.yaml"))
+        result = json.loads((run_dir / "result.json").read_text())
+        entry.update(_metrics(name, result, truth, config, world))
+    return entry
+
+
+def rows_from_kept(folder: Path) -> list[dict]:
+    """The benchmark's rows rebuilt from a ``--keep`` folder (world files and records),
+    also of a benchmark that was stopped part-way (a world whose last run had not
+    finished is left out)."""
+    rows = []
+    for path in sorted(folder.glob("world-*.yaml"), key=lambda p: int(p.stem.split("-")[1])):
+        seed = int(path.stem.split("-")[1])
+        spec = WorldFile.model_validate(yaml.safe_load(path.read_text()))
+        world = World(spec)
+        truth = world.truth()
+        row = {"seed": seed, "model": spec.arm.model, "fx_true": spec.camera.fx,
+               "size": [spec.camera.width, spec.camera.height],
+               "distortion": list(spec.camera.distortion), "procedures": {}}
+        for name in PIPELINE:
+            runs = sorted((folder / f"records-{seed}").glob(f"*-{name}-*"))
+            if not runs:
+                break
+            row["procedures"][name] = _from_run_dir(name, runs[-1], truth, world)
+        if any(p["status"] == "unfinished" for p in row["procedures"].values()):
+            continue
+        row["failed"] = any(p["status"] != "succeeded" for p in row["procedures"].values()) \
+            or len(row["procedures"]) < len(PIPELINE)
+        rows.append(row)
+    return rows
 
 
 def world_run(seed: int, folder: Path, say: Callable[[str], None]) -> dict:
@@ -194,10 +245,19 @@ def plot(rows: list[dict], path: Path) -> str:
     return str(path)
 
 
+def report(rows: list[dict], plot_path: Path | None) -> dict:
+    out = {"seeds": sorted(r["seed"] for r in rows), "pipeline": list(PIPELINE),
+           "summary": summarise(rows), "worlds": rows}
+    if plot_path is not None and rows:
+        out["plot"] = plot(rows, plot_path)
+    return out
+
+
 def run(n: int = 20, first_seed: int = 1000, plot_path: Path | None = None,
         keep: Path | None = None, console: Console | None = None) -> dict:
     """N random worlds from ``first_seed`` (the tests use seeds below 100). With ``keep``,
-    the world files and every run's records stay in that folder."""
+    the world files and every run's records stay in that folder (``rows_from_kept``
+    reads them back)."""
     console = console or Console(stderr=True)
     rows = []
     with tempfile.TemporaryDirectory(prefix="rigctl-bench-worlds-") as tmp:
@@ -205,8 +265,4 @@ def run(n: int = 20, first_seed: int = 1000, plot_path: Path | None = None,
         folder.mkdir(parents=True, exist_ok=True)
         for seed in range(first_seed, first_seed + n):
             rows.append(world_run(seed, folder, console.print))
-    out = {"seeds": [first_seed, first_seed + n - 1], "pipeline": list(PIPELINE),
-           "summary": summarise(rows), "worlds": rows}
-    if plot_path is not None:
-        out["plot"] = plot(rows, plot_path)
-    return out
+    return report(rows, plot_path)
