@@ -35,7 +35,7 @@ FRESH_MARGIN_S = 0.02
 LIVE_GAP = 0.3
 
 
-def _mean_change(a, b) -> float:
+def mean_change(a, b) -> float:
     """Mean absolute grey-level change between two frames, 8x downsampled (area), so
     that sensor noise averages out (a noise of 2 grey levels leaves ~0.3)."""
     def small(img):
@@ -224,7 +224,7 @@ class OpenCVCamera(Camera):
                     f"frames, devices.camera.still_threshold {self.cfg.still_threshold}): is "
                     f"something moving in view? {load_note('devices.camera.timeout_s')}"
                 ) from None
-            change = _mean_change(frame[0], newer[0])
+            change = mean_change(frame[0], newer[0])
             if change < self.cfg.still_threshold:
                 return newer
             frame = newer

@@ -43,6 +43,7 @@ from rich.progress import (
 
 import procedures
 from drivers.base import check_axis_limit
+from drivers.camera import mean_change
 from procedures.base import (
     CaptureStep,
     MoveArmJoint,
@@ -63,6 +64,9 @@ from rigctl.records import RecordIndex, RunDirectory, new_run_id, summarize, utc
 from rigctl.rig import Rig
 
 log = logging.getLogger("rigctl.run")
+# how long a capture keeps waiting for a fresh view when a frame after a motion shows
+# the previous capture's view (``Runner._fresh_frame``)
+STALE_RETRY_S = 3.0
 
 EventSink = Callable[[dict[str, Any]], None]
 
@@ -402,12 +406,41 @@ class Runner:
         else:  # pragma: no cover - a new step type without runner support
             raise ConfigError(f"runner cannot execute step {step!r}")
 
+    def _fresh_frame(self, camera, state: dict):
+        """The camera's frame after the last motion. When the rig was commanded to another
+        pose since the previous capture yet the frame is the previous capture's image
+        (mean change under ``devices.camera.still_threshold``), it is a stale frame from
+        a backlog the grabber drained late (seen at load 12 on 2 cores: the pose before
+        the move, consistent over two frames); the capture is taken again, for up to
+        ``STALE_RETRY_S``, and the frame is kept (with a warning) if the view truly did
+        not change."""
+        frame = camera.capture(not_before=state["last_motion_end"])
+        threshold = self.config.devices.camera.still_threshold
+        pose = (state["head_commanded"], state["arm_commanded"])
+        previous = state.get("previous_capture")
+        state["previous_capture"] = None
+        if previous is None or previous[1] == pose or threshold <= 0:
+            state["previous_capture"] = (frame.image, pose)
+            return frame
+        deadline = time.monotonic() + STALE_RETRY_S
+        while mean_change(previous[0], frame.image) < threshold:
+            if time.monotonic() > deadline:
+                log.warning("capture after a motion shows the previous capture's view "
+                            "(mean change under %.2f grey levels for %.1f s); kept",
+                            threshold, STALE_RETRY_S)
+                break
+            log.warning("stale frame: the previous capture's view after a motion; "
+                        "capturing again")
+            frame = camera.capture(not_before=time.time())
+        state["previous_capture"] = (frame.image, pose)
+        return frame
+
     def _capture(self, rig: Rig, step: CaptureStep, run: RunDirectory, state: dict) -> None:
         meta: dict[str, Any] = {"index": state["capture"], "label": step.label,
                                 "time": time.time(), "extra": dict(step.extra)}
         image = None
         if step.image and "camera" in rig.configured():
-            frame = rig.open("camera").capture(not_before=state["last_motion_end"])
+            frame = self._fresh_frame(rig.open("camera"), state)
             image = frame.image
             meta["camera"] = {"timestamp": frame.timestamp, "sequence": frame.sequence,
                               "settings": frame.settings}

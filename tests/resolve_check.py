@@ -32,8 +32,11 @@ def assert_resolves_alone(run_dir: Path, scratch: Path) -> None:
 
 
 def _differences(a, b, path=""):
-    """Paths where two JSON documents differ; numbers may differ by 1e-5 relative (rounding in
-    threaded numerical libraries)."""
+    """Paths where two JSON documents differ. Numbers may differ by 1e-4 relative or 1e-5
+    absolute: rounding in threaded numerical libraries moves an iterative solve's end
+    point slightly (at load 12 on 2 cores an active-camera re-solve differed by 1.3e-5
+    relative in k1 and 1e-6 absolute in the roll axis); a re-solve from other inputs
+    (another intrinsics run, another rig file) moves results by far more."""
     if isinstance(a, dict) and isinstance(b, dict):
         for key in sorted(set(a) | set(b)):
             if key not in a or key not in b:
@@ -46,7 +49,7 @@ def _differences(a, b, path=""):
         for k, (u, v) in enumerate(zip(a, b, strict=False)):
             yield from _differences(u, v, f"{path}[{k}]")
     elif isinstance(a, float | int) and isinstance(b, float | int) and not isinstance(a, bool):
-        if not math.isclose(a, b, rel_tol=1e-5, abs_tol=1e-9):
+        if not math.isclose(a, b, rel_tol=1e-4, abs_tol=1e-5):
             yield f"{path}: {a} against {b}"
     elif a != b:
         yield f"{path}: {a!r} against {b!r}"

@@ -7,7 +7,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from drivers.camera import _mean_change
+from drivers.camera import mean_change
 from rigctl.config import CameraConfig
 
 
@@ -23,10 +23,10 @@ def scene(rng, shift: float = 0.0) -> np.ndarray:
 def test_noise_is_still_and_a_pixel_of_motion_is_not():
     rng = np.random.default_rng(3)
     threshold = CameraConfig(device=0).still_threshold
-    assert _mean_change(scene(rng), scene(rng)) < 0.3 * threshold
+    assert mean_change(scene(rng), scene(rng)) < 0.3 * threshold
     noisy = [np.clip(scene(rng) + rng.normal(0, 1.7, (360, 640)), 0, 255).astype(np.uint8)
              for _ in range(2)]  # sensor noise of 2 grey levels in all
-    assert _mean_change(*noisy) < 0.5 * threshold
-    assert _mean_change(scene(rng), scene(rng, shift=1.5)) > threshold
+    assert mean_change(*noisy) < 0.5 * threshold
+    assert mean_change(scene(rng), scene(rng, shift=1.5)) > threshold
     colour = cv2.cvtColor(scene(rng), cv2.COLOR_GRAY2BGR)
-    assert _mean_change(colour, scene(rng)) < 0.3 * threshold
+    assert mean_change(colour, scene(rng)) < 0.3 * threshold

@@ -187,3 +187,36 @@ def test_camera_capture_written_as_png_with_settings(rig_file):
     image = captures[0].load_image()
     assert image.shape == (48, 64)
     assert captures[0].meta["camera"]["settings"] == {"fourcc": "MJPG"}
+
+
+class ReplayCamera(DoubleCamera):
+    """Delivers the given images in turn (a drained backlog replays old views)."""
+
+    def __init__(self, cfg, images) -> None:
+        super().__init__(cfg)
+        self.images, self.calls = list(images), 0
+
+    def capture(self, not_before=None):
+        from drivers.base import Frame
+
+        self.calls += 1
+        return Frame(self.images.pop(0), time.time(), self.calls, {})
+
+
+def test_a_stale_view_after_a_motion_is_captured_again(rig_file, caplog):
+    import numpy as np
+
+    config = load_rig(rig_file(camera=True))
+    runner, _ = make_runner(config)
+    rng = np.random.default_rng(0)
+    old, new = (rng.integers(0, 255, (48, 64), dtype=np.uint8) for _ in range(2))
+    noisy_old = np.clip(old + rng.normal(0, 2, old.shape), 0, 255).astype(np.uint8)
+    camera = ReplayCamera(config.devices.camera, [old, noisy_old, old, new, new])
+    state = {"last_motion_end": time.time(), "head_commanded": {"pan": 0.0},
+             "arm_commanded": None}
+    assert runner._fresh_frame(camera, state).image is old
+    state["head_commanded"] = {"pan": 0.1}  # moved: the old view twice is stale
+    assert runner._fresh_frame(camera, state).image is new and camera.calls == 4
+    assert "stale frame" in caplog.text
+    camera.calls = 0  # not moved since: the same view is what it should be
+    assert runner._fresh_frame(camera, state).image is new and camera.calls == 1
