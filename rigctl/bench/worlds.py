@@ -63,7 +63,10 @@ def _metrics(name: str, result: dict, truth: dict, config, world: World) -> dict
                 "heldout_mm_before": s["heldout_mm_before"],
                 "heldout_mm_after": s["heldout_mm_after"],
                 "training_views": s["training_views"], "z": link_z(result, truth),
-                "intrinsics_agree": result.get("intrinsics_check", {}).get("agrees")}
+                "intrinsics_agree": result.get("intrinsics_check", {}).get("agrees"),
+                # the camera model the arm model was fitted with (free in the final bundle
+                # adjustment unless refine_camera=false)
+                "camera": intrinsics_errors(result["intrinsics"], truth)}
     return {"position_rms_mm_before": result["before"]["position_rms_mm"],
             "position_rms_mm_after": result["after"]["position_rms_mm"]}
 
@@ -174,6 +177,9 @@ def summarise(rows: list[dict]) -> dict:
              .get("z", {}).values()]
     z_arm = [v for r in rows for v in r["procedures"].get("robot-kinematics", {})
              .get("z", {}).values()]
+    cams = [r["procedures"]["robot-kinematics"]["camera"] for r in rows
+            if "camera" in r["procedures"].get("robot-kinematics", {})]
+    z_final = [v for c in cams for v in c["z"].values()]
     times = {name: {kind: _dist([r["procedures"][name]["timings_s"][kind] for r in rows
                                  if kind in r["procedures"].get(name, {}).get("timings_s", {})])
                     for kind in ("motion_s", "solve_s", "run_s")} for name in PIPELINE}
@@ -182,12 +188,15 @@ def summarise(rows: list[dict]) -> dict:
         "failed_seeds": [r["seed"] for r in rows if r["failed"]],
         "focal_pct": _dist(values("active-camera", "focal_pct")),
         "centre_px": _dist(values("active-camera", "centre_px")),
+        "final_camera": {"focal_pct": _dist([c["focal_pct"] for c in cams]),
+                         "centre_px": _dist([c["centre_px"] for c in cams])},
         "model_rms_mm": _dist(values("robot-kinematics", "model_rms_mm")),
         "model_max_mm": _dist(values("robot-kinematics", "model_max_mm")),
         "heldout_mm_after": _dist(values("robot-kinematics", "heldout_mm_after")),
         "validate_mm_after": _dist(values("validate-arm", "position_rms_mm_after")),
         "coverage": {"intrinsics": _coverage(z_cam), "links": _coverage(z_arm),
-                     "all": _coverage(z_cam + z_arm)},
+                     "final_camera": _coverage(z_final),
+                     "all": _coverage(z_cam + z_arm + z_final)},
         "times_s": times,
     }
 
