@@ -44,10 +44,22 @@ def _interrupt(*_) -> None:
 
 
 def run_once(tests: list[str], extra: list[str], log_path: Path) -> tuple[int, float]:
+    """One pytest run; interrupted, its pytest is stopped by PID (SIGINT first, so that
+    pytest's own teardown stops what the tests started, then SIGKILL)."""
     t0 = time.monotonic()
     with log_path.open("w") as log:
-        code = subprocess.call([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
-                                *tests, *extra], cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
+        proc = subprocess.Popen([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+                                 *tests, *extra], cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
+        try:
+            code = proc.wait()
+        except BaseException:
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(timeout=10)
+            raise
     return code, time.monotonic() - t0
 
 
@@ -78,6 +90,9 @@ def main(argv: list[str] | None = None) -> int:
                             "log": str(log_path), "summary": last_line(log_path)})
             print(f"run {k}/{args.runs}: {'PASS' if code == 0 else 'FAIL'} in {seconds:.0f} s "
                   f"- {results[-1]['summary']}", file=sys.stderr, flush=True)
+    except KeyboardInterrupt:
+        print("load check interrupted", file=sys.stderr)
+        return 130
     finally:
         stop(busy)
     passed = sum(r["exit"] == 0 for r in results)
