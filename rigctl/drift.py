@@ -79,14 +79,36 @@ def compare(procedure: str, new: dict[str, Any], old: dict[str, Any],
         breaches.append(f"the arm model changed: {len(new['links'])} links, "
                         f"{len(old['links'])} before")
     elif procedure == "robot-kinematics" and "links" in new and "links" in old:
-        mm = max(1000 * abs(n[k] - o[k]) for n, o in zip(new["links"], old["links"],
-                                                         strict=True) for k in LENGTH_KEYS)
-        deg = max(math.degrees(abs(n[k] - o[k])) for n, o in zip(new["links"], old["links"],
-                                                                 strict=True)
-                  for k in ANGLE_KEYS)
-        metrics |= {"link_mm": mm, "link_deg": deg}
-        if mm > limits.link_mm:
-            breaches.append(f"a link length changed {mm:.3f} mm (limit {limits.link_mm} mm)")
-        if deg > limits.link_deg:
-            breaches.append(f"a link angle changed {deg:.4f} deg (limit {limits.link_deg} deg)")
+        breaches += _link_drift(new, old, limits, metrics)
     return breaches, metrics
+
+
+def _link_drift(new: dict, old: dict, limits: DriftThresholds, metrics: dict) -> list[str]:
+    """Link lengths and angles over their thresholds; with both models' sigma
+    (``uncertainty.parameters``), only the changes beyond 3 sigma of the difference
+    count. ``metrics`` gets the largest change of each kind (and of those, the
+    significant ones' largest z)."""
+    sig_new = new.get("uncertainty", {}).get("parameters") or {}
+    sig_old = old.get("uncertainty", {}).get("parameters") or {}
+    changes = {"length": [], "angle": []}
+    for i, (n, o) in enumerate(zip(new["links"], old["links"], strict=True)):
+        for k in LENGTH_KEYS + ANGLE_KEYS:
+            name = f"link{i + 1}.{k}"
+            z = (abs(n[k] - o[k]) / math.hypot(sig_new[name], sig_old[name])
+                 if sig_new.get(name) and sig_old.get(name) else None)
+            kind = "length" if k in LENGTH_KEYS else "angle"
+            value = 1000 * abs(n[k] - o[k]) if kind == "length" else \
+                math.degrees(abs(n[k] - o[k]))
+            changes[kind].append((value, z, name))
+    mm, deg = max(changes["length"]), max(changes["angle"])
+    metrics |= {"link_mm": mm[0], "link_deg": deg[0]}
+    out = []
+    for kind, limit, unit, fmt in (("length", limits.link_mm, "mm", ".3f"),
+                                   ("angle", limits.link_deg, "deg", ".4f")):
+        over = [c for c in changes[kind] if c[0] > limit and _significant(c[1])]
+        if over:
+            value, z, name = max(over, key=lambda c: c[0])
+            metrics[f"link_{kind}_z"] = z
+            out.append(f"a link {kind} changed {value:{fmt}} {unit} (limit {limit} {unit})"
+                       + (f": {name}, {z:.1f} sigma of the difference" if z else ""))
+    return out

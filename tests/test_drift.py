@@ -161,3 +161,20 @@ def test_a_change_within_the_uncertainty_of_the_difference_is_not_drift():
     # without a sigma on one side, the threshold alone decides, as before
     breaches, _ = compare("active-camera", {**new, "sigma": unsure}, dict(CAMERA), LIMITS)
     assert len(breaches) == 1
+
+
+def test_a_link_change_within_its_uncertainty_is_not_drift():
+    """0.8 mm on link 3's d: drift when both models know it to 0.1 mm, noise when each
+    has 0.5 mm (difference sigma 0.71 mm, 1.1 sigma)."""
+    sure = {f"link{i + 1}.{k}": (1e-4 if k in ("d", "a") else 1e-5) for i in range(6)
+            for k in ("d", "a", "theta_offset", "alpha", "beta")}
+    unsure = {**sure, "link3.d": 5e-4}
+    new = {"links": links(d_mm=0.8), "uncertainty": {"parameters": sure}}
+    old = {"links": links(), "uncertainty": {"parameters": sure}}
+    breaches, metrics = compare("robot-kinematics", new, old, LIMITS)
+    assert breaches == ["a link length changed 0.800 mm (limit 0.5 mm): link3.d, "
+                        f"{0.8 / math.hypot(0.1, 0.1):.1f} sigma of the difference"]
+    assert metrics["link_mm"] == pytest.approx(0.8)
+    new["uncertainty"]["parameters"] = old["uncertainty"]["parameters"] = unsure
+    breaches, metrics = compare("robot-kinematics", new, old, LIMITS)
+    assert breaches == [] and metrics["link_mm"] == pytest.approx(0.8)
