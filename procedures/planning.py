@@ -118,21 +118,30 @@ MIN_VIEWS = 3
 CLOSER = (0.8, 0.65, 0.5)  # viewing distances tried when too few views are reachable
 
 
+def closest_plan(plan_at, distance_m: float, want: int):
+    """``plan_at(distance)`` -> (poses, notes) at ``distance_m``, then at the ``CLOSER``
+    distances in turn until ``want`` poses are planned (a small arm, a far target).
+    Returns the plan with the most poses (the farthest of equals), its distance, and how
+    many poses the asked distance gave."""
+    best, used, first = None, distance_m, 0
+    for factor in (1.0, *CLOSER):
+        plan = plan_at(distance_m * factor)
+        if factor == 1.0:
+            first = len(plan[0])
+        if best is None or len(plan[0]) > len(best[0]):
+            best, used = plan, distance_m * factor
+        if len(best[0]) >= want:
+            break
+    return best, used, first
+
+
 def reachable_views(config: RigConfig, count: int, distance_m: float, max_tilt_deg: float,
                     seed: int, label: str) -> tuple[list[np.ndarray], list[str]]:
-    """``plan_target_views`` at ``distance_m``; when fewer than ``count`` views are
-    reachable (a small arm, a far target), closer distances in turn, keeping the plan
-    with the most views. Fewer than ``MIN_VIEWS`` is refused here, before any motion."""
-    poses, notes = plan_target_views(config, count, distance_m, max_tilt_deg, seed)
-    first = len(poses)
-    best = (poses, distance_m)
-    for factor in CLOSER:
-        if len(best[0]) >= count:
-            break
-        more, _ = plan_target_views(config, count, distance_m * factor, max_tilt_deg, seed)
-        if len(more) > len(best[0]):
-            best = (more, distance_m * factor)
-    poses, used = best
+    """``plan_target_views`` at ``distance_m`` or closer (``closest_plan``), keeping the
+    plan with the most views. Fewer than ``MIN_VIEWS`` is refused here, before any
+    motion."""
+    (poses, notes), used, first = closest_plan(
+        lambda d: plan_target_views(config, count, d, max_tilt_deg, seed), distance_m, count)
     if used != distance_m:
         notes = [f"{label}s: only {first} "
                  f"of {count} views reachable at {distance_m:.2f} m; planned at {used:.2f} m "

@@ -41,7 +41,7 @@ from .base import (
     Settle,
     SolveContext,
 )
-from .planning import CLOSER, informative_views, plan_target_views
+from .planning import CLOSER, closest_plan, informative_views, plan_target_views
 from .robot_common import (
     board_observations,
     camera_matrix,
@@ -77,16 +77,15 @@ def _scaled_to_reach(config, params: RobotKinematicsParams):
     """The parameters with the sweep and view distances brought closer (``CLOSER``)
     when the arm cannot reach a straight view of the target from the asked ones (a small
     arm such as a UR3e), the first sweep base, and a note saying so."""
-    for factor in (1.0, *CLOSER):
-        base, notes = plan_target_views(config, 1, params.sweep_distance_m * factor, 0.0,
-                                        params.seed)
-        if base:
-            break
-    else:
+    (base, notes), used, _ = closest_plan(
+        lambda d: plan_target_views(config, 1, d, 0.0, params.seed),
+        params.sweep_distance_m, 1)
+    if not base:
         raise SolveError("robot-kinematics: no reachable view of the target from "
                          f"{params.sweep_distance_m:.2f} m or closer (down to "
                          f"{params.sweep_distance_m * CLOSER[-1]:.2f} m); move the target "
                          "within the arm's reach or change sweep_distance_m")
+    factor = used / params.sweep_distance_m
     if factor != 1.0:
         params = params.model_copy(update={
             "sweep_distance_m": params.sweep_distance_m * factor,
