@@ -377,34 +377,37 @@ class Runner:
                 progress.advance(task)
 
     def _do_step(self, rig: Rig, step: Step, run: RunDirectory, state: dict) -> None:
-        if isinstance(step, MoveHead):
-            head = rig.open("head")
-            cfg = self.config.devices.head
-            head.move_to(step.pan, step.tilt, step.roll).wait(cfg.move_timeout_s,
-                                                              self.abort_event)
-            state["head_commanded"] = {"pan": step.pan, "tilt": step.tilt, "roll": step.roll}
-            state["last_motion_end"] = time.time()
-        elif isinstance(step, (MoveArmJoints, MoveArmJoint, MoveArmLinear)):
-            arm = rig.open("arm")
-            cfg = self.config.devices.arm
-            if isinstance(step, MoveArmJoints):
-                status = arm.move_joints(step.q)
-            elif isinstance(step, MoveArmJoint):
-                status = arm.move_joint(step.index, step.angle)
-            else:
-                status = arm.move_linear(step.pose)
-            status.wait(cfg.move_timeout_s, self.abort_event)
-            state["arm_commanded"] = {"kind": type(step).__name__, **_step_fields(step)}
-            state["last_motion_end"] = time.time()
-        elif isinstance(step, Settle):
-            if self.abort_event.wait(step.seconds):
-                raise AbortedError(self._abort_reason)
-        elif isinstance(step, CaptureStep):
-            self._capture(rig, step, run, state)
-        elif isinstance(step, Note):
-            log.warning("plan: %s", step.text)
-        else:  # pragma: no cover - a new step type without runner support
+        """Execute one step through the handler registered for its type (``STEP_HANDLERS``)."""
+        handler = STEP_HANDLERS.get(type(step))
+        if handler is None:  # pragma: no cover - a new step type without a handler
             raise ConfigError(f"runner cannot execute step {step!r}")
+        handler(self, rig, step, run, state)
+
+    def _move_head(self, rig: Rig, step: MoveHead, run: RunDirectory, state: dict) -> None:
+        head = rig.open("head")
+        head.move_to(step.pan, step.tilt, step.roll).wait(
+            self.config.devices.head.move_timeout_s, self.abort_event)
+        state["head_commanded"] = {"pan": step.pan, "tilt": step.tilt, "roll": step.roll}
+        state["last_motion_end"] = time.time()
+
+    def _move_arm(self, rig: Rig, step, run: RunDirectory, state: dict) -> None:
+        arm = rig.open("arm")
+        if isinstance(step, MoveArmJoints):
+            status = arm.move_joints(step.q)
+        elif isinstance(step, MoveArmJoint):
+            status = arm.move_joint(step.index, step.angle)
+        else:
+            status = arm.move_linear(step.pose)
+        status.wait(self.config.devices.arm.move_timeout_s, self.abort_event)
+        state["arm_commanded"] = {"kind": type(step).__name__, **_step_fields(step)}
+        state["last_motion_end"] = time.time()
+
+    def _settle(self, rig: Rig, step: Settle, run: RunDirectory, state: dict) -> None:
+        if self.abort_event.wait(step.seconds):
+            raise AbortedError(self._abort_reason)
+
+    def _note(self, rig: Rig, step: Note, run: RunDirectory, state: dict) -> None:
+        log.warning("plan: %s", step.text)
 
     def _fresh_frame(self, camera, state: dict):
         """The camera's frame after the last motion. When the rig was commanded to another
@@ -458,6 +461,14 @@ class Runner:
         if image is not None and self._board is not None:
             self._board.submit(run.capture(state["capture"]), image)
         state["capture"] += 1
+
+
+# what the runner does for each step type (procedures only describe steps)
+STEP_HANDLERS: dict[type, Callable[..., None]] = {
+    MoveHead: Runner._move_head, MoveArmJoints: Runner._move_arm,
+    MoveArmJoint: Runner._move_arm, MoveArmLinear: Runner._move_arm,
+    Settle: Runner._settle, CaptureStep: Runner._capture, Note: Runner._note,
+}
 
 
 class BoardDetection:
