@@ -214,8 +214,9 @@ def _export(sol: RobotSolution, intr: dict) -> dict[str, Any]:
                    "camera": cam.sigma if cam else None,
                    "condition_number": ref.condition,
                    "condition_number_kinematic": ref.condition_kinematic,
-                   "plain_dh_smallest_singular_values": sol.plain_dh.singular_values[-3:].tolist(),
-                   "plain_dh_condition_number": sol.plain_dh.condition,
+                   "plain_dh_smallest_singular_values": sol.plain_dh_singular_values[-3:].tolist(),
+                   "plain_dh_condition_number": robot.condition_number(
+                       sol.plain_dh_singular_values),
                    "residual_rms_px": ref.rms}
     camera = ({"intrinsics": {**cam.intrinsics(),
                               "sigma": {k: cam.sigma[k] for k in robot.CAMERA_KEYS},

@@ -527,6 +527,26 @@ def refine_with_camera(ref: RefineResult, meas: Measurements, prior_sigma: dict[
     return result, cam
 
 
+def jacobian_singular_values(model, X, W, meas: Measurements, mask) -> np.ndarray:
+    """Scaled singular values (``scaled_singular_values``) of the identification Jacobian
+    of the ``mask``ed link parameters with X and W, at (model, X, W): one central-
+    difference Jacobian of the residuals of (4.11), no solve. Enough to show a
+    parameterisation's rank deficiency (plain D-H on parallel joints) without iterating
+    on it to the evaluation limit."""
+    p0, _ = _pack(model, X, W, mask, True)
+
+    def fun(p):
+        return residuals(*_unpack(p, model, X, W, mask, True), meas)
+
+    columns = []
+    for i in range(len(p0)):
+        h = 1e-6 * max(1.0, abs(p0[i]))
+        step = np.zeros_like(p0)
+        step[i] = h
+        columns.append((fun(p0 + step) - fun(p0 - step)) / (2 * h))
+    return scaled_singular_values(np.column_stack(columns))
+
+
 def scaled_singular_values(J: np.ndarray) -> np.ndarray:
     """Singular values of a Jacobian with its columns scaled to unit norm, so that
     metres and radians compare (largest first)."""

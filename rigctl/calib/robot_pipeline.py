@@ -8,7 +8,7 @@ Stages (thesis 4.3, generalised; ``rigctl.calib.robot``):
 2. link-by-link from the single-joint sweeps (4.11)-(4.35), X from step 1;
 3. axis-based: each swept joint's axis line in the target frame, no X;
 4. the joint refinement (4.11) of the minimal parameter set over every training view,
-   from the best of those starts, and plain D-H beside it (its rank deficiency);
+   from the best of those starts, and plain D-H's Jacobian there (its rank deficiency);
 5. the camera free as well (``refine_with_camera``), the intrinsics in use as a prior;
 6. held-out errors of every model.
 """
@@ -55,7 +55,7 @@ class RobotSolution:
     link_by_link_error: str | None
     axis: robot.RefineResult | None
     axis_error: str | None
-    plain_dh: robot.RefineResult
+    plain_dh_singular_values: np.ndarray
     sweep_span_deg: dict[str, float]
     meas: robot.Measurements
     training_views: int = 0
@@ -147,8 +147,9 @@ def solve_robot(views: list[BoardView], nominal: KinematicModel, obj: np.ndarray
         W_start = handeye.average_W([start.fk(v.q) for v in train], meas.C, he.X)
         starts = [(nominal, he.X, he.W)] + ([(axis.model, axis.X, axis.W)] if axis else [])
         ref = robot.refine(start, he.X, W_start, meas, extra_starts=starts)
-    with stage("plain D-H"):
-        dh = robot.refine(start, he.X, W_start, meas, mask=robot.dh_mask(nominal))
+    with stage("plain D-H"):  # its rank deficiency, at the refined solution
+        dh_sv = robot.jacobian_singular_values(ref.model, ref.X, ref.W, meas,
+                                               robot.dh_mask(nominal))
     cam, camera_note = None, None
     if refine_camera:
         with stage("camera free"):
@@ -175,5 +176,5 @@ def solve_robot(views: list[BoardView], nominal: KinematicModel, obj: np.ndarray
             heldout["axis_based"] = heldout_errors(axis.model, axis.X, axis.W, held)
     spans = {f"joint{j + 1}": float(np.degrees(np.ptp([q[j] for q in sw.q])))
              for j, sw in sweeps.items()}
-    return RobotSolution(ref, cam, he, closed, heldout, lbl, lbl_error, axis, axis_error, dh,
+    return RobotSolution(ref, cam, he, closed, heldout, lbl, lbl_error, axis, axis_error, dh_sv,
                          spans, meas, len(train), len(held), timings, camera_note)
