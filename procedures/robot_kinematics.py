@@ -206,6 +206,18 @@ def _summary(sol: RobotSolution) -> dict[str, Any]:
             "residual_rms_px": ref.rms, "sweep_span_deg": sol.sweep_span_deg}
 
 
+def _position_sigma_mm(sol: RobotSolution) -> dict[str, float]:
+    """The camera position's predicted 1-sigma (norm over the three axes, mm) over the
+    run's own configurations (every view, training and held-out): what the arm model
+    claims about the camera anywhere in that workspace."""
+    q = [v.q for v in sol.views]
+    sig = robot.camera_position_sigma(sol.ref.model, sol.ref.X, sol.ref.W, sol.ref.names,
+                                      sol.ref.covariance, q)
+    norm = 1000 * np.linalg.norm(sig, axis=1)
+    return {"median": float(np.median(norm)), "max": float(norm.max()),
+            "configurations": len(q)}
+
+
 def _export(sol: RobotSolution, intr: dict) -> dict[str, Any]:
     """The arm model (``export_model``), its uncertainty and covariance, the camera model
     it was fitted with, and the single methods and closed forms beside it."""
@@ -217,18 +229,18 @@ def _export(sol: RobotSolution, intr: dict) -> dict[str, Any]:
                    "plain_dh_smallest_singular_values": sol.plain_dh_singular_values[-3:].tolist(),
                    "plain_dh_condition_number": robot.condition_number(
                        sol.plain_dh_singular_values),
+                   "camera_position_sigma_mm": _position_sigma_mm(sol),
                    "residual_rms_px": ref.rms}
     camera = ({"intrinsics": {**cam.intrinsics(),
                               "sigma": {k: cam.sigma[k] for k in robot.CAMERA_KEYS},
                               "source": "robot-kinematics joint refinement (prior: "
                                         f"{intr.get('source')})"},
-               "intrinsics_prior": intr, "intrinsics_moved_px": cam.moved(),
-               "covariance": {"names": ref.names + [f"camera.{k}" for k in
-                                                    robot.CAMERA_KEYS + robot.DIST_KEYS],
-                              "matrix": ref.covariance.tolist()}}
+               "intrinsics_prior": intr, "intrinsics_moved_px": cam.moved()}
               if cam else {"intrinsics": intr, "camera_note": sol.camera_note})
+    names = ref.names + ([f"camera.{k}" for k in robot.CAMERA_KEYS + robot.DIST_KEYS]
+                         if cam else [])
     return {**export_model(ref.model, ref.X, ref.W, uncertainty, sol.heldout["after"] or {}),
-            **camera,
+            **camera, "covariance": {"names": names, "matrix": ref.covariance.tolist()},
             "before": {"heldout": sol.heldout["before"], "T_flange_cam": sol.hand_eye.X.tolist(),
                        "T_base_target": sol.hand_eye.W.tolist()},
             "axis_based": {"heldout": sol.heldout["axis_based"], "error": sol.axis_error,

@@ -11,23 +11,53 @@ from rigctl.geometry.transforms import inv_T
 INTRINSICS = ("fx", "fy", "cx", "cy")
 
 
-def model_against_truth(result: dict, config, world) -> tuple[float, float, int]:
-    """Camera position in the target frame, ``W^-1 FK(q) X`` from the exported model
-    against the world's truth, over 34 planned views (35 deg tilt, 0.5 m or closer when
-    the arm cannot reach that far) with the wrist joints each perturbed three times (sigma
-    0.2 rad): RMS and max (mm), and the count. None of these configurations was visited."""
-    model = KinematicModel.from_export(result)
-    X, W = np.array(result["T_flange_cam"]), np.array(result["T_base_target"])
+def check_configurations(config) -> list[np.ndarray]:
+    """34 planned views (35 deg tilt, 0.5 m or closer when the arm cannot reach that
+    far) with the wrist joints each perturbed three times (sigma 0.2 rad): configurations
+    no run visits."""
     views, _ = reachable_views(config, 34, 0.5, 35.0, seed=4242, label="check view")
     rng = np.random.default_rng(0)
-    errors = []
-    for q in views:
-        for _ in range(3):
-            qq = np.array(q) + np.r_[np.zeros(3), rng.normal(0, 0.2, 3)]
-            est = inv_T(W) @ model.fk(qq) @ X
-            true = inv_T(world.T_base_target) @ world.T_base_cam(qq, (0.0, 0.0, 0.0))
-            errors.append(1000 * np.linalg.norm(est[:3, 3] - true[:3, 3]))
+    return [np.array(q) + np.r_[np.zeros(3), rng.normal(0, 0.2, 3)]
+            for q in views for _ in range(3)]
+
+
+def _position_errors(result: dict, world, qs) -> np.ndarray:
+    """Camera position in the target frame, ``W^-1 FK(q) X`` from the exported model,
+    minus the world's truth (m, target frame), per configuration."""
+    model = KinematicModel.from_export(result)
+    X, W = np.array(result["T_flange_cam"]), np.array(result["T_base_target"])
+    out = []
+    for q in qs:
+        est = inv_T(W) @ model.fk(q) @ X
+        true = inv_T(world.T_base_target) @ world.T_base_cam(q, (0.0, 0.0, 0.0))
+        out.append(est[:3, 3] - true[:3, 3])
+    return np.array(out)
+
+
+def model_against_truth(result: dict, config, world) -> tuple[float, float, int]:
+    """The exported model's camera position against the world's truth over
+    ``check_configurations``: RMS and max (mm), and the count."""
+    errors = 1000 * np.linalg.norm(_position_errors(result, world,
+                                                    check_configurations(config)), axis=1)
     return float(np.sqrt(np.mean(np.square(errors)))), float(np.max(errors)), len(errors)
+
+
+def position_z(result: dict, config, world) -> list[float]:
+    """Per axis and configuration (``check_configurations``), the camera position's error
+    against the truth over its predicted sigma (``robot.camera_position_sigma`` from the
+    result's covariance); empty when the result has no covariance."""
+    from rigctl.calib.robot import camera_position_sigma
+
+    cov = result.get("covariance")
+    if not cov:
+        return []
+    names = [n for n in cov["names"] if not n.startswith("camera.")]
+    qs = check_configurations(config)
+    sigma = camera_position_sigma(KinematicModel.from_export(result),
+                                  np.array(result["T_flange_cam"]),
+                                  np.array(result["T_base_target"]), names,
+                                  np.array(cov["matrix"]), qs)
+    return (_position_errors(result, world, qs) / sigma).ravel().tolist()
 
 
 def intrinsics_errors(result: dict, truth: dict) -> dict:

@@ -33,7 +33,7 @@ from rich.console import Console
 
 from mocks.random_world import random_world
 from mocks.world import World, WorldFile
-from rigctl.bench.truth import intrinsics_errors, link_z, model_against_truth
+from rigctl.bench.truth import intrinsics_errors, link_z, model_against_truth, position_z
 from rigctl.config import load_rig, parse_rig
 from rigctl.errors import RigError
 from rigctl.runner import Runner
@@ -66,7 +66,9 @@ def _metrics(name: str, result: dict, truth: dict, config, world: World) -> dict
                 "intrinsics_agree": result.get("intrinsics_check", {}).get("agrees"),
                 # the camera model the arm model was fitted with (free in the final bundle
                 # adjustment unless refine_camera=false)
-                "camera": intrinsics_errors(result["intrinsics"], truth)}
+                "camera": intrinsics_errors(result["intrinsics"], truth),
+                "position_z": position_z(result, config, world),
+                "position_sigma_mm": result["uncertainty"].get("camera_position_sigma_mm")}
     return {"position_rms_mm_before": result["before"]["position_rms_mm"],
             "position_rms_mm_after": result["after"]["position_rms_mm"]}
 
@@ -180,6 +182,8 @@ def summarise(rows: list[dict]) -> dict:
     cams = [r["procedures"]["robot-kinematics"]["camera"] for r in rows
             if "camera" in r["procedures"].get("robot-kinematics", {})]
     z_final = [v for c in cams for v in c["z"].values()]
+    z_position = [v for r in rows for v in r["procedures"].get("robot-kinematics", {})
+                  .get("position_z", [])]
     times = {name: {kind: _dist([r["procedures"][name]["timings_s"][kind] for r in rows
                                  if kind in r["procedures"].get(name, {}).get("timings_s", {})])
                     for kind in ("motion_s", "solve_s", "run_s")} for name in PIPELINE}
@@ -196,6 +200,7 @@ def summarise(rows: list[dict]) -> dict:
         "validate_mm_after": _dist(values("validate-arm", "position_rms_mm_after")),
         "coverage": {"intrinsics": _coverage(z_cam), "links": _coverage(z_arm),
                      "final_camera": _coverage(z_final),
+                     "camera_position": _coverage(z_position),
                      "all": _coverage(z_cam + z_arm + z_final)},
         "times_s": times,
     }

@@ -449,7 +449,7 @@ def refine(model0: KinematicModel, X0, W0, meas: Measurements, mask=None,
     sigma = np.sqrt(np.clip(np.diag(cov), 0, None))
     return RefineResult(model, X, W, names, sol.x, sigma, condition, sv,
                         float(np.sqrt(np.mean(sol.fun ** 2))),
-                        _kinematic_condition(J, 12 if free_XW else 0))
+                        _kinematic_condition(J, 12 if free_XW else 0), cov)
 
 
 CAMERA_KEYS = ("fx", "fy", "cx", "cy")
@@ -525,6 +525,45 @@ def refine_with_camera(ref: RefineResult, meas: Measurements, prior_sigma: dict[
                            dict(zip(CAMERA_KEYS, prior.tolist(), strict=True)),
                            dict(zip(CAMERA_KEYS, sig.tolist(), strict=True)))
     return result, cam
+
+
+def _perturbed(model: KinematicModel, X, W, name: str, h: float):
+    """(model, X, W) with the parameter ``name`` (``linkN.field``, ``X.rx`` ... ``W.z``,
+    as ``_pack`` names them) moved by ``h``."""
+    if name.startswith("link"):
+        link, key = name.split(".")
+        model = model.copy()
+        getattr(model, key)[int(link.removeprefix("link")) - 1] += h
+        return model, X, W
+    frame, comp = name.split(".")
+    T = (X if frame == "X" else W).copy()
+    if comp in ("x", "y", "z"):
+        T[:3, 3] += h * np.eye(3)["xyz".index(comp)]
+    else:
+        rv = R_to_rotvec(T[:3, :3]) + h * np.eye(3)["xyz".index(comp[1])]
+        T[:3, :3] = rotvec_to_R(rv)
+    return (model, T, W) if frame == "X" else (model, X, T)
+
+
+def camera_position_sigma(model: KinematicModel, X, W, names: list[str], cov: np.ndarray,
+                          q_list) -> np.ndarray:
+    """Predicted 1-sigma (m, per axis of the target frame) of the camera's position
+    ``W^-1 FK(q) X`` at each configuration, from the refinement's covariance of the
+    parameters ``names`` (first-order propagation, central differences): mrcal's
+    projection uncertainty carried over to an arm. Returns (len(q_list), 3)."""
+    n = len(names)
+    cov = np.asarray(cov, float)[:n, :n]
+
+    def position(m, x, w):
+        return (inv_T(w) @ m.fk_batch(np.asarray(q_list, float)) @ x)[:, :3, 3]
+
+    J = np.zeros((len(q_list), 3, n))
+    for i, name in enumerate(names):
+        h = 1e-7
+        J[:, :, i] = (position(*_perturbed(model, X, W, name, h))
+                      - position(*_perturbed(model, X, W, name, -h))) / (2 * h)
+    var = np.einsum("kai,ij,kaj->ka", J, cov, J)
+    return np.sqrt(np.clip(var, 0, None))
 
 
 def jacobian_singular_values(model, X, W, meas: Measurements, mask) -> np.ndarray:

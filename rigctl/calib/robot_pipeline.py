@@ -62,6 +62,7 @@ class RobotSolution:
     heldout_views: int = 0
     timings_s: dict[str, float] = field(default_factory=dict)
     camera_note: str | None = None  # why the camera stayed held, when it was to be free
+    views: list[BoardView] = field(default_factory=list)
 
 
 def _sweeps(train: list[BoardView]) -> dict[int, robot.Sweep]:
@@ -177,4 +178,4 @@ def solve_robot(views: list[BoardView], nominal: KinematicModel, obj: np.ndarray
     spans = {f"joint{j + 1}": float(np.degrees(np.ptp([q[j] for q in sw.q])))
              for j, sw in sweeps.items()}
     return RobotSolution(ref, cam, he, closed, heldout, lbl, lbl_error, axis, axis_error, dh_sv,
-                         spans, meas, len(train), len(held), timings, camera_note)
+                         spans, meas, len(train), len(held), timings, camera_note, views)
