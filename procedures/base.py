@@ -7,9 +7,7 @@ was recorded, so any recorded run can be solved again offline.
 
 from __future__ import annotations
 
-import contextlib
 import math
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
@@ -19,6 +17,7 @@ from pydantic import BaseModel, ConfigDict, ValidationError
 from rigctl.config import RigConfig
 from rigctl.errors import ConfigError, SolveError
 from rigctl.records import Capture, RunDirectory
+from rigctl.timing import stage_timer
 
 
 @dataclass(frozen=True)
@@ -133,14 +132,9 @@ class SolveContext:
     inputs: dict[str, Any] = field(default_factory=dict)
     timings_s: dict[str, float] = field(default_factory=dict)  # per stage, see ``stage``
 
-    @contextlib.contextmanager
     def stage(self, name: str):
         """Time one stage of the solve (``rigctl bench solve`` prints them)."""
-        started = time.perf_counter()
-        try:
-            yield
-        finally:
-            self.timings_s[name] = self.timings_s.get(name, 0.0) + time.perf_counter() - started
+        return stage_timer(self.timings_s)(name)
 
     def input(self, key: str) -> Any:
         """One recorded input; a run recorded without it fails with a clear error."""

@@ -73,6 +73,24 @@ def _metrics(name: str, result: dict, truth: dict, config, world: World) -> dict
             "position_rms_mm_after": result["after"]["position_rms_mm"]}
 
 
+def _row(seed: int, spec) -> dict:
+    """A world's row before any procedure ran."""
+    return {"seed": seed, "model": spec.arm.model, "fx_true": spec.camera.fx,
+            "size": [spec.camera.width, spec.camera.height],
+            "distortion": list(spec.camera.distortion), "procedures": {}}
+
+
+def _failed(row: dict) -> bool:
+    """Any procedure not succeeded, or the chain stopped before its end."""
+    return any(p["status"] != "succeeded" for p in row["procedures"].values()) \
+        or len(row["procedures"]) < len(PIPELINE)
+
+
+def _values(rows: list[dict], proc: str, key: str) -> list[float]:
+    """``key`` of procedure ``proc`` over the worlds that have it."""
+    return [r["procedures"][proc][key] for r in rows if key in r["procedures"].get(proc, {})]
+
+
 LAST_LINE = re.compile(r"run (?P<run>\S+) (?P<status>succeeded|failed|aborted)(: (?P<reason>.*?))?"
                        r"( \((?P<timings>[^()]*)\))?$")
 
@@ -106,9 +124,7 @@ def rows_from_kept(folder: Path) -> list[dict]:
         spec = WorldFile.model_validate(yaml.safe_load(path.read_text()))
         world = World(spec)
         truth = world.truth()
-        row = {"seed": seed, "model": spec.arm.model, "fx_true": spec.camera.fx,
-               "size": [spec.camera.width, spec.camera.height],
-               "distortion": list(spec.camera.distortion), "procedures": {}}
+        row = _row(seed, spec)
         for name in PIPELINE:
             runs = sorted((folder / f"records-{seed}").glob(f"*-{name}-*"))
             if not runs:
@@ -116,8 +132,7 @@ def rows_from_kept(folder: Path) -> list[dict]:
             row["procedures"][name] = _from_run_dir(name, runs[-1], truth, world)
         if any(p["status"] == "unfinished" for p in row["procedures"].values()):
             continue
-        row["failed"] = any(p["status"] != "succeeded" for p in row["procedures"].values()) \
-            or len(row["procedures"]) < len(PIPELINE)
+        row["failed"] = _failed(row)
         rows.append(row)
     return rows
 
@@ -126,9 +141,7 @@ def world_run(seed: int, folder: Path, say: Callable[[str], None]) -> dict:
     """The whole chain on world ``seed``; one row of the benchmark."""
     path, world = _write_world(seed, folder)
     spec, truth = world.spec, world.truth()
-    row = {"seed": seed, "model": spec.arm.model, "fx_true": spec.camera.fx,
-           "size": [spec.camera.width, spec.camera.height],
-           "distortion": list(spec.camera.distortion), "procedures": {}}
+    row = _row(seed, spec)
     with SimulatedRig(path, records=folder / f"records-{seed}") as sim:
         config = load_rig(sim.rig_path)
         runner = Runner(config, show_progress=False, operator="bench-worlds")
@@ -149,8 +162,7 @@ def world_run(seed: int, folder: Path, say: Callable[[str], None]) -> dict:
                 + (f": {outcome.reason}" if outcome.reason else ""))
             if outcome.status != "succeeded":
                 break
-    row["failed"] = any(p["status"] != "succeeded" for p in row["procedures"].values()) \
-        or len(row["procedures"]) < len(PIPELINE)
+    row["failed"] = _failed(row)
     return row
 
 
@@ -171,10 +183,6 @@ def _coverage(z: list[float]) -> dict | None:
 
 
 def summarise(rows: list[dict]) -> dict:
-    def values(proc: str, key: str) -> list[float]:
-        return [r["procedures"][proc][key] for r in rows
-                if key in r["procedures"].get(proc, {})]
-
     z_cam = [v for r in rows for v in r["procedures"].get("active-camera", {})
              .get("z", {}).values()]
     z_arm = [v for r in rows for v in r["procedures"].get("robot-kinematics", {})
@@ -190,14 +198,14 @@ def summarise(rows: list[dict]) -> dict:
     return {
         "worlds": len(rows), "failed": sum(r["failed"] for r in rows),
         "failed_seeds": [r["seed"] for r in rows if r["failed"]],
-        "focal_pct": _dist(values("active-camera", "focal_pct")),
-        "centre_px": _dist(values("active-camera", "centre_px")),
+        "focal_pct": _dist(_values(rows, "active-camera", "focal_pct")),
+        "centre_px": _dist(_values(rows, "active-camera", "centre_px")),
         "final_camera": {"focal_pct": _dist([c["focal_pct"] for c in cams]),
                          "centre_px": _dist([c["centre_px"] for c in cams])},
-        "model_rms_mm": _dist(values("robot-kinematics", "model_rms_mm")),
-        "model_max_mm": _dist(values("robot-kinematics", "model_max_mm")),
-        "heldout_mm_after": _dist(values("robot-kinematics", "heldout_mm_after")),
-        "validate_mm_after": _dist(values("validate-arm", "position_rms_mm_after")),
+        "model_rms_mm": _dist(_values(rows, "robot-kinematics", "model_rms_mm")),
+        "model_max_mm": _dist(_values(rows, "robot-kinematics", "model_max_mm")),
+        "heldout_mm_after": _dist(_values(rows, "robot-kinematics", "heldout_mm_after")),
+        "validate_mm_after": _dist(_values(rows, "validate-arm", "position_rms_mm_after")),
         "coverage": {"intrinsics": _coverage(z_cam), "links": _coverage(z_arm),
                      "final_camera": _coverage(z_final),
                      "camera_position": _coverage(z_position),
@@ -214,16 +222,12 @@ def plot(rows: list[dict], path: Path) -> str:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    def values(proc: str, key: str) -> list[float]:
-        return [r["procedures"][proc][key] for r in rows
-                if key in r["procedures"].get(proc, {})]
-
     fig, axes = plt.subplots(2, 3, figsize=(13, 7.5), layout="constrained")
     panels = [("active-camera", "focal_pct", "focal error (%)", 0.05),
               ("active-camera", "centre_px", "centre error (px)", 0.5),
               ("robot-kinematics", "model_rms_mm", "exported model vs truth, RMS (mm)", 0.12)]
     for ax, (proc, key, label, target) in zip(axes[0], panels, strict=True):
-        data = values(proc, key)
+        data = _values(rows, proc, key)
         ax.plot(sorted(data), np.arange(1, len(data) + 1) / max(len(data), 1), "o-")
         ax.axvline(target, color="tab:red", ls="--", label=f"median target {target}")
         ax.set_xlabel(label)

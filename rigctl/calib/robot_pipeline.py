@@ -15,8 +15,6 @@ Stages (thesis 4.3, generalised; ``rigctl.calib.robot``):
 
 from __future__ import annotations
 
-import contextlib
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -26,6 +24,7 @@ from rigctl.calib import handeye, robot
 from rigctl.calib.extrinsic import estimate_pose
 from rigctl.errors import SolveError
 from rigctl.geometry.kinematics import KinematicModel
+from rigctl.timing import stage_timer
 
 MIN_TRAINING_VIEWS = 8
 
@@ -91,19 +90,6 @@ def heldout_errors(model: KinematicModel, X, W, held: list[BoardView]) -> dict |
             "rotation_rms_rad": float(np.sqrt(np.mean(rot ** 2))), "views": len(held)}
 
 
-def _timer(timings: dict[str, float]) -> Callable:
-    import time
-
-    @contextlib.contextmanager
-    def stage(name: str):
-        started = time.perf_counter()
-        try:
-            yield
-        finally:
-            timings[name] = timings.get(name, 0.0) + time.perf_counter() - started
-    return stage
-
-
 def _single_methods(sweeps, he, nominal, meas):
     """Link-by-link (X from the hand-eye) and axis-based (no X): each alone, and as
     starts of the joint refinement. A method that cannot run says why."""
@@ -128,7 +114,7 @@ def solve_robot(views: list[BoardView], nominal: KinematicModel, obj: np.ndarray
     """Stages 1-6 above on the board views. ``prior_sigma``: 1-sigma of the intrinsics
     ``K`` (their prior weight when ``refine_camera``)."""
     timings: dict[str, float] = {}
-    stage = _timer(timings)
+    stage = stage_timer(timings)
     train = [v for v in views if v.kind in ("sweep", "train")]
     held = [v for v in views if v.kind == "heldout"]
     if len(train) < MIN_TRAINING_VIEWS:
