@@ -47,6 +47,9 @@ N_BASE = 12  # parameters before the distortion terms
 DIST_NAMES = ("k1", "k2", "p1", "p2", "k3")  # OpenCV's order
 # which of DIST_NAMES each choice of ``n_dist`` estimates
 DIST_SLOTS = {0: (), 1: (0,), 2: (0, 1), 3: (0, 1, 4), 4: (0, 1, 2, 3), 5: (0, 1, 2, 3, 4)}
+# the undistortion's fixed-point iteration stops once no point moves more than this
+# (normalised units: 1e-12 is ~1e-9 px, far below the finite-difference steps)
+UNDISTORT_TOL = 1e-12
 
 
 def param_names(n_dist: int) -> list[str]:
@@ -114,7 +117,11 @@ def _undistort(pts, fx, fy, cx, cy, k):
         r2 = x * x + y * y
         tangential = np.c_[2 * k[2] * x * y + k[3] * (r2 + 2 * x * x),
                            k[2] * (r2 + 2 * y * y) + 2 * k[3] * x * y]
-        und = (xn - tangential) / _radial(r2, k)
+        step = (xn - tangential) / _radial(r2, k)
+        converged = np.max(np.abs(step - und)) < UNDISTORT_TOL
+        und = step
+        if converged:
+            break
     return und
 
 

@@ -28,6 +28,9 @@ from scipy.ndimage import map_coordinates
 from rigctl.vision.contours import Contour, EdgeMap, subpixel
 
 RADIUS = 2.0
+# the coarse search scores every COARSE_STRIDE-th template point (neighbours along an edge
+# a pixel apart carry nearly the same information); the fine search scores all of them
+COARSE_STRIDE = 3
 
 
 @dataclass
@@ -114,7 +117,7 @@ def track_by_shift(contour: Contour, moved: EdgeMap, direction: str, max_shift: 
     along = np.arange(-max_shift, max_shift + 1, 2.0)
     across = np.arange(-cross, cross + 1, 1.0)
     xs, ys = (along, across) if direction == "x" else (across, along)
-    scores = _search(dt, contour.points, xs, ys)
+    scores = _search(dt, contour.points[::COARSE_STRIDE], xs, ys)
     offset, best, second = _best_and_second(scores, xs, ys, exclusion=6.0)
     # refine to half a pixel around the peak
     fx = np.arange(offset[0] - 1, offset[0] + 1.01, 0.5)
@@ -134,7 +137,7 @@ def track_by_prediction(contour: Contour, moved: EdgeMap,
     predicted = predict(contour.points)
     dt = _distance(moved)
     coarse = np.arange(-window, window + 1, 2.0)
-    scores = _search(dt, predicted, coarse, coarse)
+    scores = _search(dt, predicted[::COARSE_STRIDE], coarse, coarse)
     offset, best, second = _best_and_second(scores, coarse, coarse, exclusion=6.0)
     fine = np.arange(-2, 2.01, 0.5)
     fx, fy = offset[0] + fine, offset[1] + fine
