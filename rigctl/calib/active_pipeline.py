@@ -37,6 +37,9 @@ MOTIONS = ("pan+", "pan-", "tilt+", "tilt-")
 # one carries nearly all the information at half the cost.
 REFINE_STRIDE = 2
 PREDICTION_STRIDE = 4
+# Fewer contours than this in the central window: look in WIDE_WINDOW of the image instead
+WANTED_CONTOURS = 6
+WIDE_WINDOW = 0.95
 
 
 @dataclass
@@ -93,12 +96,22 @@ class _Tracker:
         self.centre = np.array(settings.assumed_centre or [(w - 1) / 2, (h - 1) / 2], float)
         self.contours = extract_contours(images["ref"], settings.window, settings.min_points,
                                          emap=self.emaps["ref"])
+        self.report: dict[str, Any] = {"window": settings.window}
+        if len(self.contours) < WANTED_CONTOURS and settings.window < WIDE_WINDOW:
+            # a scene filled by one large pattern (e.g. the board close up) leaves few
+            # closed contours in the centre: use the whole image rather than fail
+            wide = extract_contours(images["ref"], WIDE_WINDOW, settings.min_points,
+                                    emap=self.emaps["ref"])
+            if len(wide) > len(self.contours):
+                self.contours = wide
+                self.report["window"] = WIDE_WINDOW
         if len(self.contours) < 3:
             raise SolveError(f"active-camera: too few contours in the reference image "
-                             f"({len(self.contours)}; need 3)")
+                             f"({len(self.contours)} in the central {WIDE_WINDOW:.0%}; "
+                             "need 3): point the camera at a scene with separate shapes")
         self.rel = {k: tuple(np.subtract(v, angles["ref"])) for k, v in angles.items()}
         self.matches: dict[str, list] = {}
-        self.report: dict[str, Any] = {"contours": len(self.contours), "motions": {}}
+        self.report.update({"contours": len(self.contours), "motions": {}})
 
     def first_K(self) -> dict:
         """The thesis's shift search through pan+ and tilt+, then Strategy B."""
@@ -111,11 +124,10 @@ class _Tracker:
                              for c in self.contours]
         both = [i for i in range(len(self.contours))
                 if thesis["pan+"][i].ok and thesis["tilt+"][i].ok]
-        if len(both) < 2:
-            raise SolveError("active-camera: contours lost in the pan/tilt images "
-                             f"({len(both)} tracked through both)")
-        of = ContourStats.of
         self.report["thesis_shift_tracked"] = len(both)
+        if len(both) < 2:
+            return self._first_K_one_axis(thesis)
+        of = ContourStats.of
         try:
             first = active.strategy_b(
                 [of(self.contours[i].points, self.centre) for i in both],
@@ -130,6 +142,23 @@ class _Tracker:
             self.report["first_K"] = f"from the median shift ({exc})"
         return {"fx": first["fx"], "fy": first["fy"], "cx": self.centre[0],
                 "cy": self.centre[1]}
+
+    def _first_K_one_axis(self, thesis: dict) -> dict:
+        """When the shift search follows too few contours through both pan+ and tilt+
+        (shapes a pure shift cannot follow, e.g. a board close up under strong
+        distortion): the focal length from the axis that tracked, the other assumed equal
+        (square pixels to within a few per cent); tracking by prediction and the
+        refinement then free both."""
+        for label, axis in (("pan+", 0), ("tilt+", 1)):
+            ok = [i for i, m in enumerate(thesis[label]) if m.ok]
+            if len(ok) >= 2:
+                f = self._focal_from_shifts(thesis[label], ok, axis)
+                self.report["first_K"] = (f"from the {label} shifts alone ({len(ok)} "
+                                          "contours), square pixels assumed")
+                return {"fx": f, "fy": f, "cx": self.centre[0], "cy": self.centre[1]}
+        counts = {label: sum(m.ok for m in thesis[label]) for label in thesis}
+        raise SolveError("active-camera: contours lost in the pan/tilt images "
+                         f"(tracked by the shift search: {counts}; need 2 in one of them)")
 
     def _focal_from_shifts(self, matches: list, idx: list[int], axis: int) -> float:
         """Focal length from pure-rotation shifts: a contour at ``u = (x - c) / f`` moves
