@@ -576,17 +576,24 @@ def bench_active(as_json: bool = typer.Option(False, "--json"),
 def bench_active_worlds(as_json: bool = typer.Option(False, "--json"),
                         n: int = typer.Option(20, "--n", min=1, max=1000),
                         first_seed: int = typer.Option(0, "--first-seed", min=0),
-                        distortion_terms: int = typer.Option(2, "--distortion-terms"),
-                        workers: int = typer.Option(1, "--workers", min=1, max=16)) -> None:
+                        distortion_terms: int = typer.Option(
+                            -1, "--distortion-terms",
+                            help="0-5; -1: automatic (4 with scene depths, else 2)"),
+                        workers: int = typer.Option(1, "--workers", min=1, max=16),
+                        shift_mm: float = typer.Option(
+                            10.0, "--shift-mm", min=0, max=50,
+                            help="the arm's sideways move for scene depths (0: none)"),
+                        ) -> None:
     """The active-camera pipeline on N random worlds (rendered directly, no stand-ins):
     focal and centre error against truth, and error / sigma of each intrinsic."""
     from rigctl.bench import active_worlds
     from rigctl.bench.common import print_table
 
-    if distortion_terms not in (0, 1, 2, 3, 4, 5):
-        _fail(ConfigError(f"--distortion-terms: 0 to 5, got {distortion_terms}"),
-              as_json)
-    result = active_worlds.run(n, first_seed, distortion_terms, workers)
+    if distortion_terms not in (-1, 0, 1, 2, 3, 4, 5):
+        _fail(ConfigError(f"--distortion-terms: -1 (automatic) or 0 to 5, got "
+                          f"{distortion_terms}"), as_json)
+    result = active_worlds.run(n, first_seed, None if distortion_terms < 0 else distortion_terms,
+                               workers, shift_mm / 1000.0)
     if as_json:
         _print_json(result)
         return

@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from mocks.world import load_world
@@ -38,4 +39,17 @@ def test_active_camera_on_default_world(tmp_path, start_sim):
     for name in ("camera.opencv.yaml", "camera_info.yaml", "plots/contours.png",
                  "plots/residuals.png", "result.json"):
         assert (run_dirs[0] / name).exists(), name
-    assert len(list(Path(run_dirs[0], "captures").glob("*.png"))) == 8
+    # eight head poses and one after the arm moved the camera 10 mm sideways
+    assert len(list(Path(run_dirs[0], "captures").glob("*.png"))) == 9
+    depths = out["tracking"]["scene_depth"]
+    assert depths["contours_measured"] >= 6
+    assert np.linalg.norm(depths["move_in_camera_mm"]) == pytest.approx(10.0, rel=0.01)
+    # the scene (2-6 m in this world) at the depths the world placed it
+    assert 1.5 < depths["depth_m"]["min"] < depths["depth_m"]["max"] < 8.0
+    # this world's camera sits on the head's axes: the estimated offset says so
+    parallax = out["parallax"]
+    assert parallax["estimated"]
+    for got, sigma in zip(parallax["centre_offset_mm"], parallax["sigma_mm"], strict=True):
+        assert abs(got) < max(3 * sigma, 0.3)
+    for key in ("fx", "fy", "cx", "cy"):
+        assert abs(out[key] - truth[key]) < max(3 * out["sigma"][key], 0.2), key

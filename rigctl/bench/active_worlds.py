@@ -21,8 +21,11 @@ import numpy as np
 
 from mocks.random_world import random_world
 from mocks.world import World, WorldFile
-from rigctl.calib.active_pipeline import ActiveSettings, solve_active
+from rigctl.calib.active_depth import camera_shift_joints
+from rigctl.calib.active_pipeline import SHIFT, ActiveSettings, solve_active
 from rigctl.errors import SolveError
+from rigctl.geometry.kinematics import nominal_ur
+from rigctl.geometry.transforms import xyz_rpy_to_T
 
 POSES_DEG = {"ref": (0, 0, 0), "pan+": (3, 0, 0), "pan-": (-3, 0, 0), "tilt+": (0, 3, 0),
              "tilt-": (0, -3, 0), "roll+90": (0, 0, 90), "roll-180": (0, 0, -180),
@@ -43,16 +46,33 @@ def render_views(world: World, poses_deg: dict) -> tuple[dict, dict]:
     return images, angles
 
 
+def render_shift(world: World, shift_m: float) -> tuple:
+    """The procedure's sideways move: planned, as on the simulated rig, with the nominal
+    arm and the head mount rounded as ``rigctl sim up`` writes it; rendered with the
+    true arm."""
+    he = world.spec.hand_eye
+    T_flange_cam = xyz_rpy_to_T([round(v, -1) for v in he.xyz_mm],
+                                [round(v) for v in he.rpy_deg])
+    q = camera_shift_joints(nominal_ur(world.spec.arm.model), world.home_q, T_flange_cam,
+                            shift_m)
+    img = world.render(world.T_base_cam(q, (0.0, 0.0, 0.0)), frame_index=99)
+    _, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, world.spec.camera.jpeg_quality])
+    return cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE), (0.0, 0.0, 0.0)
+
+
 def world_trial(args) -> dict:
-    seed, distortion_terms = args
+    seed, distortion_terms, shift_m = args
     spec = WorldFile.model_validate(random_world(seed))
     world = World(spec)
     cam = spec.camera
     row = {"seed": seed, "model": spec.arm.model, "fx_true": cam.fx,
            "k": cam.distortion, "camera_offset_mm": spec.head.camera_offset_mm}
     images, angles = render_views(world, POSES_DEG)
+    if shift_m > 0:
+        images[SHIFT], angles[SHIFT] = render_shift(world, shift_m)
     try:
-        sol = solve_active(images, angles, ActiveSettings(distortion_terms=distortion_terms))
+        sol = solve_active(images, angles, ActiveSettings(distortion_terms=distortion_terms,
+                                                          shift_m=shift_m))
     except SolveError as exc:
         return {**row, "error": str(exc)}
     res = sol.result
@@ -63,6 +83,8 @@ def world_trial(args) -> dict:
     row["z"] = {k: (res[k] - truth[k]) / max(res["sigma"][k], 1e-12) for k in KEYS}
     row["sigma"] = res["sigma"]
     row["rms_px"] = res["summary"]["rms_px"]
+    row["parallax"] = res["parallax"]
+    row["scene_depth"] = res["tracking"].get("scene_depth")
     row["timings_s"] = sol.timings_s
     return row
 
@@ -87,9 +109,9 @@ def summarise(rows: list[dict]) -> dict:
     return out
 
 
-def run(n: int = 20, first_seed: int = 0, distortion_terms: int = 2,
-        workers: int = 1) -> dict:
-    jobs = [(first_seed + i, distortion_terms) for i in range(n)]
+def run(n: int = 20, first_seed: int = 0, distortion_terms: int | None = None,
+        workers: int = 1, shift_m: float = 0.010) -> dict:
+    jobs = [(first_seed + i, distortion_terms, shift_m) for i in range(n)]
     if workers > 1:
         with ProcessPoolExecutor(workers) as pool:
             rows = list(pool.map(world_trial, jobs))

@@ -25,13 +25,16 @@ import numpy as np
 
 from rigctl.calib import active
 from rigctl.calib.active import ContourStats
-from rigctl.calib.active_refine import Motion, RefineResult, refine
+from rigctl.calib.active_depth import SceneDepths, contour_shift, fit_depths
+from rigctl.calib.active_refine import Motion, RefineResult, _undistort, refine
 from rigctl.calib.synthetic import intrinsics, rot_x, rot_y, rot_z
 from rigctl.errors import SolveError
 from rigctl.vision.contours import edge_map, extract_contours
 from rigctl.vision.tracking import track_by_prediction, track_by_shift
 
 MOTIONS = ("pan+", "pan-", "tilt+", "tilt-")
+SHIFT = "shift"  # the capture after the arm moved the camera sideways (scene depths)
+NEAREST_SCENE_M = 0.25  # the shift capture's search window covers contours this close
 # Reference points used per contour in the refinements: edge points a pixel apart share
 # most of their error (the covariance clusters them per contour anyway), so every second
 # one carries nearly all the information at half the cost.
@@ -48,10 +51,11 @@ class ActiveSettings:
 
     window: float = 0.8
     min_points: int = 40
-    distortion_terms: int = 2
+    distortion_terms: int | None = None  # None: 4 with scene depths, else 2 (see below)
     assumed_centre: list[float] | None = None
     nodal_offset_mm: float = 3.0   # how far the centre of projection may be off the axes
     scene_depth_m: float = 1.0     # the scene's (inverse-mean) depth from the camera
+    shift_m: float = 0.0           # the arm's sideways move before the SHIFT capture
 
     @property
     def parallax_sigma(self) -> float:
@@ -249,6 +253,55 @@ def _strategies(tr: _Tracker, roll_labels: list[str]) -> dict[str, Any]:
     return out
 
 
+def _distortion_terms(settings: ActiveSettings, depths: SceneDepths | None) -> int:
+    """The distortion terms to estimate: the setting, or automatically k1, k2, p1, p2 when
+    the scene's depths pin the parallax (then the tangential terms are identifiable and
+    leaving them out biases the centre), else k1, k2 (without depths p1, p2 trade
+    against the centre and the parallax)."""
+    if settings.distortion_terms is not None:
+        return settings.distortion_terms
+    return 4 if depths is not None else 2
+
+
+def _scene_depths(tr: _Tracker, K: dict | RefineResult, baseline_m: float) -> SceneDepths:
+    """Each contour's inverse depth from its shift in the SHIFT capture (``active_depth``),
+    in image coordinates normalised and undistorted with ``K``."""
+    f = max(K.fx, K.fy) if isinstance(K, RefineResult) else max(K["fx"], K["fy"])
+    window = min(f * baseline_m / NEAREST_SCENE_M + 8.0, 96.0)
+    tr.matches[SHIFT] = [track_by_prediction(c, tr.emaps[SHIFT], lambda pts: pts,
+                                             window=window) for c in tr.contours]
+    ids = [i for i, m in enumerate(tr.matches[SHIFT]) if m.ok]
+    tr.report["motions"][SHIFT] = {"tracked": len(ids), "window_px": window}
+    if isinstance(K, RefineResult):
+        fx, fy, cx, cy = K.fx, K.fy, K.cx, K.cy
+        k = np.array([K.k1, K.k2, K.p1, K.p2, K.k3])
+    else:
+        fx, fy, cx, cy, k = K["fx"], K["fy"], K["cx"], K["cy"], np.zeros(5)
+    centres = np.array([tr.contours[i].points.mean(axis=0) for i in ids]).reshape(-1, 2)
+    moved = centres + np.array([
+        contour_shift(tr.contours[i].points, tr.matches[SHIFT][i].points,
+                      tr.matches[SHIFT][i].normals, tr.matches[SHIFT][i].offset)
+        for i in ids]).reshape(-1, 2)
+    c_n = _undistort(centres, fx, fy, cx, cy, k)
+    m_n = _undistort(moved, fx, fy, cx, cy, k)
+    return fit_depths(c_n, m_n - c_n, baseline_m, len(tr.contours), np.array(ids, int))
+
+
+def _parallax_report(refined: RefineResult, depths: SceneDepths | None,
+                     settings: ActiveSettings) -> dict:
+    """What the result says about the centre of projection off the head's axes."""
+    names = ("s_x", "s_y", "s_z")
+    if depths is None:
+        return {"estimated": False,
+                "why": "no scene depths (no arm move captured): the parallax s = o / depth "
+                       "is not identifiable from rotations and enters the sigma as a "
+                       f"consider term ({settings.nodal_offset_mm} mm at "
+                       f"{settings.scene_depth_m} m)"}
+    return {"estimated": True,
+            "centre_offset_mm": (1000 * refined.parallax).tolist(),
+            "sigma_mm": [1000 * refined.sigma[n] for n in names]}
+
+
 def solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, float, float]],
                  settings: ActiveSettings | None = None) -> ActiveSolution:
     """Intrinsics from images taken at known head angles (radians; labels ``ref``,
@@ -276,20 +329,30 @@ def solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, f
                             if not lb.startswith("roll")) if m]
     K1: dict | RefineResult = dict(K0)
     if len(pan_tilt) >= 2:
-        K1 = refine(pan_tilt, K0, n_dist=settings.distortion_terms)
+        K1 = refine(pan_tilt, K0, n_dist=_distortion_terms(settings, None))
         tr.report["K_for_rolls"] = {"fx": K1.fx, "fy": K1.fy, "cx": K1.cx, "cy": K1.cy,
                                     "distortion": [K1.k1, K1.k2, K1.p1, K1.p2, K1.k3]}
     for label in roll_labels:
         tr.track(label, K1, 24.0)
     timings["tracking"] = time.perf_counter() - t0
 
+    depths = None
+    if SHIFT in images and settings.shift_m > 0:
+        try:
+            depths = _scene_depths(tr, K1, settings.shift_m)
+            tr.report["scene_depth"] = depths.as_dict()
+        except SolveError as exc:
+            tr.report["scene_depth"] = f"not used: {exc}"
+
     strategies = _strategies(tr, roll_labels)
     start = next((strategies[s] for s in ("D", "C") if "error" not in strategies[s]), K0)
 
     t0 = time.perf_counter()
     motions = [m for m in (tr.motion(lb, REFINE_STRIDE) for lb in order) if m is not None]
-    refined = refine(motions, start, n_dist=settings.distortion_terms,
-                     parallax_sigma=settings.parallax_sigma)
+    refined = refine(motions, start, n_dist=_distortion_terms(settings, depths),
+                     parallax_sigma=settings.parallax_sigma,
+                     inv_depth=None if depths is None else depths.filled(),
+                     offset_sigma_m=settings.nodal_offset_mm / 1000.0)
     timings["refinement"] = time.perf_counter() - t0
     strategies["refined"] = refined.as_dict()
     w, h = tr.size
@@ -299,6 +362,7 @@ def solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, f
         "width": w, "height": h,
         "distortion": [refined.k1, refined.k2, refined.p1, refined.p2, refined.k3],
         "roll_axis_in_cam": refined.roll_axis.tolist(),
+        "parallax": _parallax_report(refined, depths, settings),
         "assumed_centre": tr.centre.tolist(),
         "strategies": strategies, "tracking": tr.report,
         "summary": {"fx": refined.fx, "fy": refined.fy, "cx": refined.cx, "cy": refined.cy,

@@ -50,6 +50,12 @@ DIST_SLOTS = {0: (), 1: (0,), 2: (0, 1), 3: (0, 1, 4), 4: (0, 1, 2, 3), 5: (0, 1
 # the undistortion's fixed-point iteration stops once no point moves more than this
 # (normalised units: 1e-12 is ~1e-9 px, far below the finite-difference steps)
 UNDISTORT_TOL = 1e-12
+# Prior sigma of the tangential terms p1, p2: decentering of a few 1e-4 is what lens
+# calibrations usually find. Rotations constrain p1, p2 only weakly against the principal
+# point; unbounded, the fit trades one for the other (default world: p2 -6.7e-4 against a
+# true -3e-4, cx 1.4 px off); with this prior 0.9 px, within 2 sigma. Random worlds
+# 2000-2011 (p drawn with sigma 5e-4): share of |error/sigma| > 3 went 4 % -> 2 %.
+TANGENTIAL_PRIOR = 5e-4
 
 
 def param_names(n_dist: int) -> list[str]:
@@ -133,20 +139,25 @@ def predict(motion: Motion, x: np.ndarray, n_dist: int) -> np.ndarray:
 
 
 def predict_many(motions: list[Motion], x: np.ndarray, n_dist: int,
-                 refs: np.ndarray | None = None) -> list[np.ndarray]:
+                 refs: np.ndarray | None = None, rho: np.ndarray | None = None
+                 ) -> list[np.ndarray]:
     """``predict`` for several motions at once: the reference points of all of them
     (``refs``, their concatenation, if already built) are undistorted and distorted in
-    one pass each; only the rotation differs per motion."""
+    one pass each; only the rotation differs per motion. With ``rho`` (each reference
+    point's inverse depth, 1/m) the parallax parameters are the centre of projection's
+    offset ``o`` (m) and each point moves by its own ``s = rho o``."""
     fx, fy, cx, cy, N, a, s, k = _unpack(x, n_dist)
     if refs is None:
         refs = np.concatenate([m.ref_points for m in motions])
+    if rho is not None:
+        s = rho[:, None] * s
     rays = np.c_[_undistort(refs, fx, fy, cx, cy, k), np.ones(len(refs))] + s
     moved, start = np.empty_like(rays), 0
     for motion in motions:
         R = camera_orientation(motion.angles0, N, a).T @ \
             camera_orientation(motion.angles1, N, a)
         end = start + len(motion.ref_points)
-        moved[start:end] = rays[start:end] @ R - s
+        moved[start:end] = rays[start:end] @ R - (s[start:end] if s.ndim == 2 else s)
         start = end
     # A trial step may turn points behind the camera: keep the residuals finite (and
     # large) so the optimiser backs off instead of failing.
@@ -195,10 +206,10 @@ class RefineResult:
                 "outliers": self.outliers, "residuals_by_motion": self.residuals_by_motion}
 
 
-def _residuals(x, motions, n_dist, masks, associations, refs=None):
+def _residuals(x, motions, n_dist, masks, associations, refs=None, rho=None):
     out = []
-    for m, (motion, predicted) in enumerate(zip(motions, predict_many(motions, x, n_dist, refs),
-                                                strict=True)):
+    for m, (motion, predicted) in enumerate(zip(motions, predict_many(motions, x, n_dist, refs,
+                                                                      rho), strict=True)):
         pred = predicted[masks[m]]
         if motion.curve_mode:
             idx = associations[m]
@@ -212,10 +223,14 @@ def _residuals(x, motions, n_dist, masks, associations, refs=None):
 
 def _prior_sigmas(n_dist: int, prior_deg: float, parallax_prior: float) -> np.ndarray:
     """Per-parameter prior sigma (inf: no prior): the mounting rotation and the roll-axis
-    tilt near the nominal head, the parallax near zero."""
+    tilt near the nominal head, the parallax near zero, the tangential terms within their
+    usual magnitude (``TANGENTIAL_PRIOR``)."""
     prior = np.full(N_BASE + n_dist, np.inf)
     prior[4:9] = np.radians(prior_deg)
     prior[9:12] = parallax_prior
+    for j, slot in enumerate(DIST_SLOTS[n_dist]):
+        if DIST_NAMES[slot] in ("p1", "p2"):
+            prior[N_BASE + j] = TANGENTIAL_PRIOR
     return prior
 
 
@@ -305,7 +320,9 @@ def _consider(J_free: np.ndarray, J_consider: np.ndarray, cov_free: np.ndarray,
 
 def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
            outlier_sigmas: float = 3.0, outer_iterations: int = 4,
-           prior_deg: float = 5.0, parallax_sigma: float = 0.003) -> RefineResult:
+           prior_deg: float = 5.0, parallax_sigma: float = 0.003,
+           inv_depth: np.ndarray | None = None, offset_sigma_m: float = 0.003
+           ) -> RefineResult:
     """Joint refinement of fx, fy, cx, cy, the mounting rotation and the roll axis (and
     ``n_dist`` distortion terms: k1; k1, k2; or k1, k2, p1, p2) over all motions with the
     exact rotation model (thesis Lemma 3.1, eq. 3.3), from ``initial`` (fx, fy, cx, cy;
@@ -316,7 +333,12 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
     unstable on random rigs. It is a *consider* parameter instead: ``parallax_sigma``
     (per axis; 0.003: 3 mm off the axes with the scene at 1 m) enters the reported
     sigma through its effect on the solution. 1-sigma uncertainties: the cluster-robust
-    covariance plus that consider term."""
+    covariance plus that consider term.
+
+    With ``inv_depth`` (each contour's inverse depth, 1/m, indexed by the motions'
+    ``groups``; ``active_depth``) the parallax is estimated instead: the centre of
+    projection's offset ``o`` from the axes (prior sigma ``offset_sigma_m`` per axis),
+    each contour moving by its own ``rho o``; no consider term then."""
     if len(motions) < 2:
         raise SolveError("refinement: needs at least two motions")
     if sum(len(m.ref_points) for m in motions) < 20:
@@ -324,12 +346,16 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
     if n_dist not in DIST_SLOTS:
         raise SolveError(f"refinement: n_dist must be one of {sorted(DIST_SLOTS)}, got {n_dist}")
     n_params = N_BASE + n_dist
+    depth_mode = inv_depth is not None
     free = np.ones(n_params, bool)
-    free[9:12] = False  # the parallax: consider parameters
+    free[9:12] = depth_mode  # the parallax: estimated with depths, else consider parameters
+    rho = np.concatenate([np.asarray(inv_depth, float)[m.groups] for m in motions]) \
+        if depth_mode else None
     x = np.zeros(n_params)
     x[:4] = [initial["fx"], initial["fy"], initial["cx"], initial["cy"]]
     masks = [np.ones(len(m.ref_points), bool) for m in motions]
-    prior = _prior_sigmas(n_dist, prior_deg, parallax_sigma)[free]
+    prior = _prior_sigmas(n_dist, prior_deg,
+                          offset_sigma_m if depth_mode else parallax_sigma)[free]
     has_prior = np.isfinite(prior)
     refs = np.concatenate([m.ref_points for m in motions])
 
@@ -341,7 +367,8 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
     def associate(xv):
         out = []
         for m, (motion, predicted) in enumerate(zip(motions, predict_many(motions, xv, n_dist,
-                                                                          refs), strict=True)):
+                                                                          refs, rho),
+                                                    strict=True)):
             if motion.curve_mode:
                 _, idx = motion.tree().query(predicted[masks[m]])
                 out.append(idx)
@@ -350,28 +377,29 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
         return out
 
     def fun(xf, assoc):
-        r = _residuals(full(xf), motions, n_dist, masks, assoc, refs)
+        r = _residuals(full(xf), motions, n_dist, masks, assoc, refs, rho)
         return np.concatenate([r, xf[has_prior] / prior[has_prior]])
 
     for _ in range(outer_iterations):
         assoc = associate(x)
         x = full(least_squares(fun, x[free], args=(assoc,), loss="soft_l1", f_scale=1.0,
                                x_scale="jac", max_nfev=200).x)
-        r = _residuals(x, motions, n_dist, masks, assoc, refs)
+        r = _residuals(x, motions, n_dist, masks, assoc, refs, rho)
         if not _reject_outliers(r, motions, masks, outlier_sigmas):
             break
     assoc = associate(x)
     final = least_squares(fun, x[free], args=(assoc,), loss="linear", x_scale="jac",
                           max_nfev=100)
     x = full(final.x)
-    r = _residuals(x, motions, n_dist, masks, assoc, refs)
+    r = _residuals(x, motions, n_dist, masks, assoc, refs, rho)
     if not np.all(np.isfinite(x)) or not np.all(np.isfinite(r)):
         raise SolveError("refinement diverged (non-finite parameters)")
     J = final.jac[:len(r)]
     cov, A_inv = _covariance(J, r, _clusters(motions, masks), prior)
+    held = np.flatnonzero(~free)  # the consider parameters (none when depths are known)
     J_s = _jacobian_columns(lambda xv: _residuals(xv, motions, n_dist, masks, assoc, refs),
-                            x, np.flatnonzero(~free), r)
-    cov = _consider(J, J_s, cov, A_inv, np.full(3, parallax_sigma))
+                            x, held, r)
+    cov = _consider(J, J_s, cov, A_inv, np.full(len(held), parallax_sigma))
     sig = np.full(n_params, np.nan)
     sig[free] = np.sqrt(np.clip(np.diag(cov), 0, None))
     sig[~free] = parallax_sigma

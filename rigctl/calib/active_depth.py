@@ -1,0 +1,118 @@
+"""Scene depth for the active-camera parallax, from one sideways move of the arm.
+
+Beyond the thesis, which assumes the centre of projection on the head's rotation axes.
+With the centre at ``o`` (camera frame) off the axes, a contour at inverse depth ``rho``
+moves under a head rotation as if seen along ``x + rho o`` (``active_refine``). With one
+``rho`` for the whole scene, ``o`` is not separable from the focal length (pan/tilt) and
+the principal point (rolls); with each contour's own ``rho`` measured, and contours at
+different depths, it is. The arm supplies the depths: it moves the camera sideways by a
+known distance ``b`` without turning it (the head at home), and each contour shifts by
+its disparity (thesis eq. 3.3 with a translation instead of a rotation)::
+
+    x' = (x - rho t_xy) / (1 - rho t_z),   |t| = b
+
+``t`` (the move in the camera frame: its direction depends on the unknown hand-eye
+rotation) and every ``rho`` are fitted to the contours' shifts.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial import cKDTree
+
+from rigctl.errors import SolveError
+
+MIN_CONTOURS = 3
+
+
+def camera_shift_joints(model, q_home, T_flange_cam: np.ndarray, distance_m: float
+                        ) -> np.ndarray:
+    """Joints that move the camera ``distance_m`` along its own (nominal) x axis with the
+    flange's orientation unchanged (nominal model and IK). Between two nearby
+    configurations the model's errors barely turn the flange, so the true move is a
+    translation of nearly ``distance_m``."""
+    T = np.array(model.fk(q_home), float)
+    direction = (T @ T_flange_cam)[:3, 0]
+    target = T.copy()
+    target[:3, 3] += distance_m * direction
+    return np.asarray(model.ik(target, list(q_home)), float)
+
+
+def contour_shift(ref_points: np.ndarray, moved_points: np.ndarray,
+                  moved_normals: np.ndarray, start, iterations: int = 8) -> np.ndarray:
+    """The 2-D shift (px) that lays a reference contour onto its tracked edge points:
+    Gauss-Newton on the point-to-curve distances along the moved edges' normals,
+    from the tracker's ``start`` offset; points beyond 3 robust sigmas are dropped."""
+    tree = cKDTree(moved_points)
+    d = np.asarray(start, float).copy()
+    for _ in range(iterations):
+        _, idx = tree.query(ref_points + d)
+        n = moved_normals[idx]
+        r = np.sum((ref_points + d - moved_points[idx]) * n, axis=1)
+        keep = np.abs(r) <= 3 * 1.4826 * np.median(np.abs(r)) + 1e-6
+        step, *_ = np.linalg.lstsq(n[keep], -r[keep], rcond=None)
+        d += step
+        if np.hypot(*step) < 1e-4:
+            break
+    return d
+
+
+@dataclass
+class SceneDepths:
+    """Each contour's inverse depth (1/m; NaN where not measured) and the fitted move."""
+
+    inv_depth: np.ndarray
+    t_cam: np.ndarray          # the camera's move in its own frame (m)
+    rms_normalised: float      # fit residual (normalised image units)
+
+    def filled(self) -> np.ndarray:
+        """Inverse depths with the unmeasured contours at the median."""
+        out = self.inv_depth.copy()
+        out[~np.isfinite(out)] = float(np.nanmedian(self.inv_depth))
+        return out
+
+    def as_dict(self) -> dict:
+        finite = self.inv_depth[np.isfinite(self.inv_depth)]
+        return {"contours_measured": len(finite),
+                "depth_m": {"min": float(1 / finite.max()), "median": float(1 / np.median(finite)),
+                            "max": float(1 / finite.min())},
+                "move_in_camera_mm": (1000 * self.t_cam).tolist(),
+                "fit_rms_px_at_f1000": 1000 * self.rms_normalised}
+
+
+def fit_depths(centres: np.ndarray, shifts: np.ndarray, baseline_m: float,
+               n_contours: int, ids: np.ndarray) -> SceneDepths:
+    """Inverse depths of contours ``ids`` from their shifts under a camera move of
+    length ``baseline_m``: ``centres`` and ``shifts`` in normalised, undistorted image
+    coordinates (the model in the module docstring, one ``rho`` per contour and the
+    move's direction shared)."""
+    if len(ids) < MIN_CONTOURS:
+        raise SolveError(f"scene depth: {len(ids)} contours followed through the arm's "
+                         f"move (need {MIN_CONTOURS})")
+    mean_dir = -np.median(shifts, axis=0)
+    mean_dir /= np.linalg.norm(mean_dir) + 1e-12
+    rho0 = np.linalg.norm(shifts, axis=1) / baseline_m
+
+    def move(angles):
+        a, e = angles
+        return baseline_m * np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+
+    def residuals(p):
+        t = move(p[:2])
+        rho = p[2:]
+        predicted = (centres - rho[:, None] * t[:2]) / (1 - rho[:, None] * t[2]) - centres
+        return (predicted - shifts).ravel()
+
+    start = np.r_[np.arctan2(mean_dir[1], mean_dir[0]), 0.0, rho0]
+    fit = least_squares(residuals, start, loss="soft_l1", f_scale=1e-3, xtol=1e-12,
+                        ftol=1e-12, gtol=1e-12)
+    if not fit.success or np.any(fit.x[2:] <= 0):
+        raise SolveError("scene depth: the contours' shifts under the arm's move do not fit "
+                         "one camera translation (a contour moved against the others)")
+    inv_depth = np.full(n_contours, np.nan)
+    inv_depth[ids] = fit.x[2:]
+    rms = float(np.sqrt(np.mean(residuals(fit.x) ** 2)))
+    return SceneDepths(inv_depth, move(fit.x[:2]), rms)
