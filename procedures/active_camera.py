@@ -1,7 +1,9 @@
 """``active-camera``: intrinsics from known head rotations (thesis chapter 3), automated.
 
-Sequence: home; reference capture; pan +-theta_p, tilt +-theta_t; rolls (90, 180, -90
-deg); each captured after settling, with the encoder angles actually reached.
+Sequence: home; reference capture; with an arm, the camera moved ``shift_mm`` sideways
+and captured (scene depths, for the parallax), then home again; pan +-theta_p, tilt
++-theta_t; rolls (90, -180, -90 deg); each captured after settling, with the encoder angles
+actually reached.
 
 Solve: extract contours in the reference image; track them through pan+ and tilt+ with
 the thesis's shift search; estimate K by Strategy B; track every motion again by
