@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-E2E = ["tests/test_active_camera_e2e.py", "tests/test_robot_e2e.py", "tests/test_stalls.py",
+E2E = ["tests/test_e2e_default_world.py", "tests/test_stalls.py",
        "tests/test_signals.py"]
 
 

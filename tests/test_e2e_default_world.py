@@ -1,12 +1,19 @@
-"""The robot pipeline end to end on the simulated rig (default world: mm-level arm
-errors): active-camera, then robot-kinematics through the CLI; the exported model is
-checked against the world's truth, which the solvers never see."""
+"""End to end on the simulated rig (default world: distortion, 0.5 px noise, 0.3 deg
+roll-axis tilt, mm-level arm errors), through the CLI and the real clients: active-camera,
+then hand-eye, robot-kinematics and validate-arm on the same rig; every result is checked
+against the world's truth, which the solvers never see.
+
+The rig and its active-camera run are shared by the module (``camera_run``): the run is
+made the first time a test asks for it, so each test also runs alone (``-k``), and the
+chain costs one active-camera run instead of two."""
 
 from __future__ import annotations
 
 import json
 import subprocess
 import sys
+from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,6 +23,7 @@ from mocks.world import load_world
 from rigctl.bench.truth import model_against_truth
 from rigctl.config import load_rig
 from rigctl.geometry.kinematics import nominal_ur
+from rigctl.simrig import SimulatedRig
 from tests.mockproc import ROOT
 from tests.resolve_check import assert_resolves_alone
 
@@ -27,12 +35,66 @@ def rigctl(*args, timeout=1200):  # a hang guard, not a timing claim
                           text=True, timeout=timeout, cwd=ROOT)
 
 
+@dataclass
+class CameraRun:
+    rig: SimulatedRig
+    records: Path
+    result: subprocess.CompletedProcess
+
+
+@pytest.fixture(scope="module")
+def camera_run(tmp_path_factory):
+    """The default world's simulated rig with one active-camera run (pan/tilt 10 deg) on
+    it; stopped with its stand-ins, by PID, after the module's last test."""
+    base = tmp_path_factory.mktemp("default-rig")
+    rig = SimulatedRig("default", records=base / "records", rig_out=base / "sim-rig.yaml")
+    try:
+        result = rigctl("run", "active-camera", "--rig", str(rig.rig_path), "--json",
+                        "--param", "pan_deg=10", "--param", "tilt_deg=10")
+        yield CameraRun(rig, base / "records", result)
+    finally:
+        orphans = rig.stop()
+        assert not orphans, f"stand-ins {orphans} outlived `sim up`"
+
+
+@pytest.mark.timeout(600)
+def test_active_camera_on_default_world(camera_run):
+    result = camera_run.result
+    assert result.returncode == 0, result.stderr[-3000:]
+    out = json.loads(result.stdout)  # stdout is JSON and nothing else
+    truth = load_world(ROOT / "mocks/worlds/default.yaml").truth()
+    assert abs(out["fx"] / truth["fx"] - 1) < 0.002
+    assert abs(out["fy"] / truth["fy"] - 1) < 0.002
+    assert abs(out["cx"] - truth["cx"]) < 1.5 and abs(out["cy"] - truth["cy"]) < 1.5
+    assert set(out["strategies"]) >= {"A", "B", "C", "D", "refined"}
+    assert "fx" in out["strategies"]["D"] and out["sigma"]["fx"] > 0
+    # the 0.3 deg roll-axis tilt shows in the recovered roll axis (about -sin(0.3 deg) in y)
+    assert out["roll_axis_in_cam"][1] == pytest.approx(truth["roll_axis_in_cam"][1], abs=2e-3)
+    run_dirs = list((camera_run.records).glob("*active-camera*"))
+    assert len(run_dirs) == 1
+    for name in ("camera.opencv.yaml", "camera_info.yaml", "plots/contours.png",
+                 "plots/residuals.png", "result.json"):
+        assert (run_dirs[0] / name).exists(), name
+    # eight head poses and one after the arm moved the camera 10 mm sideways
+    assert len(list(Path(run_dirs[0], "captures").glob("*.png"))) == 9
+    depths = out["tracking"]["scene_depth"]
+    assert depths["contours_measured"] >= 6
+    assert np.linalg.norm(depths["move_in_camera_mm"]) == pytest.approx(10.0, rel=0.01)
+    # the scene (2-6 m in this world) at the depths the world placed it
+    assert 1.5 < depths["depth_m"]["min"] < depths["depth_m"]["max"] < 8.0
+    # this world's camera sits on the head's axes: the estimated offset says so
+    parallax = out["parallax"]
+    assert parallax["estimated"]
+    for got, sigma in zip(parallax["centre_offset_mm"], parallax["sigma_mm"], strict=True):
+        assert abs(got) < max(3 * sigma, 0.3)
+    for key in ("fx", "fy", "cx", "cy"):
+        assert abs(out[key] - truth[key]) < max(3 * out["sigma"][key], 0.2), key
+
+
 @pytest.mark.timeout(2400)  # five runs on the simulated rig: ~2.5 min idle, 15 on a crowded host
-def test_robot_kinematics_end_to_end(tmp_path, start_sim):
-    rig = start_sim(world="default")
-    cam = rigctl("run", "active-camera", "--rig", str(rig.rig_path), "--json",
-                 "--param", "pan_deg=10", "--param", "tilt_deg=10")
-    assert cam.returncode == 0, cam.stderr[-2000:]
+def test_robot_kinematics_end_to_end(tmp_path, camera_run):
+    rig, records = camera_run.rig, camera_run.records
+    assert camera_run.result.returncode == 0, camera_run.result.stderr[-2000:]
     handeye = rigctl("run", "hand-eye", "--rig", str(rig.rig_path), "--json",
                      "--param", "poses=8")
     result = rigctl("run", "robot-kinematics", "--rig", str(rig.rig_path), "--json",
@@ -96,10 +158,10 @@ def test_robot_kinematics_end_to_end(tmp_path, start_sim):
     assert np.degrees(np.arccos(np.clip(cos, -1, 1))) < 2.0
     # each solve is a function of its run directory alone
     for procedure in ("active-camera", "hand-eye", "robot-kinematics", "validate-arm"):
-        recorded = next((tmp_path / "records").glob(f"*-{procedure}-*"))
+        recorded = next(records.glob(f"*-{procedure}-*"))
         assert_resolves_alone(recorded, tmp_path / "elsewhere")
     # exports
-    run_dir = next((tmp_path / "records").glob("*robot-kinematics*"))
+    run_dir = next(records.glob("*robot-kinematics*"))
     assert check["calibration_run"] == run_dir.name
     assert rigctl("export", str(run_dir), "--format", "json").returncode == 0
     exported = json.loads((run_dir / "export.json").read_text())
