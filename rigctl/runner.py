@@ -257,12 +257,18 @@ class Runner:
         run_id = run_id or new_run_id(name)
         self.abort_event.clear()
         self._abort_reason = "abort requested"
+        # SIGTERM aborts from here on: a signal between the run's record and its first
+        # step must still end in an "aborted" record, not kill the process (seen in CI)
+        restore = self._install_sigterm()
         lock = RigLock(self.config.records_dir() / "locks", self.config.name)
-        lock.acquire(run_id)
         try:
-            return self._run_locked(procedure, params, plan, run_id, inputs)
+            lock.acquire(run_id)
+            try:
+                return self._run_locked(procedure, params, plan, run_id, inputs)
+            finally:
+                lock.release()
         finally:
-            lock.release()
+            restore()
 
     def _run_locked(self, procedure: Procedure, params: Any, plan: PlanCheck,
                     run_id: str, inputs: dict[str, Any]) -> RunOutcome:
@@ -291,7 +297,6 @@ class Runner:
         status, reason, result = "running", None, None
         timings: dict[str, float] = {}
         started = time.monotonic()
-        restore = self._install_sigterm()
         try:
             self._execute(rig, procedure, plan.steps, run, run_id)
             timings["motion_s"] = time.monotonic() - started
@@ -326,7 +331,6 @@ class Runner:
                 self._safe_stop(rig, reason)
             if self._board is not None:
                 self._board.finish()
-            restore()
             self.index.update(run_id, status=status, reason=reason, ended_at=utcnow(),
                               result_summary=summarize(result) if result else None)
             timings["run_s"] = time.monotonic() - started
