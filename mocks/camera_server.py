@@ -28,41 +28,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from mocks.jsonlines import Client, listen, serve_stream
 from mocks.world import World, load_world
-
-
-class LineClient:
-    """A persistent JSON-lines client of another stand-in's control socket."""
-
-    def __init__(self, path: str | None) -> None:
-        self.path = path
-        self.sock = None
-        self.buf = b""
-
-    def ask(self, request: dict) -> dict | None:
-        if not self.path:
-            return None
-        for _ in range(2):
-            try:
-                if self.sock is None:
-                    self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-                    self.sock.settimeout(1.0)
-                    self.sock.connect(self.path)
-                    self.buf = b""
-                self.sock.sendall((json.dumps(request) + "\n").encode())
-                while b"\n" not in self.buf:
-                    chunk = self.sock.recv(65536)
-                    if not chunk:
-                        raise ConnectionError
-                    self.buf += chunk
-                line, self.buf = self.buf.split(b"\n", 1)
-                return json.loads(line)
-            except (OSError, ConnectionError, json.JSONDecodeError):
-                if self.sock is not None:
-                    self.sock.close()
-                self.sock = None
-        return None
-
 
 # A real camera's frame reaches the host within tens of milliseconds of its exposure. A
 # stand-in descheduled on a busy host could publish a frame rendered from a state sampled
@@ -76,7 +43,7 @@ MAX_FRAME_AGE_S = 0.5
 class Camera:
     """Renders frames at the world's fps from the live head and arm state."""
 
-    def __init__(self, world: World, head: LineClient, arm: LineClient,
+    def __init__(self, world: World, head: Client, arm: Client,
                  head_ids: list[int]) -> None:
         self.world, self.head, self.arm, self.head_ids = world, head, arm, head_ids
         self.cond = threading.Condition()
@@ -193,31 +160,17 @@ class ThreadingServer(socketserver.ThreadingMixIn, http.server.HTTPServer):
 
 
 def serve_control(path: Path, camera: Camera) -> socket.socket:
-    if path.exists():
-        path.unlink()
-    server = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    server.bind(str(path))
-    server.listen(4)
+    server = listen(path)
 
-    def handle(conn: socket.socket) -> None:
-        with conn, conn.makefile("rwb") as stream:
-            for line in stream:
-                try:
-                    req = json.loads(line)
-                    if req.get("cmd") == "stall":
-                        camera.stall_until = time.monotonic() + float(req.get("seconds", 5))
-                        answer = {"ok": True}
-                    elif req.get("cmd") == "dump":
-                        times = camera.render_s or [0.0]
-                        answer = {"ok": True, "rendered": camera.rendered,
-                                  "dropped_stale": camera.dropped,
-                                  "render_ms_median": 1000 * float(np.median(times))}
-                    else:
-                        answer = {"ok": False, "error": f"unknown cmd {req.get('cmd')!r}"}
-                except Exception as exc:
-                    answer = {"ok": False, "error": str(exc)}
-                stream.write((json.dumps(answer) + "\n").encode())
-                stream.flush()
+    def control(req: dict) -> dict:
+        if req.get("cmd") == "stall":
+            camera.stall_until = time.monotonic() + float(req.get("seconds", 5))
+            return {"ok": True}
+        if req.get("cmd") == "dump":
+            times = camera.render_s or [0.0]
+            return {"ok": True, "rendered": camera.rendered, "dropped_stale": camera.dropped,
+                    "render_ms_median": 1000 * float(np.median(times))}
+        return {"ok": False, "error": f"unknown cmd {req.get('cmd')!r}"}
 
     def accept() -> None:
         while True:
@@ -225,7 +178,7 @@ def serve_control(path: Path, camera: Camera) -> socket.socket:
                 conn, _ = server.accept()
             except OSError:
                 return
-            threading.Thread(target=handle, args=(conn,), daemon=True).start()
+            threading.Thread(target=serve_stream, args=(conn, control), daemon=True).start()
 
     threading.Thread(target=accept, daemon=True).start()
     return server
@@ -245,7 +198,7 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps({"error": "the camera stand-in binds loopback only"}))
         return 2
     world = load_world(args.world)
-    camera = Camera(world, LineClient(args.head_control), LineClient(args.arm_control),
+    camera = Camera(world, Client(args.head_control), Client(args.arm_control),
                     args.head_ids)
     threading.Thread(target=camera.loop, daemon=True, name="render").start()
     httpd = ThreadingServer((args.host, args.port), make_handler(camera))

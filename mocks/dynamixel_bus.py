@@ -24,7 +24,6 @@ import json
 import os
 import selectors
 import signal
-import socket
 import sys
 import termios
 import time
@@ -41,6 +40,7 @@ from mocks.dxl_servo import (
     Servo,
     ServoOptions,
 )
+from mocks.jsonlines import answer, listen
 
 BAUD_CODES = {0: 9600, 1: 57600, 2: 115200, 3: 1_000_000, 4: 2_000_000, 5: 3_000_000,
               6: 4_000_000, 7: 4_500_000}
@@ -301,11 +301,7 @@ class BusServer:
         self.selector.register(self.master, selectors.EVENT_READ, "bus")
         self.control_sock = None
         if control is not None:
-            if control.exists():
-                control.unlink()
-            self.control_sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-            self.control_sock.bind(str(control))
-            self.control_sock.listen(4)
+            self.control_sock = listen(control)
             self.control_sock.setblocking(False)
             self.selector.register(self.control_sock, selectors.EVENT_READ, "accept")
         self.running = True
@@ -382,12 +378,8 @@ class BusServer:
         key.data[1] += chunk
         while b"\n" in key.data[1]:
             line, key.data[1] = key.data[1].split(b"\n", 1)
-            try:
-                answer = self.control(json.loads(line))
-            except Exception as exc:  # report, never die on a bad control line
-                answer = {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
             conn.setblocking(True)
-            conn.sendall((json.dumps(answer) + "\n").encode())
+            conn.sendall(answer(line, self.control))
             conn.setblocking(False)
 
     def control(self, request: dict) -> dict:

@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from mocks.jsonlines import listen, serve_stream
 from mocks.ur_kinematics import ArmModel, matrix_to_pose, pose_to_matrix
 from mocks.ur_motion import JointMove, LinearMove, ServoMove, SpeedMove, StopMove
 
@@ -621,11 +622,7 @@ class Server:
             self.listeners[port] = (sock, handler)
         self.control_sock = None
         if control_path is not None:
-            if control_path.exists():
-                control_path.unlink()
-            self.control_sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-            self.control_sock.bind(str(control_path))
-            self.control_sock.listen(4)
+            self.control_sock = listen(control_path)
 
     def forget(self, sock: socket.socket) -> None:
         with self.clients_lock:
@@ -716,14 +713,7 @@ class Server:
         return f"could not understand: '{command}'"
 
     def on_control(self, sock: socket.socket) -> None:
-        with sock, sock.makefile("rwb") as stream:
-            for line in stream:
-                try:
-                    answer = self.control(json.loads(line))
-                except Exception as exc:
-                    answer = {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
-                stream.write((json.dumps(answer) + "\n").encode())
-                stream.flush()
+        serve_stream(sock, self.control)
 
     def control(self, request: dict) -> dict:
         cmd = request.get("cmd")

@@ -2,8 +2,7 @@
 
 from __future__ import annotations
 
-import json
-
+from mocks.jsonlines import ask_once
 from rigctl.childproc import ROOT, ChildProcess
 
 __all__ = ["ROOT", "MockProcess", "control"]
@@ -17,16 +16,5 @@ class MockProcess(ChildProcess):
 
 
 def control(path: str, request: dict, timeout: float = 5.0) -> dict:
-    import socket
-
-    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
-        sock.settimeout(timeout)
-        sock.connect(path)
-        sock.sendall((json.dumps(request) + "\n").encode())
-        data = b""
-        while not data.endswith(b"\n"):
-            chunk = sock.recv(65536)
-            if not chunk:
-                break
-            data += chunk
-    return json.loads(data)
+    """One request on a stand-in's control socket (``mocks.jsonlines``)."""
+    return ask_once(path, request, timeout)
