@@ -15,7 +15,7 @@ from rigctl.geometry.kinematics import nominal_ur
 
 from .base import Params, Procedure, SolveContext
 from .planning import view_steps
-from .robot_common import board_observations, camera_matrix, intrinsics_from
+from .robot_common import board_observations, camera_matrix, intrinsics_from, planning_K
 
 
 class HandEyeParams(Params):
@@ -37,7 +37,8 @@ class HandEye(Procedure):
 
     def plan(self, params: HandEyeParams, config) -> list:
         return view_steps(config, params.poses, params.view_distance_m, params.max_tilt_deg,
-                          params.seed, "view", "view", params.settle_s)
+                          params.seed, "view", "view", params.settle_s,
+                          K=planning_K(config, params.intrinsics))
 
     def resolve_inputs(self, params: HandEyeParams, config) -> dict[str, Any]:
         return {"intrinsics": intrinsics_from(config, params.intrinsics)}
@@ -55,7 +56,7 @@ class HandEye(Procedure):
         obj = board_points(tg.rows, tg.cols, tg.square_mm / 1000.0)
         closed = handeye.closed_form(F, C)
         refined = handeye.refine_pixels(F, [o["corners"] for o in found], obj, K, dist,
-                                        closed["park"], C=C)
+                                        handeye.best_closed_form(closed), C=C)
         spread = {name: handeye.transform_error(X, refined.X) for name, X in closed.items()}
         summary = {"views": len(found), "residual_rms_px": refined.rms,
                    "t_mm": (1000 * refined.X[:3, 3]).tolist()}

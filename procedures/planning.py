@@ -60,10 +60,13 @@ def nominal_flange_cam(config: RigConfig) -> np.ndarray:
 
 def plan_target_views(config: RigConfig, n: int, distance_m: float = 0.45,
                       max_tilt_deg: float = 25.0, seed: int = 0,
+                      up_axis: np.ndarray | None = None, max_spin_deg: float = 60.0,
                       ) -> tuple[list[np.ndarray], list[str]]:
     """Joint configurations whose (nominal) camera looks at the board centre from
     ``distance_m``, tilted up to ``max_tilt_deg`` off the board normal, with varied roll
-    about the viewing axis. Returns the reachable ones and notes for the skipped."""
+    about the viewing axis (up to ``max_spin_deg`` either way from ``up_axis``, a
+    direction in the board's plane, when given). Returns the reachable ones and notes for
+    the skipped."""
     arm = config.devices.arm
     if arm is None:
         raise SolveError("planning target views needs devices.arm in the rig file")
@@ -80,7 +83,8 @@ def plan_target_views(config: RigConfig, n: int, distance_m: float = 0.45,
         attempts += 1
         tilt = math.radians(max_tilt_deg) * math.sqrt(rng.uniform()) if len(poses) else 0.0
         azimuth = rng.uniform(0, 2 * math.pi)
-        helper = np.cross(normal, [1.0, 0.0, 0.0])
+        helper = np.cross(normal, [1.0, 0.0, 0.0]) if up_axis is None else \
+            up_axis - np.dot(up_axis, normal) * normal
         if np.linalg.norm(helper) < 1e-6:
             helper = np.cross(normal, [0.0, 1.0, 0.0])
         u = helper / np.linalg.norm(helper)
@@ -88,7 +92,7 @@ def plan_target_views(config: RigConfig, n: int, distance_m: float = 0.45,
         direction = math.cos(tilt) * normal + math.sin(tilt) * (math.cos(azimuth) * u +
                                                                  math.sin(azimuth) * v)
         eye = centre + distance_m * rng.uniform(0.9, 1.1) * direction
-        spin = rng.uniform(-math.pi / 3, math.pi / 3)
+        spin = math.radians(rng.uniform(-max_spin_deg, max_spin_deg))
         up = math.cos(spin) * u + math.sin(spin) * v
         T_base_flange = look_at(eye, centre, up) @ T_cam_flange
         seeds = ([previous] if previous is not None else []) + \
@@ -116,6 +120,8 @@ def plan_target_views(config: RigConfig, n: int, distance_m: float = 0.45,
 
 MIN_VIEWS = 3
 CLOSER = (0.8, 0.65, 0.5)  # viewing distances tried when too few views are reachable
+FARTHER = (1.2, 1.45)      # ... and, when the whole board must stay in sight, further out
+ALIGNED_SPIN_DEG = 15.0    # spin about the viewing axis when the board only fits aligned
 
 
 def closest_plan(plan_at, distance_m: float, want: int):
@@ -154,17 +160,92 @@ def reachable_views(config: RigConfig, count: int, distance_m: float, max_tilt_d
     return poses, notes
 
 
+def fit_distance(config: RigConfig, K: np.ndarray, margin: float = 0.03) -> float:
+    """The nearest viewing distance at which the board's corner grid, seen square-on and
+    aligned with the image, fits inside ``margin`` of the image's edges (pinhole ``K``)."""
+    tg = config.target
+    span_x, span_y = (tg.cols - 2) * tg.square_mm / 1000.0, (tg.rows - 2) * tg.square_mm / 1000.0
+    w, h = config.devices.camera.width, config.devices.camera.height
+    usable = 1.0 - 2.0 * margin
+    aligned = max(span_x * K[0, 0] / (w * usable), span_y * K[1, 1] / (h * usable))
+    crossed = max(span_y * K[0, 0] / (w * usable), span_x * K[1, 1] / (h * usable))
+    return min(aligned, crossed)
+
+
+def aligned_spin(config: RigConfig) -> dict:
+    """``plan_target_views`` keywords that keep the board's longer side along the image's
+    longer side, turned up to ``ALIGNED_SPIN_DEG``: for a board that fits the image only
+    so."""
+    T_base_target, _ = target_centre(config)
+    tg, cam = config.target, config.devices.camera
+    along = (tg.cols >= tg.rows) == (cam.width >= cam.height)
+    return {"up_axis": T_base_target[:3, 1 if along else 0], "max_spin_deg": ALIGNED_SPIN_DEG}
+
+
+def visible_views(config: RigConfig, count: int, distance_m: float, max_tilt_deg: float,
+                  seed: int, label: str, K: np.ndarray) -> tuple[list[np.ndarray], list[str]]:
+    """Up to ``count`` reachable views in which the nominal camera (``K``) sees the whole
+    board: planned at ``distance_m`` unless the board cannot fit in the image from there
+    (a large board, a long lens), then further out; when too few are reachable, at the
+    other distances of ``FARTHER`` and ``CLOSER`` (never nearer than the board fits),
+    keeping the plan with the most views. Fewer than ``MIN_VIEWS`` is refused here."""
+    model = nominal_ur(config.devices.arm.model)
+    nearest = fit_distance(config, K)
+    start = max(distance_m, nearest)
+    ladder = [start] + [d for d in sorted({start * f for f in (*FARTHER, *CLOSER)},
+                                          key=lambda d: abs(d - start)) if d >= nearest]
+    aligned = aligned_spin(config)
+    best: tuple[list, float] = ([], start)
+    reached = 0
+    for d in ladder:
+        for spin in ({}, aligned):  # free spin first; aligned when that loses the board
+            poses, _ = plan_target_views(config, 2 * count, d, max_tilt_deg, seed, **spin)
+            reached = max(reached, len(poses))
+            seen = [q for q in poses if board_visible(config, model, q, K)][:count]
+            if len(seen) > len(best[0]):
+                best = (seen, d)
+            if len(seen) >= count:
+                break
+        if len(best[0]) >= count:
+            break
+    poses, used = best
+    notes = []
+    if abs(used - distance_m) > 1e-9:
+        notes.append(f"{label}s: planned at {used:.2f} m instead of {distance_m:.2f} m "
+                     f"({len(poses)} of {count} views with the whole board in sight; the "
+                     f"board fits the image from {nearest:.2f} m)")
+    if reached < MIN_VIEWS:
+        raise SolveError(f"{label}s: only {reached} of {count} views of the target are "
+                         f"reachable at {min(ladder):.2f}-{max(ladder):.2f} m within the soft "
+                         "limits; move the target within the arm's reach or change "
+                         "view_distance_m")
+    if len(poses) < MIN_VIEWS:
+        raise SolveError(
+            f"{label}s: only {len(poses)} of {count} views show the whole board "
+            f"({(config.target.cols - 2) * config.target.square_mm:.0f} x "
+            f"{(config.target.rows - 2) * config.target.square_mm:.0f} mm of corners; with "
+            f"this lens it fits the image from {nearest:.2f} m) at a reachable distance "
+            f"({min(ladder):.2f}-{max(ladder):.2f} m tried); move the target, use a smaller "
+            "board, or change view_distance_m")
+    return poses, notes
+
+
 def view_steps(config: RigConfig, count: int, distance_m: float, max_tilt_deg: float,
-               seed: int, label: str, kind: str, settle_s: float) -> list:
+               seed: int, label: str, kind: str, settle_s: float,
+               K: np.ndarray | None = None) -> list:
     """Steps visiting ``count`` planned views of the target (head at home first when there
     is a head), each settled and captured, then back to the arm's home; skipped views are
-    reported as notes."""
+    reported as notes. With intrinsics ``K`` every view keeps the whole board in sight
+    (``visible_views``), else views are only checked for reach (``reachable_views``)."""
     from .base import CaptureStep, MoveArmJoints, MoveHead, Note, Settle
 
     steps: list = []
     if config.devices.head is not None:
         steps.append(MoveHead(0.0, 0.0, 0.0, "head home"))
-    poses, notes = reachable_views(config, count, distance_m, max_tilt_deg, seed, label)
+    if K is not None:
+        poses, notes = visible_views(config, count, distance_m, max_tilt_deg, seed, label, K)
+    else:
+        poses, notes = reachable_views(config, count, distance_m, max_tilt_deg, seed, label)
     steps += [Note(n) for n in notes]
     for k, q in enumerate(poses):
         name = f"{label} {k + 1}"
@@ -188,15 +269,19 @@ def informative_views(config: RigConfig, params, K: np.ndarray, planned_q: list,
     X = nominal_flange_cam(config)
     W, _ = target_centre(config)
     candidates, notes = [], []
+    nearest = fit_distance(config, K)
+    base = max(params.view_distance_m, nearest)  # never nearer than the board fits
     for k, factor in enumerate((0.8, 1.0, 1.25)):
-        qs, _ = plan_target_views(config, 3 * n, params.view_distance_m * factor,
-                                  params.max_tilt_deg, seed + 17 * k)
-        candidates += [q for q in qs if board_visible(config, model, q, K)]
+        if base * factor < nearest:
+            continue
+        for spin in ({}, aligned_spin(config)):
+            qs, _ = plan_target_views(config, 3 * n, base * factor, params.max_tilt_deg,
+                                      seed + 17 * k, **spin)
+            candidates += [q for q in qs if board_visible(config, model, q, K)]
     if len(candidates) < n:
         notes.append(f"pose selection: only {len(candidates)} candidate views; using "
                      "random views")
-        poses, more = plan_target_views(config, n, params.view_distance_m,
-                                        params.max_tilt_deg, seed)
+        poses, more = plan_target_views(config, n, base, params.max_tilt_deg, seed)
         return poses, notes + more
     tg = config.target
     obj = board_points(tg.rows, tg.cols, tg.square_mm / 1000.0)

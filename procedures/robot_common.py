@@ -8,14 +8,21 @@ from typing import Any
 
 import numpy as np
 
-from rigctl.calib.board import board_points
+from rigctl.calib.board import board_points, orient_to_prediction
 from rigctl.calib.extrinsic import estimate_pose
 from rigctl.config import RigConfig
 from rigctl.errors import ConfigError
 from rigctl.geometry.kinematics import KinematicModel, nominal_ur
+from rigctl.geometry.transforms import inv_T
 from rigctl.records import RecordIndex, RunDirectory
 
-from .planning import MIN_CLEARANCE_M, board_visible, clearance_m
+from .planning import (
+    MIN_CLEARANCE_M,
+    board_visible,
+    clearance_m,
+    nominal_flange_cam,
+    target_centre,
+)
 
 
 def intrinsics_from(config: RigConfig, given: dict | None) -> dict[str, Any]:
@@ -70,12 +77,26 @@ def board_observations(ctx, intr: dict) -> list[dict]:
             out.append({"label": capture.meta["label"], "kind": extra.get("kind"),
                         "found": False})
             continue
+        q = np.asarray(capture.meta["arm"]["q"], float)
+        corners = orient_to_prediction(corners, _predicted_corners(ctx.config, q, obj, K),
+                                       tg.rows, tg.cols)
         pose = estimate_pose(obj, corners, K, dist)
         out.append({"label": capture.meta["label"], "kind": extra.get("kind"),
                     "joint": extra.get("joint"), "found": True,
-                    "q": np.asarray(capture.meta["arm"]["q"], float), "corners": corners,
+                    "q": q, "corners": corners,
                     "C": pose.T_cam_target, "rms_px": pose.rms_px, "pnp": pose.method})
     return out
+
+
+def _predicted_corners(config: RigConfig, q, obj: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Where the nominal arm, head mount and target pose put the board's corners (pixels,
+    no distortion): enough to tell a symmetric board's half and quarter turns apart."""
+    T_base_target, _ = target_centre(config)
+    T_cam_target = inv_T(nominal_ur(config.devices.arm.model).fk(q)
+                         @ nominal_flange_cam(config)) @ T_base_target
+    cam = (T_cam_target[:3, :3] @ obj.T).T + T_cam_target[:3, 3]
+    px = (K @ cam.T).T
+    return px[:, :2] / px[:, 2:3]
 
 
 def planning_K(config: RigConfig, given: dict | None) -> np.ndarray:

@@ -30,7 +30,7 @@ from rigctl.records import RecordIndex, RunDirectory
 
 from .base import Params, Procedure, SolveContext
 from .planning import view_steps
-from .robot_common import board_observations, camera_matrix, intrinsics_from
+from .robot_common import board_observations, camera_matrix, intrinsics_from, planning_K
 
 
 class ValidateArmParams(Params):
@@ -53,7 +53,8 @@ class ValidateArm(Procedure):
 
     def plan(self, params: ValidateArmParams, config) -> list:
         return view_steps(config, params.poses, params.view_distance_m, params.max_tilt_deg,
-                          params.seed, "check", "heldout", params.settle_s)
+                          params.seed, "check", "heldout", params.settle_s,
+                          K=planning_K(config, params.intrinsics))
 
     def resolve_inputs(self, params: ValidateArmParams, config) -> dict[str, Any]:
         """The calibration to check (given run, else this rig's latest robot-kinematics)

@@ -36,7 +36,8 @@ def test_a_small_arm_is_planned_closer():
     assert len([s for s in steps if type(s).__name__ == "CaptureStep"]) == 4
     assert not check_plan(config, steps, proc.devices)
     notes = " ".join(s.text for s in steps if type(s).__name__ == "Note")
-    assert "only 0 of 4 views reachable at 0.45 m; planned at" in notes
+    assert "views: planned at 0.36 m instead of 0.45 m (4 of 4 views with the whole board" \
+        in notes
     params, base, notes = _scaled_to_reach(config, RobotKinematicsParams())
     assert len(base) == 1 and params.sweep_distance_m < 0.7 and params.view_distance_m < 0.45
     assert "no straight view" in notes[0]
@@ -47,7 +48,8 @@ def test_target_out_of_reach_is_refused_before_motion():
     data["target"]["xyz_mm"] = [-3000.0, 0.0, 0.0]
     config = rig_for(data)
     proc = get_procedure("hand-eye")
-    with pytest.raises(SolveError, match=r"reachable at 0\.45 m or closer"):
+    with pytest.raises(SolveError, match=r"only 0 of 4 views of the target are reachable at "
+                                         r"0\.23-0\.65 m"):
         proc.plan(proc.params_model(poses=4), config)
     with pytest.raises(SolveError, match=r"no reachable view of the target from 0\.70 m"):
         _scaled_to_reach(config, RobotKinematicsParams())

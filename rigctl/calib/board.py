@@ -39,3 +39,28 @@ def detect_board(image: np.ndarray, rows: int, cols: int) -> np.ndarray | None:
         if inside > ring:
             pts = pts[::-1].copy()
     return pts
+
+
+def symmetric(rows: int, cols: int) -> bool:
+    """Is the board's pattern unchanged by a half turn (rows + cols even), so that no
+    image alone tells its corner order from the reversed one (and, when square, from the
+    quarter turns)?"""
+    return (rows + cols) % 2 == 0
+
+
+def orient_to_prediction(corners: np.ndarray, predicted: np.ndarray, rows: int,
+                         cols: int) -> np.ndarray:
+    """The detected ``corners`` in the order (of those the board's symmetry allows: the
+    half turn, and the quarter turns of a square grid) that lies closest to ``predicted``
+    pixels of the same corners (e.g. from the nominal arm and hand-eye), for boards whose
+    pattern cannot tell (``symmetric``). Others are returned unchanged."""
+    if not symmetric(rows, cols):
+        return corners
+    r, c = rows - 1, cols - 1
+    grid = corners.reshape(r, c, 2)
+    options = [grid, grid[::-1, ::-1]]
+    if r == c:
+        options += [np.rot90(grid, 1), np.rot90(grid, 3)]
+    costs = [float(np.mean(np.linalg.norm(o.reshape(-1, 2) - predicted, axis=1)))
+             for o in options]
+    return options[int(np.argmin(costs))].reshape(-1, 2).copy()

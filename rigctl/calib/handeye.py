@@ -12,6 +12,7 @@
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import cv2
@@ -21,6 +22,8 @@ from scipy.spatial.transform import Rotation
 
 from rigctl.errors import SolveError
 from rigctl.geometry.transforms import R_to_rotvec, inv_T, make_T, rotation_angle, rotvec_to_R
+
+log = logging.getLogger(__name__)
 
 METHODS = {"tsai": cv2.CALIB_HAND_EYE_TSAI, "park": cv2.CALIB_HAND_EYE_PARK,
            "horaud": cv2.CALIB_HAND_EYE_HORAUD, "andreff": cv2.CALIB_HAND_EYE_ANDREFF,
@@ -68,7 +71,9 @@ def order_samples(F: list[np.ndarray]) -> list[int]:
 
 
 def closed_form(F: list[np.ndarray], C: list[np.ndarray]) -> dict[str, np.ndarray]:
-    """X by every OpenCV method (``calibrateHandEye``), on ordered samples."""
+    """X by every OpenCV method (``calibrateHandEye``), on ordered samples. A method that
+    fails on these motions (OpenCV raises, e.g. "Rotation normalization issue" from Park
+    on a UR3e's near-parallel rotation axes, or returns NaN) is left out."""
     idx = order_samples(F)
     R_g2b = [F[i][:3, :3] for i in idx]
     t_g2b = [F[i][:3, 3] for i in idx]
@@ -76,13 +81,25 @@ def closed_form(F: list[np.ndarray], C: list[np.ndarray]) -> dict[str, np.ndarra
     t_t2c = [C[i][:3, 3] for i in idx]
     out = {}
     for name, method in METHODS.items():
-        R, t = cv2.calibrateHandEye(R_g2b, t_g2b, R_t2c, t_t2c, method=method)
-        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+        try:
+            R, t = cv2.calibrateHandEye(R_g2b, t_g2b, R_t2c, t_t2c, method=method)
+        except cv2.error as exc:
+            log.warning("hand-eye: %s failed: %s", name, str(exc).strip().splitlines()[-1])
+            continue
+        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))) or \
+                abs(np.linalg.det(R) - 1.0) > 1e-3:
+            log.warning("hand-eye: %s gave no rotation (NaN or det %.3f)", name,
+                        float(np.linalg.det(R)) if np.all(np.isfinite(R)) else float("nan"))
             continue
         out[name] = make_T(R, t.ravel())
     if not out:
         raise SolveError("hand-eye: every closed-form method failed (degenerate motions)")
     return out
+
+
+def best_closed_form(closed: dict[str, np.ndarray]) -> np.ndarray:
+    """The start for the refinement: Park's X when it succeeded, else the first that did."""
+    return closed.get("park", next(iter(closed.values())))
 
 
 def average_W(F, C, X) -> np.ndarray:

@@ -125,7 +125,8 @@ def solve_robot(views: list[BoardView], nominal: KinematicModel, obj: np.ndarray
     with stage("hand-eye (nominal arm)"):
         F = [nominal.fk(v.q) for v in train]
         closed = handeye.closed_form(F, meas.C)
-        he = handeye.refine_pixels(F, meas.corners, obj, K, dist, closed["park"], C=meas.C)
+        he = handeye.refine_pixels(F, meas.corners, obj, K, dist,
+                                   handeye.best_closed_form(closed), C=meas.C)
     sweeps = _sweeps(train)
     with stage("link-by-link and axis-based"):
         lbl, lbl_error, axis, axis_error = _single_methods(sweeps, he, nominal, meas)
