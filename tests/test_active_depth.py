@@ -67,3 +67,17 @@ def test_active_camera_on_a_random_world_estimates_the_offset_from_the_axes():
     assert row["focal_pct"] < 0.1 and row["centre_px"] < 1.5
     assert all(abs(z) < 3 for z in row["z"].values()), row["z"]
     assert row["scene_depth"]["contours_measured"] >= 6
+
+
+def test_a_contour_followed_to_the_wrong_edge_is_dropped_from_the_depths():
+    rng = np.random.default_rng(5)
+    depth = rng.uniform(0.5, 4.0, 8)
+    points = np.c_[rng.uniform(-0.3, 0.3, (8, 2)) * depth[:, None], depth]
+    move = np.array([0.01, 0.0, 0.0])
+    before = _project(points, np.zeros(3))
+    shifts = _project(points, -move) - before
+    shifts[3] *= -1.0  # tracked the wrong way
+    fit = fit_depths(before, shifts, 0.01, 8, np.arange(8))
+    assert np.isnan(fit.inv_depth[3])
+    others = np.arange(8) != 3
+    assert np.allclose(fit.inv_depth[others], 1 / depth[others], rtol=1e-6)

@@ -109,7 +109,13 @@ def fit_depths(centres: np.ndarray, shifts: np.ndarray, baseline_m: float,
     start = np.r_[np.arctan2(mean_dir[1], mean_dir[0]), 0.0, rho0]
     fit = least_squares(residuals, start, loss="soft_l1", f_scale=1e-3, xtol=1e-12,
                         ftol=1e-12, gtol=1e-12)
-    if not fit.success or np.any(fit.x[2:] <= 0):
+    behind = fit.x[2:] <= 0
+    if fit.success and behind.any() and (~behind).sum() >= MIN_CONTOURS:
+        # a contour that moved against the others was followed to the wrong edge: fit
+        # again without it
+        keep = ~behind
+        return fit_depths(centres[keep], shifts[keep], baseline_m, n_contours, ids[keep])
+    if not fit.success or behind.any():
         raise SolveError("scene depth: the contours' shifts under the arm's move do not fit "
                          "one camera translation (a contour moved against the others)")
     inv_depth = np.full(n_contours, np.nan)

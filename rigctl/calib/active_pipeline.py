@@ -292,11 +292,12 @@ def _parallax_report(refined: RefineResult, depths: SceneDepths | None,
     """What the result says about the centre of projection off the head's axes."""
     names = ("s_x", "s_y", "s_z")
     if depths is None:
+        cause = "no arm move captured" if settings.shift_m <= 0 else \
+            "the arm's move gave none"
         return {"estimated": False,
-                "why": "no scene depths (no arm move captured): the parallax s = o / depth "
-                       "is not identifiable from rotations and enters the sigma as a "
-                       f"consider term ({settings.nodal_offset_mm} mm at "
-                       f"{settings.scene_depth_m} m)"}
+                "why": f"no scene depths ({cause}): the parallax s = o / depth is not "
+                       "identifiable from rotations and enters the sigma as a consider term "
+                       f"({settings.nodal_offset_mm} mm at {settings.scene_depth_m} m)"}
     return {"estimated": True,
             "centre_offset_mm": (1000 * refined.parallax).tolist(),
             "sigma_mm": [1000 * refined.sigma[n] for n in names]}
