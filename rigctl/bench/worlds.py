@@ -252,8 +252,9 @@ def plot(rows: list[dict], path: Path) -> str:
     ax.set_ylabel("solve time (s)")
     ax = axes[1][2]
     seeds = [r["seed"] for r in rows]
-    ax.bar(range(len(rows)), [r["procedures"].get("robot-kinematics", {})
-                              .get("heldout_mm_after", math.nan) for r in rows])
+    heldout = [r["procedures"].get("robot-kinematics", {}).get("heldout_mm_after")
+               for r in rows]
+    ax.bar(range(len(rows)), [math.nan if v is None else v for v in heldout])
     ax.set_xticks(range(len(rows)), [str(s) for s in seeds])
     ax.set_xlabel("world seed")
     ax.set_ylabel("held-out camera position RMS (mm)")
