@@ -33,15 +33,21 @@ POSES_DEG = {"ref": (0, 0, 0), "pan+": (3, 0, 0), "pan-": (-3, 0, 0), "tilt+": (
 KEYS = ("fx", "fy", "cx", "cy")
 
 
+def _delivered(image: np.ndarray, quality: int) -> np.ndarray:
+    """A rendered image as the stand-in camera delivers it: JPEG at the world's quality,
+    decoded to grey."""
+    _, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, quality])
+    return cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
+
+
 def render_views(world: World, poses_deg: dict) -> tuple[dict, dict]:
     """What the stand-in camera would deliver at each head pose (arm at home)."""
     images, angles = {}, {}
     quality = world.spec.camera.jpeg_quality
     for k, (label, deg) in enumerate(poses_deg.items()):
         a = tuple(math.radians(v) for v in deg)
-        img = world.render(world.T_base_cam(world.home_q, a), frame_index=k)
-        _, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, quality])
-        images[label] = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
+        images[label] = _delivered(world.render(world.T_base_cam(world.home_q, a),
+                                                frame_index=k), quality)
         angles[label] = a
     return images, angles
 
@@ -56,8 +62,7 @@ def render_shift(world: World, shift_m: float) -> tuple:
     q = camera_shift_joints(nominal_ur(world.spec.arm.model), world.home_q, T_flange_cam,
                             shift_m)
     img = world.render(world.T_base_cam(q, (0.0, 0.0, 0.0)), frame_index=99)
-    _, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, world.spec.camera.jpeg_quality])
-    return cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE), (0.0, 0.0, 0.0)
+    return _delivered(img, world.spec.camera.jpeg_quality), (0.0, 0.0, 0.0)
 
 
 def world_trial(args) -> dict:

@@ -266,17 +266,16 @@ def _distortion_terms(settings: ActiveSettings, depths: SceneDepths | None) -> i
 def _scene_depths(tr: _Tracker, K: dict | RefineResult, baseline_m: float) -> SceneDepths:
     """Each contour's inverse depth from its shift in the SHIFT capture (``active_depth``),
     in image coordinates normalised and undistorted with ``K``."""
-    f = max(K.fx, K.fy) if isinstance(K, RefineResult) else max(K["fx"], K["fy"])
-    window = min(f * baseline_m / NEAREST_SCENE_M + 8.0, 96.0)
-    tr.matches[SHIFT] = [track_by_prediction(c, tr.emaps[SHIFT], lambda pts: pts,
-                                             window=window) for c in tr.contours]
-    ids = [i for i, m in enumerate(tr.matches[SHIFT]) if m.ok]
-    tr.report["motions"][SHIFT] = {"tracked": len(ids), "window_px": window}
     if isinstance(K, RefineResult):
         fx, fy, cx, cy = K.fx, K.fy, K.cx, K.cy
         k = np.array([K.k1, K.k2, K.p1, K.p2, K.k3])
     else:
         fx, fy, cx, cy, k = K["fx"], K["fy"], K["cx"], K["cy"], np.zeros(5)
+    window = min(max(fx, fy) * baseline_m / NEAREST_SCENE_M + 8.0, 96.0)
+    tr.matches[SHIFT] = [track_by_prediction(c, tr.emaps[SHIFT], lambda pts: pts,
+                                             window=window) for c in tr.contours]
+    ids = [i for i, m in enumerate(tr.matches[SHIFT]) if m.ok]
+    tr.report["motions"][SHIFT] = {"tracked": len(ids), "window_px": window}
     centres = np.array([tr.contours[i].points.mean(axis=0) for i in ids]).reshape(-1, 2)
     moved = centres + np.array([
         contour_shift(tr.contours[i].points, tr.matches[SHIFT][i].points,
