@@ -38,7 +38,43 @@ def detect_board(image: np.ndarray, rows: int, cols: int) -> np.ndarray | None:
         ring = float(np.mean(gray))
         if inside > ring:
             pts = pts[::-1].copy()
+    if not squares_alternate(gray, pts, rows, cols):
+        return None
     return pts
+
+
+def squares_alternate(gray: np.ndarray, pts: np.ndarray, rows: int, cols: int) -> bool:
+    """Do the board's squares, where the detected inner corners put them, alternate in
+    colour (square (0, 0) black), the outer ring included? A grid found one column off
+    (its outer nodes on the white margin, which ``findChessboardCornersSB`` returned on
+    an unseen random world) puts white margin where a black border square should be; its
+    pose is one square off and would pull a calibration by 200 px. Squares whose centre
+    lies outside the image are not judged."""
+    grid = np.array([[j + 1.0, i + 1.0] for i in range(rows - 1) for j in range(cols - 1)])
+    H, _ = cv2.findHomography(grid, pts)
+    if H is None:
+        return False
+    height, width = gray.shape[:2]
+    dark, light = [], []
+    for r in range(rows):
+        for s in range(cols):
+            cell = np.array([[s + u, r + v] for u, v in ((.25, .25), (.75, .25), (.75, .75),
+                                                          (.25, .75))])
+            quad = cv2.perspectiveTransform(cell[None], H)[0]
+            if (quad.min() < 0 or np.any(quad[:, 0] > width - 1)
+                    or np.any(quad[:, 1] > height - 1)):
+                continue
+            corners = np.round(quad).astype(np.int32)
+            x, y, w, h = cv2.boundingRect(corners)
+            mask = np.zeros((h, w), np.uint8)
+            cv2.fillConvexPoly(mask, corners - [x, y], 255)
+            if not mask.any():
+                continue
+            mean = cv2.mean(gray[y:y + h, x:x + w], mask)[0]
+            (dark if (r + s) % 2 == 0 else light).append(float(mean))
+    if not dark or not light:
+        return True
+    return max(dark) < min(light)
 
 
 def symmetric(rows: int, cols: int) -> bool:
