@@ -10,6 +10,7 @@ import dynamixel_sdk as sdk
 import pytest
 
 from drivers.dynamixel import DynamixelHead, TimedPortHandler
+from mocks.sim import STAND_IN_TIMING
 from rigctl.config import load_rig, parse_rig
 from rigctl.errors import DeviceError, ProtocolError
 from rigctl.records import RunDirectory
@@ -40,9 +41,11 @@ def port(bus):
 
 
 def head_config(link: str, **extra):
+    """A head on the stand-in's bus, with the timing `sim up` writes for stand-in
+    processes (a descheduled stand-in answers late; the SDK's ~34 ms suits servos)."""
     text = f"devices:\n  head:\n    port: {link}\n    speed_cap_dps: 120\n" \
            f"    accel_cap_dps2: 600\n    park: {{policy: hold}}\n"
-    for key, value in extra.items():
+    for key, value in {**STAND_IN_TIMING["head"], **extra}.items():
         text += f"    {key}: {value}\n"
     return parse_rig(text).devices.head
 

@@ -6,12 +6,16 @@ from __future__ import annotations
 import math
 import subprocess
 import sys
+import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from drivers.dynamixel import DynamixelHead
 from drivers.ur import URArm
+from rigctl.config import load_rig
+from rigctl.runner import Runner
 from tests.mockproc import ROOT, control
 from tests.test_dynamixel import bus, head_config  # noqa: F401 (the bus fixture)
 from tests.test_ur import HOME, arm_config, arm_proc  # noqa: F401 (the arm fixture)
@@ -71,3 +75,51 @@ def test_rigctl_arm_unlock_clears_a_protective_stop(arm_proc, tmp_path):  # noqa
     assert done.returncode == 0, done.stderr
     assert "protective stop unlocked (Safetystatus: NORMAL)" in done.stderr
     assert control(arm_proc.ready["control"], {"cmd": "dump"})["safety_mode"] == 1
+
+
+def _arm_rig(tmp_path, host) -> Path:
+    rig = tmp_path / "rig.yaml"
+    rig.write_text(f"name: ur-rig\nrecords: {{directory: {tmp_path / 'records'}}}\n"
+                   f"devices:\n  arm: {{host: {host}, speed_cap_dps: 15, accel_cap_dps2: 60,"
+                   " stream_timeout_s: 5, park: {policy: home}}\n")
+    return rig
+
+
+def _sweep_in_thread(runner: Runner) -> tuple[threading.Thread, dict]:
+    out: dict = {}
+    thread = threading.Thread(target=lambda: out.update(o=runner.run(
+        "arm-sweep", {"joints": [6], "offsets_deg": [-40, 40], "settle_s": 0.0})))
+    thread.start()
+    return thread, out
+
+
+def test_an_operator_abort_stops_the_arm_mid_move_and_parks_it_home(arm_proc, tmp_path):  # noqa: F811
+    """Through the runner and the real ur_rtde driver: abort while joint 6 turns; the run
+    is recorded aborted and the arm's park policy (home) brings it back."""
+    runner = Runner(load_rig(_arm_rig(tmp_path, arm_proc.ready["host"])), show_progress=False)
+    thread, out = _sweep_in_thread(runner)
+    dump = lambda: control(arm_proc.ready["control"], {"cmd": "dump"})  # noqa: E731
+    wait_until(lambda: abs(dump()["q"][5] - HOME[5]) > math.radians(3), what="joint 6 moving")
+    runner.abort("operator pressed abort")
+    thread.join(timeout=120)
+    assert not thread.is_alive()
+    outcome = out["o"]
+    assert outcome.status == "aborted" and outcome.reason == "operator pressed abort"
+    assert np.allclose(dump()["q"], HOME, atol=1e-3)  # parked home on close
+
+
+def test_a_protective_stop_mid_run_fails_it_and_nothing_moves_after(arm_proc, tmp_path):  # noqa: F811
+    """A fault (protective stop) while the runner moves the arm: the run fails naming it,
+    and the park policy does not move a protective-stopped arm."""
+    runner = Runner(load_rig(_arm_rig(tmp_path, arm_proc.ready["host"])), show_progress=False)
+    thread, out = _sweep_in_thread(runner)
+    dump = lambda: control(arm_proc.ready["control"], {"cmd": "dump"})  # noqa: E731
+    wait_until(lambda: abs(dump()["q"][5] - HOME[5]) > math.radians(3), what="joint 6 moving")
+    control(arm_proc.ready["control"], {"cmd": "protective_stop"})
+    thread.join(timeout=120)
+    assert not thread.is_alive()
+    outcome = out["o"]
+    assert outcome.status in ("failed", "aborted") and "protective" in outcome.reason.lower()
+    stopped_at = dump()["q"][5]
+    assert abs(stopped_at - HOME[5]) > math.radians(3)  # not parked home
+    assert dump()["q"][5] == pytest.approx(stopped_at, abs=1e-6)

@@ -57,7 +57,9 @@ def position_z(result: dict, config, world) -> list[float]:
                                   np.array(result["T_flange_cam"]),
                                   np.array(result["T_base_target"]), names,
                                   np.array(cov["matrix"]), qs)
-    return (_position_errors(result, world, qs) / sigma).ravel().tolist()
+    error, sigma = _position_errors(result, world, qs).ravel(), np.asarray(sigma).ravel()
+    usable = np.isfinite(error) & np.isfinite(sigma) & (sigma > 0)  # no zero-sigma axis
+    return (error[usable] / sigma[usable]).tolist()
 
 
 def intrinsics_errors(result: dict, truth: dict) -> dict:
