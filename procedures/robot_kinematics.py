@@ -198,7 +198,9 @@ class RobotKinematics(Procedure):
             _plot(ctx, sol.ref, sol.meas)
         return {**_export(sol, intr), "arm_model": ctx.config.devices.arm.model,
                 "intrinsics_check": check, "summary": _summary(sol),
-                "lost_views": [o["label"] for o in obs if not o["found"]]}
+                "lost_views": [o["label"] for o in obs if not o["found"]],
+                # training views the refined model missed by far, left out (label: RMS px)
+                "rejected_views": sol.rejected_views}
 
 
 def _mm(errors: dict | None) -> float | None:

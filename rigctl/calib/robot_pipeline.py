@@ -9,6 +9,9 @@ Stages (thesis 4.3, generalised; ``rigctl.calib.robot``):
 3. axis-based: each swept joint's axis line in the target frame, no X;
 4. the joint refinement (4.11) of the minimal parameter set over every training view,
    from the best of those starts, and plain D-H's Jacobian there (its rank deficiency);
+   a training view that the refined model misses by far more than the others (a board
+   found one square off, a wrong correspondence) is left out and stages 1-4 run again
+   without it (``outlier_views``);
 5. the camera free as well (``refine_with_camera``), the intrinsics in use as a prior;
 6. held-out errors of every model.
 """
@@ -27,6 +30,13 @@ from rigctl.geometry.kinematics import KinematicModel
 from rigctl.timing import stage_timer
 
 MIN_TRAINING_VIEWS = 8
+# A training view is an outlier when its corners' RMS residual exceeds both this many
+# times the median view's and OUTLIER_MIN_PX. At a correct solution views sit at the
+# corner noise, ~0.1-0.3 px. A view with wrong corners pulls the solve and spreads its
+# error over the others: a board found one square off left 206 px against a median of
+# 6 px (unseen world 4015), a synthetic one 47 px against 5 px (tests/test_robot_math.py).
+OUTLIER_FACTOR = 5.0
+OUTLIER_MIN_PX = 3.0
 
 
 @dataclass
@@ -62,6 +72,7 @@ class RobotSolution:
     timings_s: dict[str, float] = field(default_factory=dict)
     camera_note: str | None = None  # why the camera stayed held, when it was to be free
     views: list[BoardView] = field(default_factory=list)
+    rejected_views: dict[str, float] = field(default_factory=dict)  # label: RMS px
 
 
 def _sweeps(train: list[BoardView]) -> dict[int, robot.Sweep]:
@@ -108,11 +119,23 @@ def _single_methods(sweeps, he, nominal, meas):
     return lbl, lbl_error, axis, axis_error
 
 
+def outlier_views(ref: robot.RefineResult, meas: robot.Measurements,
+                  labels: list[str]) -> dict[str, float]:
+    """Training views (label: RMS px) whose corner residual at the refined model exceeds
+    ``OUTLIER_FACTOR`` times the median view's and ``OUTLIER_MIN_PX``."""
+    r = robot.residuals(ref.model, ref.X, ref.W, meas).reshape(len(labels), -1, 2)
+    per_view = np.sqrt(np.mean(np.sum(r ** 2, axis=2), axis=1))
+    limit = max(OUTLIER_FACTOR * float(np.median(per_view)), OUTLIER_MIN_PX)
+    return {label: float(e) for label, e in zip(labels, per_view, strict=True) if e > limit}
+
+
 def solve_robot(views: list[BoardView], nominal: KinematicModel, obj: np.ndarray,
                 K: np.ndarray, dist: np.ndarray, prior_sigma: dict[str, float] | None,
-                refine_camera: bool = True) -> RobotSolution:
+                refine_camera: bool = True, reject_outliers: bool = True) -> RobotSolution:
     """Stages 1-6 above on the board views. ``prior_sigma``: 1-sigma of the intrinsics
-    ``K`` (their prior weight when ``refine_camera``)."""
+    ``K`` (their prior weight when ``refine_camera``). With ``reject_outliers``, training
+    views the refined model misses by far (``outlier_views``) are left out once and the
+    solve runs again; the solution lists them in ``rejected_views``."""
     timings: dict[str, float] = {}
     stage = stage_timer(timings)
     train = [v for v in views if v.kind in ("sweep", "train")]
@@ -135,6 +158,15 @@ def solve_robot(views: list[BoardView], nominal: KinematicModel, obj: np.ndarray
         W_start = handeye.average_W([start.fk(v.q) for v in train], meas.C, he.X)
         starts = [(nominal, he.X, he.W)] + ([(axis.model, axis.X, axis.W)] if axis else [])
         ref = robot.refine(start, he.X, W_start, meas, extra_starts=starts)
+    if reject_outliers:
+        rejected = outlier_views(ref, meas, [v.label for v in train])
+        if rejected and len(train) - len(rejected) >= MIN_TRAINING_VIEWS:
+            again = solve_robot([v for v in views if v.label not in rejected], nominal, obj,
+                                K, dist, prior_sigma, refine_camera, reject_outliers=False)
+            again.rejected_views = rejected
+            again.timings_s = {f"{k} (with outliers)": t for k, t in timings.items()} | \
+                again.timings_s
+            return again
     with stage("plain D-H"):  # its rank deficiency, at the refined solution
         dh_sv = robot.jacobian_singular_values(ref.model, ref.X, ref.W, meas,
                                                robot.dh_mask(nominal))
