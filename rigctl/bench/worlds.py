@@ -87,8 +87,10 @@ def _failed(row: dict) -> bool:
 
 
 def _values(rows: list[dict], proc: str, key: str) -> list[float]:
-    """``key`` of procedure ``proc`` over the worlds that have it."""
-    return [r["procedures"][proc][key] for r in rows if key in r["procedures"].get(proc, {})]
+    """``key`` of procedure ``proc`` over the worlds that have it (a run without held-out
+    views has None there, and is left out: it is no number)."""
+    return [r["procedures"][proc][key] for r in rows
+            if r["procedures"].get(proc, {}).get(key) is not None]
 
 
 LAST_LINE = re.compile(r"run (?P<run>\S+) (?P<status>succeeded|failed|aborted)(: (?P<reason>.*?))?"
