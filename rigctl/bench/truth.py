@@ -74,15 +74,16 @@ def intrinsics_errors(result: dict, truth: dict) -> dict:
     }
 
 
-def link_truth(truth_links: list[dict], key: str) -> float:
-    """The true value of an identified link parameter ``linkN.field``, in the gauge the
-    minimal parameter set uses: offsets along the parallel joints 2-4 cannot be told apart,
-    so ``link4.d`` carries the sum d2 + d3 + d4."""
+def identified_value(links: list[dict], key: str) -> float:
+    """The value of an identified link parameter ``linkN.field`` in ``links`` (the
+    truth's, or an estimate's), in the gauge the minimal parameter set uses: offsets
+    along the parallel joints 2-4 cannot be told apart, so ``link4.d`` is the sum
+    d2 + d3 + d4."""
     link, field = key.split(".")
     i = int(link.removeprefix("link")) - 1
     if (i, field) == (3, "d"):
-        return sum(truth_links[j]["d"] for j in (1, 2, 3))
-    return truth_links[i][field]
+        return sum(links[j]["d"] for j in (1, 2, 3))
+    return links[i][field]
 
 
 def link_z(result: dict, truth: dict) -> dict[str, float]:
@@ -94,7 +95,8 @@ def link_z(result: dict, truth: dict) -> dict[str, float]:
     for key, s in sigma.items():
         if not key.startswith("link") or s <= 0:
             continue
-        link, field = key.split(".")
-        est = result["links"][int(link.removeprefix("link")) - 1][field]
-        out[key] = (est - link_truth(truth["arm"]["links"], key)) / s
+        # the estimate in the same gauge: d2 and d3 stay where the start put them (not
+        # identified), so link4.d is compared as the sum d2 + d3 + d4 on both sides
+        out[key] = (identified_value(result["links"], key)
+                    - identified_value(truth["arm"]["links"], key)) / s
     return out

@@ -1,0 +1,26 @@
+"""The benchmark's error / sigma of the identified link parameters compares like with
+like: offsets along the parallel joints 2-4 are one identified sum."""
+
+from __future__ import annotations
+
+import pytest
+
+from rigctl.bench.truth import identified_value, link_z
+
+
+def _links(d):
+    return [{"theta_offset": 0.0, "d": v, "a": 0.0, "alpha": 0.0, "beta": 0.0} for v in d]
+
+
+def test_d2_left_at_its_start_and_d4_carrying_the_rest_is_no_error():
+    truth = {"arm": {"links": _links([0.1807, 0.0003, -0.0001, 0.17415, 0.11985, 0.11655])}}
+    # the refinement kept link-by-link's d2 = 4 mm (not identified) and put the rest in d4
+    d4 = 0.0003 - 0.0001 + 0.17415 - 0.004
+    result = {"links": _links([0.1807, 0.004, 0.0, d4 + 0.00002, 0.11985, 0.11655]),
+              "uncertainty": {"parameters": {"link4.d": 0.00001, "link5.d": 0.00001,
+                                             "T_flange_cam.x": 0.00001}}}
+    z = link_z(result, truth)
+    assert set(z) == {"link4.d", "link5.d"}
+    assert z["link4.d"] == pytest.approx(2.0)  # the 20 um it is really off, over 10 um
+    assert z["link5.d"] == pytest.approx(0.0, abs=1e-9)
+    assert identified_value(result["links"], "link4.d") == pytest.approx(0.17437, abs=1e-12)
