@@ -45,21 +45,30 @@ def detect_board(image: np.ndarray, rows: int, cols: int) -> np.ndarray | None:
 
 def squares_alternate(gray: np.ndarray, pts: np.ndarray, rows: int, cols: int) -> bool:
     """Do the board's squares, where the detected inner corners put them, alternate in
-    colour (square (0, 0) black), the outer ring included? A grid found one column off
-    (its outer nodes on the white margin, which ``findChessboardCornersSB`` returned on
-    an unseen random world) puts white margin where a black border square should be; its
-    pose is one square off and would pull a calibration by 200 px. Squares whose centre
-    lies outside the image are not judged."""
-    grid = np.array([[j + 1.0, i + 1.0] for i in range(rows - 1) for j in range(cols - 1)])
-    H, _ = cv2.findHomography(grid, pts)
-    if H is None:
-        return False
+    colour, the outer ring of squares included? A grid found one square off (its outer
+    nodes on the white margin) puts margin where a border square should be, and its pose
+    is one square off.
+
+    Each square is sampled through a homography of the 3 x 3 inner corners nearest to
+    it, which follows lens distortion locally; squares that reach outside the image are
+    not judged. Either colouring is accepted (a square board may come back turned a
+    quarter). Every inner square must fall on its side of the midpoint between the
+    median dark and the median light square, and all but one of the outer ring (a
+    corner square shaded, or cut by the lens's edge); a grid one square off puts at least
+    two of a border column's squares on the margin."""
+    nodes = pts.reshape(rows - 1, cols - 1, 2)
     height, width = gray.shape[:2]
-    dark, light = [], []
+    inset = ((0.3, 0.3), (0.7, 0.3), (0.7, 0.7), (0.3, 0.7))
+    means, parity, ring = [], [], []
     for r in range(rows):
         for s in range(cols):
-            cell = np.array([[s + u, r + v] for u, v in ((.25, .25), (.75, .25), (.75, .75),
-                                                          (.25, .75))])
+            i0, j0 = min(max(r, 1), rows - 3), min(max(s, 1), cols - 3)  # node coordinates
+            block = [(j, i) for i in range(i0, i0 + 3) for j in range(j0, j0 + 3)]
+            H, _ = cv2.findHomography(np.array(block, float),
+                                      np.array([nodes[i - 1, j - 1] for j, i in block]))
+            if H is None:
+                return False
+            cell = np.array([[s + u, r + v] for u, v in inset])
             quad = cv2.perspectiveTransform(cell[None], H)[0]
             if (quad.min() < 0 or np.any(quad[:, 0] > width - 1)
                     or np.any(quad[:, 1] > height - 1)):
@@ -68,13 +77,20 @@ def squares_alternate(gray: np.ndarray, pts: np.ndarray, rows: int, cols: int) -
             x, y, w, h = cv2.boundingRect(corners)
             mask = np.zeros((h, w), np.uint8)
             cv2.fillConvexPoly(mask, corners - [x, y], 255)
-            if not mask.any():
-                continue
-            mean = cv2.mean(gray[y:y + h, x:x + w], mask)[0]
-            (dark if (r + s) % 2 == 0 else light).append(float(mean))
-    if not dark or not light:
-        return True
-    return max(dark) < min(light)
+            if mask.any():
+                means.append(cv2.mean(gray[y:y + h, x:x + w], mask)[0])
+                parity.append((r + s) % 2)
+                ring.append(r in (0, rows - 1) or s in (0, cols - 1))
+    means, parity, ring = np.array(means), np.array(parity), np.array(ring, bool)
+    if len(set(parity.tolist())) < 2:
+        return True  # too little of the board in the image to judge
+    for dark in (0, 1):
+        is_dark = parity == dark
+        middle = (np.median(means[is_dark]) + np.median(means[~is_dark])) / 2
+        wrong = np.where(is_dark, means >= middle, means <= middle)
+        if not np.any(wrong & ~ring) and np.sum(wrong & ring) <= 1:
+            return True
+    return False
 
 
 def symmetric(rows: int, cols: int) -> bool:
