@@ -7,6 +7,7 @@ import math
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +16,7 @@ import pytest
 from drivers.dynamixel import DynamixelHead
 from drivers.ur import URArm
 from rigctl.config import load_rig
+from rigctl.records import RunDirectory
 from rigctl.runner import Runner
 from tests.mockproc import ROOT, control
 from tests.test_dynamixel import bus, head_config  # noqa: F401 (the bus fixture)
@@ -78,19 +80,38 @@ def test_rigctl_arm_unlock_clears_a_protective_stop(arm_proc, tmp_path):  # noqa
 
 
 def _arm_rig(tmp_path, host) -> Path:
+    """A rig with the arm alone, slow (a 40 degree move takes about 3 s) and parking
+    home, its home where the stand-in starts (``HOME``)."""
     rig = tmp_path / "rig.yaml"
+    home = [round(math.degrees(v), 6) for v in HOME]
     rig.write_text(f"name: ur-rig\nrecords: {{directory: {tmp_path / 'records'}}}\n"
                    f"devices:\n  arm: {{host: {host}, speed_cap_dps: 15, accel_cap_dps2: 60,"
-                   " stream_timeout_s: 5, park: {policy: home}}\n")
+                   f" stream_timeout_s: 5, home_deg: {home}, park: {{policy: home}}}}\n")
     return rig
 
 
 def _sweep_in_thread(runner: Runner) -> tuple[threading.Thread, dict]:
+    """arm-sweep of joint 6 to -40 then +40 degrees, in a thread; ``out`` gets the
+    outcome ("o") or what the run raised ("error")."""
     out: dict = {}
-    thread = threading.Thread(target=lambda: out.update(o=runner.run(
-        "arm-sweep", {"joints": [6], "offsets_deg": [-40, 40], "settle_s": 0.0})))
+
+    def run():
+        try:
+            out["o"] = runner.run("arm-sweep", {"joints": [6], "offsets_deg": [-40, 40],
+                                                "settle_s": 0.0})
+        except BaseException as exc:  # shown by the test, not lost in the thread
+            out["error"] = exc
+
+    thread = threading.Thread(target=run, daemon=True)
     thread.start()
     return thread, out
+
+
+def _outcome(thread: threading.Thread, out: dict):
+    thread.join(timeout=120)
+    assert not thread.is_alive(), "the run did not end within 120 s of the stop"
+    assert "error" not in out, f"the run raised {out.get('error')!r}"
+    return out["o"]
 
 
 def test_an_operator_abort_stops_the_arm_mid_move_and_parks_it_home(arm_proc, tmp_path):  # noqa: F811
@@ -101,25 +122,25 @@ def test_an_operator_abort_stops_the_arm_mid_move_and_parks_it_home(arm_proc, tm
     dump = lambda: control(arm_proc.ready["control"], {"cmd": "dump"})  # noqa: E731
     wait_until(lambda: abs(dump()["q"][5] - HOME[5]) > math.radians(3), what="joint 6 moving")
     runner.abort("operator pressed abort")
-    thread.join(timeout=120)
-    assert not thread.is_alive()
-    outcome = out["o"]
+    outcome = _outcome(thread, out)
     assert outcome.status == "aborted" and outcome.reason == "operator pressed abort"
+    # stopped mid-move: the capture at -40 degrees, after the first move, never happened
+    assert RunDirectory(outcome.run_dir).captures() == []
     assert np.allclose(dump()["q"], HOME, atol=1e-3)  # parked home on close
 
 
-def test_a_protective_stop_mid_run_fails_it_and_nothing_moves_after(arm_proc, tmp_path):  # noqa: F811
-    """A fault (protective stop) while the runner moves the arm: the run fails naming it,
-    and the park policy does not move a protective-stopped arm."""
+def test_a_protective_stop_mid_run_aborts_it_and_nothing_moves_after(arm_proc, tmp_path):  # noqa: F811
+    """A fault (protective stop) while the runner moves the arm: the run is recorded
+    aborted, naming it, and the park policy does not move a protective-stopped arm."""
     runner = Runner(load_rig(_arm_rig(tmp_path, arm_proc.ready["host"])), show_progress=False)
     thread, out = _sweep_in_thread(runner)
     dump = lambda: control(arm_proc.ready["control"], {"cmd": "dump"})  # noqa: E731
     wait_until(lambda: abs(dump()["q"][5] - HOME[5]) > math.radians(3), what="joint 6 moving")
     control(arm_proc.ready["control"], {"cmd": "protective_stop"})
-    thread.join(timeout=120)
-    assert not thread.is_alive()
-    outcome = out["o"]
-    assert outcome.status in ("failed", "aborted") and "protective" in outcome.reason.lower()
+    outcome = _outcome(thread, out)
+    assert outcome.status == "aborted" and "protective stop" in outcome.reason.lower()
+    assert RunDirectory(outcome.run_dir).captures() == []
     stopped_at = dump()["q"][5]
     assert abs(stopped_at - HOME[5]) > math.radians(3)  # not parked home
-    assert dump()["q"][5] == pytest.approx(stopped_at, abs=1e-6)
+    time.sleep(1.0)  # an observation window, not a wait: nothing may move in it
+    assert dump()["q"][5] == pytest.approx(stopped_at, abs=1e-6)  # still there a second on

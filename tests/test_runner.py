@@ -98,7 +98,7 @@ def test_bad_parameter_names_the_parameter(rig_config):
         runner.run("nope", {})
 
 
-def test_second_run_on_same_rig_fails_at_once_with_holder(rig_config, tmp_path):
+def test_second_run_on_same_rig_is_refused_naming_the_holder(rig_config, tmp_path):
     # Hold the lock from another process, as a concurrent CLI run would.
     lock_dir = rig_config.records_dir() / "locks"
     code = (

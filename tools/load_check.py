@@ -49,7 +49,8 @@ def run_once(tests: list[str], extra: list[str], log_path: Path) -> tuple[int, f
     t0 = time.monotonic()
     with log_path.open("w") as log:
         proc = subprocess.Popen([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
-                                 *tests, *extra], cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
+                                 *tests, *extra], cwd=ROOT, stdout=log, stderr=subprocess.STDOUT,
+                                start_new_session=True)  # its workers and stand-ins: one group
         try:
             code = proc.wait()
         except BaseException:
@@ -57,7 +58,7 @@ def run_once(tests: list[str], extra: list[str], log_path: Path) -> tuple[int, f
             try:
                 proc.wait(timeout=60)
             except subprocess.TimeoutExpired:
-                proc.kill()
+                os.killpg(proc.pid, signal.SIGKILL)
                 proc.wait(timeout=10)
             raise
     return code, time.monotonic() - t0

@@ -119,14 +119,14 @@ def _single_methods(sweeps, he, nominal, meas):
     return lbl, lbl_error, axis, axis_error
 
 
-def outlier_views(ref: robot.RefineResult, meas: robot.Measurements,
-                  labels: list[str]) -> dict[str, float]:
-    """Training views (label: RMS px) whose corner residual at the refined model exceeds
-    ``OUTLIER_FACTOR`` times the median view's and ``OUTLIER_MIN_PX``."""
-    r = robot.residuals(ref.model, ref.X, ref.W, meas).reshape(len(labels), -1, 2)
+def outlier_views(ref: robot.RefineResult, meas: robot.Measurements) -> dict[int, float]:
+    """Training views (index into the measurements: RMS px) whose corner residual at the
+    refined model exceeds ``OUTLIER_FACTOR`` times the median view's and
+    ``OUTLIER_MIN_PX``."""
+    r = robot.residuals(ref.model, ref.X, ref.W, meas).reshape(len(meas.q), -1, 2)
     per_view = np.sqrt(np.mean(np.sum(r ** 2, axis=2), axis=1))
     limit = max(OUTLIER_FACTOR * float(np.median(per_view)), OUTLIER_MIN_PX)
-    return {label: float(e) for label, e in zip(labels, per_view, strict=True) if e > limit}
+    return {k: float(e) for k, e in enumerate(per_view) if e > limit}
 
 
 def solve_robot(views: list[BoardView], nominal: KinematicModel, obj: np.ndarray,
@@ -159,11 +159,12 @@ def solve_robot(views: list[BoardView], nominal: KinematicModel, obj: np.ndarray
         starts = [(nominal, he.X, he.W)] + ([(axis.model, axis.X, axis.W)] if axis else [])
         ref = robot.refine(start, he.X, W_start, meas, extra_starts=starts)
     if reject_outliers:
-        rejected = outlier_views(ref, meas, [v.label for v in train])
+        rejected = outlier_views(ref, meas)
         if rejected and len(train) - len(rejected) >= MIN_TRAINING_VIEWS:
-            again = solve_robot([v for v in views if v.label not in rejected], nominal, obj,
+            dropped = {id(train[k]) for k in rejected}
+            again = solve_robot([v for v in views if id(v) not in dropped], nominal, obj,
                                 K, dist, prior_sigma, refine_camera, reject_outliers=False)
-            again.rejected_views = rejected
+            again.rejected_views = {train[k].label: e for k, e in rejected.items()}
             again.timings_s = {f"{k} (with outliers)": t for k, t in timings.items()} | \
                 again.timings_s
             return again
