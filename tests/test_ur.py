@@ -100,7 +100,10 @@ def test_movej_lands_within_1e4_rad(clients):
     ctrl, receive = clients
     target = HOME + np.radians([20, -10, 15, 5, -12, 30])
     assert ctrl.moveJ(list(target), 1.05, 1.4)
-    assert np.max(np.abs(np.array(receive.getActualQ()) - target)) < 1e-4
+    # the receive interface is its own stream: on a busy host its last sample may still be
+    # from before the move ended (seen in the load check), so wait for it, then compare
+    wait_until(lambda: np.max(np.abs(np.array(receive.getActualQ()) - target)) < 1e-4,
+               what="the received joints at the moveJ target")
 
 
 def test_movel_lands_on_pose_and_tcp_agrees_with_fk(clients):
@@ -110,6 +113,10 @@ def test_movel_lands_on_pose_and_tcp_agrees_with_fk(clients):
     goal[0] += 0.05
     goal[2] -= 0.04
     assert ctrl.moveL(goal, 0.2, 1.0)
+    # the received pose may lag the move's end on a busy host (0.2 mm in one load-check
+    # run); it must reach the goal, and stay there
+    wait_until(lambda: np.allclose(receive.getActualTCPPose()[:3], goal[:3], atol=1e-6),
+               what="the received TCP pose at the moveL goal")
     pose = receive.getActualTCPPose()
     assert np.allclose(pose[:3], goal[:3], atol=1e-6)
     T = ur5e_fk(receive.getActualQ())
