@@ -59,13 +59,16 @@ def squares_alternate(gray: np.ndarray, pts: np.ndarray, rows: int, cols: int) -
     nodes = pts.reshape(rows - 1, cols - 1, 2)
     height, width = gray.shape[:2]
     inset = ((0.3, 0.3), (0.7, 0.3), (0.7, 0.7), (0.3, 0.7))
+    homographies: dict[tuple[int, int], np.ndarray | None] = {}  # one per 3 x 3 block
     means, parity, ring = [], [], []
     for r in range(rows):
         for s in range(cols):
             i0, j0 = min(max(r, 1), rows - 3), min(max(s, 1), cols - 3)  # node coordinates
-            block = [(j, i) for i in range(i0, i0 + 3) for j in range(j0, j0 + 3)]
-            H, _ = cv2.findHomography(np.array(block, float),
-                                      np.array([nodes[i - 1, j - 1] for j, i in block]))
+            if (i0, j0) not in homographies:
+                block = [(j, i) for i in range(i0, i0 + 3) for j in range(j0, j0 + 3)]
+                homographies[i0, j0] = cv2.findHomography(
+                    np.array(block, float), np.array([nodes[i - 1, j - 1] for j, i in block]))[0]
+            H = homographies[i0, j0]
             if H is None:
                 return False
             cell = np.array([[s + u, r + v] for u, v in inset])
