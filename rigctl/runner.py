@@ -57,6 +57,7 @@ from procedures.base import (
     Step,
 )
 from rigctl import __version__
+from rigctl.calib.blas_threads import one_blas_thread
 from rigctl.config import HEAD_AXES, RigConfig, parse_rig
 from rigctl.errors import AbortedError, ConfigError, RigError, SafetyError
 from rigctl.locks import RigLock
@@ -311,7 +312,8 @@ class Runner:
             self._emit(type="step", run_id=run_id, step="solve", index=len(plan.steps),
                        total=len(plan.steps))
             solve_started = time.monotonic()
-            result = procedure.solve(SolveContext(run, self.config, params, inputs))
+            with one_blas_thread():
+                result = procedure.solve(SolveContext(run, self.config, params, inputs))
             timings["solve_s"] = time.monotonic() - solve_started
             run.write_result(result)
             status = "succeeded"
@@ -531,7 +533,8 @@ def solve_recorded(run_path, index: RecordIndex | None = None,
     params = procedure.params_model.model_validate(params_doc["params"])
     inputs = run.read_json("inputs.json") if (run.path / "inputs.json").exists() else {}
     ctx = SolveContext(run, config, params, inputs)
-    result = procedure.solve(ctx)
+    with one_blas_thread():
+        result = procedure.solve(ctx)
     if timings_s is not None:
         timings_s.update(ctx.timings_s)
     run.write_result(result)

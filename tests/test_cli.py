@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import yaml
 
+from mocks.sim import STAND_IN_TIMING
 from rigctl.errors import RigError
 from rigctl.exports import export_result
 from tests.conftest import ROOT
@@ -65,11 +66,14 @@ def test_run_list_show_solve_export_against_stand_in(tmp_path):
     proc = MockProcess(["-m", "mocks.dynamixel_bus", "--link", str(link)])
     try:
         rig = tmp_path / "rig.yaml"
-        rig.write_text(f"name: cli-rig\ndevices:\n  head: {{port: {link}, speed_cap_dps: 180,"
-                       f" accel_cap_dps2: 1000}}\n")
+        # The stand-in's timing, as `sim up` writes it: the hardware default (34 ms a try)
+        # is shorter than a descheduled stand-in process on a busy host.
+        head = {"port": str(link), "speed_cap_dps": 180, "accel_cap_dps2": 1000,
+                **STAND_IN_TIMING["head"]}
+        rig.write_text(yaml.safe_dump({"name": "cli-rig", "devices": {"head": head}}))
         result = rigctl("run", "head-sweep", "--rig", str(rig), "--json",
                         "--param", "pan_deg=[-5, 5]", "--param", "tilt_deg=[0]")
-        assert result.returncode == 0, result.stderr
+        assert result.returncode == 0, result.stderr + result.stdout
         doc = json.loads(result.stdout)
         assert doc["poses"] == 2
         listed = json.loads(rigctl("runs", "list", "--rig", str(rig), "--json").stdout)

@@ -8,6 +8,7 @@ import time
 
 import dynamixel_sdk as sdk
 import pytest
+import yaml
 
 from drivers.dynamixel import DynamixelHead, TimedPortHandler
 from mocks.sim import STAND_IN_TIMING
@@ -244,9 +245,10 @@ def test_driver_reconnects_after_port_vanishes(bus, tmp_path):
 
 def test_head_sweep_procedure_runs_through_runner(bus, tmp_path):
     rig = tmp_path / "rig.yaml"
-    rig.write_text(f"name: dxl-rig\nrecords: {{directory: rec}}\ndevices:\n  head:\n"
-                   f"    port: {bus.ready['link']}\n    speed_cap_dps: 180\n"
-                   f"    accel_cap_dps2: 1000\n")
+    head = {"port": bus.ready["link"], "speed_cap_dps": 180, "accel_cap_dps2": 1000,
+            **STAND_IN_TIMING["head"]}
+    rig.write_text(yaml.safe_dump({"name": "dxl-rig", "records": {"directory": "rec"},
+                                   "devices": {"head": head}}))
     config = load_rig(rig)
     outcome = Runner(config, show_progress=False).run(
         "head-sweep", {"pan_deg": [-6, 6], "tilt_deg": [-3, 3], "settle_s": 0.0})

@@ -27,6 +27,7 @@ from rigctl.calib import active
 from rigctl.calib.active import ContourStats
 from rigctl.calib.active_depth import SceneDepths, contour_shift, fit_depths
 from rigctl.calib.active_refine import Motion, RefineResult, _undistort, refine
+from rigctl.calib.blas_threads import with_one_blas_thread
 from rigctl.calib.synthetic import intrinsics, rot_x, rot_y, rot_z
 from rigctl.errors import SolveError
 from rigctl.vision.contours import edge_map, extract_contours
@@ -302,6 +303,7 @@ def _parallax_report(refined: RefineResult, depths: SceneDepths | None,
             "sigma_mm": [1000 * refined.sigma[n] for n in names]}
 
 
+@with_one_blas_thread
 def solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, float, float]],
                  settings: ActiveSettings | None = None) -> ActiveSolution:
     """Intrinsics from images taken at known head angles (radians; labels ``ref``,

@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from rigctl.calib import handeye, robot
+from rigctl.calib.blas_threads import with_one_blas_thread
 from rigctl.calib.extrinsic import estimate_pose
 from rigctl.errors import SolveError
 from rigctl.geometry.kinematics import KinematicModel
@@ -129,6 +130,7 @@ def outlier_views(ref: robot.RefineResult, meas: robot.Measurements) -> dict[int
     return {k: float(e) for k, e in enumerate(per_view) if e > limit}
 
 
+@with_one_blas_thread
 def solve_robot(views: list[BoardView], nominal: KinematicModel, obj: np.ndarray,
                 K: np.ndarray, dist: np.ndarray, prior_sigma: dict[str, float] | None,
                 refine_camera: bool = True, reject_outliers: bool = True) -> RobotSolution:
