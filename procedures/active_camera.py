@@ -96,10 +96,10 @@ class ActiveCamera(Procedure):
         with ctx.stage("pipeline"):
             solution = solve_active(images, angles, settings)
         ctx.timings_s.update({f"pipeline: {k}": v for k, v in solution.timings_s.items()})
-        with ctx.stage("plots and exports"):
-            _plots(ctx, images, solution.contours, solution.matches, solution.refined,
-                   solution.order)
+        with ctx.stage("exports"):
             _exports(ctx, solution.result)
+        ctx.defer("plots", lambda: _plots(ctx, images, solution.contours, solution.matches,
+                                          solution.refined, solution.order))
         return solution.result
 
 

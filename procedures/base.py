@@ -8,6 +8,7 @@ was recorded, so any recorded run can be solved again offline.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
@@ -131,10 +132,29 @@ class SolveContext:
     params: Any
     inputs: dict[str, Any] = field(default_factory=dict)
     timings_s: dict[str, float] = field(default_factory=dict)  # per stage, see ``stage``
+    deferred: list[tuple[str, Callable[[], None]]] = field(default_factory=list)
 
     def stage(self, name: str):
         """Time one stage of the solve (``rigctl bench solve`` prints them)."""
         return stage_timer(self.timings_s)(name)
+
+    def defer(self, name: str, work: Callable[[], None]) -> None:
+        """Work the result does not depend on (plots): the runner does it after the
+        result is recorded, so it neither delays nor fails the calibration."""
+        self.deferred.append((name, work))
+
+    def run_deferred(self) -> list[str]:
+        """The deferred work, each timed as ``after result: NAME``; returns what failed,
+        with the reason (a plot that fails is logged, the result stands)."""
+        problems = []
+        for name, work in self.deferred:
+            try:
+                with self.stage(f"after result: {name}"):
+                    work()
+            except Exception as exc:  # any failure here is only reported
+                problems.append(f"{name}: {type(exc).__name__}: {exc}")
+        self.deferred.clear()
+        return problems
 
     def input(self, key: str) -> Any:
         """One recorded input; a run recorded without it fails with a clear error."""

@@ -194,8 +194,7 @@ class RobotKinematics(Procedure):
                                          (device.width, device.height), used)
             except (SolveError, cv2.error) as exc:
                 check = {"error": str(exc)}
-        with ctx.stage("plots"):
-            _plot(ctx, sol.ref, sol.meas)
+        ctx.defer("plots", lambda: _plot(ctx, sol.ref, sol.meas))
         return {**_export(sol, intr), "arm_model": ctx.config.devices.arm.model,
                 "intrinsics_check": check, "summary": _summary(sol),
                 "lost_views": [o["label"] for o in obs if not o["found"]],

@@ -297,6 +297,7 @@ class Runner:
                    total=len(plan.steps))
         status, reason, result = "running", None, None
         timings: dict[str, float] = {}
+        ctx = SolveContext(run, self.config, params, inputs)
         started = time.monotonic()
         try:
             self._execute(rig, procedure, plan.steps, run, run_id)
@@ -313,7 +314,7 @@ class Runner:
                        total=len(plan.steps))
             solve_started = time.monotonic()
             with one_blas_thread():
-                result = procedure.solve(SolveContext(run, self.config, params, inputs))
+                result = procedure.solve(ctx)
             timings["solve_s"] = time.monotonic() - solve_started
             run.write_result(result)
             status = "succeeded"
@@ -335,6 +336,8 @@ class Runner:
                 self._board.finish()
             self.index.update(run_id, status=status, reason=reason, ended_at=utcnow(),
                               result_summary=summarize(result) if result else None)
+            if status == "succeeded" and ctx.deferred:
+                timings["after_result_s"] = _run_deferred(ctx)
             timings["run_s"] = time.monotonic() - started
             log.info("run %s %s%s (%s)", run_id, status, f": {reason}" if reason else "",
                      ", ".join(f"{k[:-2]} {v:.1f} s" for k, v in timings.items()))
@@ -513,6 +516,17 @@ def _whoami() -> str:
         return "unknown"
 
 
+def _run_deferred(ctx: SolveContext) -> float:
+    """The solve's deferred work (plots), after its result is recorded; a failure there
+    is logged and the result stands. Returns the seconds it took."""
+    started = time.monotonic()
+    with one_blas_thread():
+        problems = ctx.run_deferred()
+    for problem in problems:
+        log.warning("after the result was recorded: %s", problem)
+    return time.monotonic() - started
+
+
 def solve_recorded(run_path, index: RecordIndex | None = None,
                    timings_s: dict[str, float] | None = None) -> dict[str, Any]:
     """Solve a recorded run again, offline, from its run directory alone.
@@ -535,9 +549,10 @@ def solve_recorded(run_path, index: RecordIndex | None = None,
     ctx = SolveContext(run, config, params, inputs)
     with one_blas_thread():
         result = procedure.solve(ctx)
+    run.write_result(result)
+    _run_deferred(ctx)
     if timings_s is not None:
         timings_s.update(ctx.timings_s)
-    run.write_result(result)
     if index is not None:
         try:
             index.get(run.run_id)

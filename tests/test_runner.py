@@ -61,6 +61,41 @@ def test_run_records_captures_index_and_result(rig_config):
     assert "close" in built["head"].calls
 
 
+def test_deferred_plots_run_after_the_result_is_recorded_and_cannot_fail_it(rig_config,
+                                                                            monkeypatch):
+    from procedures import head_sweep
+
+    seen = {}
+    solve = head_sweep.PROCEDURE.solve
+
+    def solve_with_deferred_work(ctx):
+        result = solve(ctx)
+
+        def plot():
+            seen["result_on_disk"] = (ctx.run.path / "result.json").exists()
+            seen["indexed"] = RecordIndex(rig_config.database_url()).get(
+                ctx.run.run_id)["status"]
+
+        def broken_plot():
+            raise ValueError("no such colormap")
+
+        ctx.defer("plot", plot)
+        ctx.defer("broken plot", broken_plot)
+        return result
+
+    monkeypatch.setattr(head_sweep.PROCEDURE, "solve", solve_with_deferred_work)
+    runner, _ = make_runner(rig_config)
+    outcome = runner.run("head-sweep", SMALL)
+    assert outcome.status == "succeeded", outcome.reason
+    assert seen == {"result_on_disk": True, "indexed": "succeeded"}
+    assert "after_result_s" in outcome.timings_s
+    log_text = (RunDirectory(outcome.run_dir).path / "run.log").read_text()
+    assert "after the result was recorded: broken plot: ValueError: no such colormap" \
+        in log_text
+    row = RecordIndex(rig_config.database_url()).get(outcome.run_id)
+    assert row["status"] == "succeeded" and row["result_summary"]["poses"] == 4
+
+
 def test_resolve_offline_keeps_previous_result(rig_config):
     runner, _ = make_runner(rig_config)
     outcome = runner.run("head-sweep", SMALL)

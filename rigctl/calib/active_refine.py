@@ -105,30 +105,70 @@ def _radial(r2, k):
 
 def _distort(xn, k):
     """OpenCV's radial (k1, k2) and tangential (p1, p2) model on normalised points."""
-    x, y = xn[:, :1], xn[:, 1:2]
+    x, y = xn[:, 0], xn[:, 1]
     r2 = x * x + y * y
     radial = _radial(r2, k)
     dx = 2 * k[2] * x * y + k[3] * (r2 + 2 * x * x)
     dy = k[2] * (r2 + 2 * y * y) + 2 * k[3] * x * y
-    return np.c_[x * radial + dx, y * radial + dy]
+    return np.stack([x * radial + dx, y * radial + dy], axis=1)
 
 
 def _undistort(pts, fx, fy, cx, cy, k):
-    xn = np.c_[(pts[:, 0] - cx) / fx, (pts[:, 1] - cy) / fy]
+    """Normalised, undistorted coordinates of pixels ``pts`` (N, 2): the inverse of
+    ``_distort`` by fixed-point iteration (OpenCV's ``undistortPoints`` scheme)."""
+    x0 = (pts[:, 0] - cx) / fx
+    y0 = (pts[:, 1] - cy) / fy
     if not np.any(k):
-        return xn
-    und = xn.copy()
+        return np.stack([x0, y0], axis=1)
+    k1, k2, p1, p2, k3 = (float(v) for v in k)
+    x, y = x0.copy(), y0.copy()
     for _ in range(10):  # fixed point of xn = und * radial(und) + tangential(und)
-        x, y = und[:, :1], und[:, 1:2]
         r2 = x * x + y * y
-        tangential = np.c_[2 * k[2] * x * y + k[3] * (r2 + 2 * x * x),
-                           k[2] * (r2 + 2 * y * y) + 2 * k[3] * x * y]
-        step = (xn - tangential) / _radial(r2, k)
-        converged = np.max(np.abs(step - und)) < UNDISTORT_TOL
-        und = step
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        nx = (x0 - (2 * p1 * x * y + p2 * (r2 + 2 * x * x))) / radial
+        ny = (y0 - (p1 * (r2 + 2 * y * y) + 2 * p2 * x * y)) / radial
+        converged = max(np.max(np.abs(nx - x)), np.max(np.abs(ny - y))) < UNDISTORT_TOL
+        x, y = nx, ny
         if converged:
             break
-    return und
+    return np.stack([x, y], axis=1)
+
+
+class PredictionCache:
+    """The last few undistortions of one point set (by intrinsics) and rotations of one
+    list of motions (by mounting and roll axis). A finite-difference Jacobian perturbs
+    one parameter at a time: the columns of the rotation and parallax parameters reuse
+    the unperturbed undistortion, those of K and the distortion its rotations."""
+
+    def __init__(self, size: int = 8) -> None:
+        self.size = size
+        self._undistorted: dict[tuple, np.ndarray] = {}
+        self._rotations: dict[tuple, list[np.ndarray]] = {}
+
+    def _lookup(self, entries: dict, key: tuple, make):
+        hit = entries.pop(key, None)
+        if hit is None:
+            hit = make()
+            if len(entries) >= self.size:
+                entries.pop(next(iter(entries)))
+        entries[key] = hit  # most recently used last
+        return hit
+
+    def undistort(self, pts, fx, fy, cx, cy, k) -> np.ndarray:
+        key = (float(fx), float(fy), float(cx), float(cy), *map(float, k))
+        return self._lookup(self._undistorted, key,
+                            lambda: _undistort(pts, fx, fy, cx, cy, k))
+
+    def rotations(self, motions: list[Motion], N: np.ndarray, a: np.ndarray
+                  ) -> list[np.ndarray]:
+        return self._lookup(self._rotations, (N.tobytes(), a.tobytes()),
+                            lambda: _rotations(motions, N, a))
+
+
+def _rotations(motions: list[Motion], N: np.ndarray, a: np.ndarray) -> list[np.ndarray]:
+    """Each motion's rotation of the camera rays, from its first to its second pose."""
+    return [camera_orientation(m.angles0, N, a).T @ camera_orientation(m.angles1, N, a)
+            for m in motions]
 
 
 def predict(motion: Motion, x: np.ndarray, n_dist: int) -> np.ndarray:
@@ -139,23 +179,32 @@ def predict(motion: Motion, x: np.ndarray, n_dist: int) -> np.ndarray:
 
 
 def predict_many(motions: list[Motion], x: np.ndarray, n_dist: int,
-                 refs: np.ndarray | None = None, rho: np.ndarray | None = None
-                 ) -> list[np.ndarray]:
+                 refs: np.ndarray | None = None, rho: np.ndarray | None = None,
+                 cache: PredictionCache | None = None) -> list[np.ndarray]:
     """``predict`` for several motions at once: the reference points of all of them
     (``refs``, their concatenation, if already built) are undistorted and distorted in
     one pass each; only the rotation differs per motion. With ``rho`` (each reference
     point's inverse depth, 1/m) the parallax parameters are the centre of projection's
-    offset ``o`` (m) and each point moves by its own ``s = rho o``."""
+    offset ``o`` (m) and each point moves by its own ``s = rho o``. ``cache`` (with
+    ``refs``, and always the same ``motions``): reuse undistortions and rotations."""
+    pixels = _predict_all(motions, x, n_dist, refs, rho, cache)
+    return np.split(pixels, np.cumsum([len(m.ref_points) for m in motions])[:-1])
+
+
+def _predict_all(motions, x, n_dist, refs=None, rho=None, cache=None) -> np.ndarray:
+    """``predict_many``'s pixels, concatenated over the motions."""
     fx, fy, cx, cy, N, a, s, k = _unpack(x, n_dist)
     if refs is None:
         refs = np.concatenate([m.ref_points for m in motions])
     if rho is not None:
         s = rho[:, None] * s
-    rays = np.c_[_undistort(refs, fx, fy, cx, cy, k), np.ones(len(refs))] + s
+    und = cache.undistort(refs, fx, fy, cx, cy, k) if cache is not None else \
+        _undistort(refs, fx, fy, cx, cy, k)
+    rays = np.column_stack([und, np.ones(len(refs))]) + s
     moved, start = np.empty_like(rays), 0
-    for motion in motions:
-        R = camera_orientation(motion.angles0, N, a).T @ \
-            camera_orientation(motion.angles1, N, a)
+    rotations = cache.rotations(motions, N, a) if cache is not None else \
+        _rotations(motions, N, a)
+    for motion, R in zip(motions, rotations, strict=True):
         end = start + len(motion.ref_points)
         moved[start:end] = rays[start:end] @ R - (s[start:end] if s.ndim == 2 else s)
         start = end
@@ -164,8 +213,7 @@ def predict_many(motions: list[Motion], x: np.ndarray, n_dist: int,
     xn = moved[:, :2] / np.maximum(moved[:, 2:3], 1e-3)
     if n_dist:
         xn = _distort(xn, k)
-    pixels = np.c_[fx * xn[:, 0] + cx, fy * xn[:, 1] + cy]
-    return np.split(pixels, np.cumsum([len(m.ref_points) for m in motions])[:-1])
+    return np.stack([fx * xn[:, 0] + cx, fy * xn[:, 1] + cy], axis=1)
 
 
 @dataclass
@@ -206,10 +254,44 @@ class RefineResult:
                 "outliers": self.outliers, "residuals_by_motion": self.residuals_by_motion}
 
 
-def _residuals(x, motions, n_dist, masks, associations, refs=None, rho=None):
+class CurveTargets:
+    """For motions all in curve mode, with fixed masks and associations: the kept
+    reference points' rows in the concatenated prediction, and the contour point and
+    normal each is measured against, so ``_residuals`` is one vectorised expression."""
+
+    def __init__(self, motions: list[Motion], masks, associations) -> None:
+        rows, points, normals, start = [], [], [], 0
+        for motion, mask, idx in zip(motions, masks, associations, strict=True):
+            rows.append(start + np.flatnonzero(mask))
+            points.append(motion.moved_points[idx])
+            normals.append(motion.moved_normals[idx])
+            start += len(motion.ref_points)
+        self.rows = np.concatenate(rows)
+        self.points = np.concatenate(points)
+        self.normals = np.concatenate(normals)
+
+    @classmethod
+    def build(cls, motions: list[Motion], masks, associations) -> CurveTargets | None:
+        """The targets, or None when some motion has point correspondences instead."""
+        if not all(m.curve_mode for m in motions):
+            return None
+        return cls(motions, masks, associations)
+
+    def residuals(self, pixels: np.ndarray) -> np.ndarray:
+        return np.sum((pixels[self.rows] - self.points) * self.normals, axis=1)
+
+
+def _residuals(x, motions, n_dist, masks, associations, refs=None, rho=None, cache=None,
+               targets: CurveTargets | None = None):
+    """Point-to-contour distances along the contour's normal (curve mode) or point
+    differences (correspondences), motion by motion; ``targets``: the same for motions
+    all in curve mode, in one pass."""
+    if targets is not None:
+        return targets.residuals(_predict_all(motions, x, n_dist, refs, rho, cache))
     out = []
     for m, (motion, predicted) in enumerate(zip(motions, predict_many(motions, x, n_dist, refs,
-                                                                      rho), strict=True)):
+                                                                      rho, cache),
+                                                strict=True)):
         pred = predicted[masks[m]]
         if motion.curve_mode:
             idx = associations[m]
@@ -358,6 +440,7 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
                           offset_sigma_m if depth_mode else parallax_sigma)[free]
     has_prior = np.isfinite(prior)
     refs = np.concatenate([m.ref_points for m in motions])
+    cache = PredictionCache()
 
     def full(xf):
         xv = x.copy()
@@ -367,7 +450,7 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
     def associate(xv):
         out = []
         for m, (motion, predicted) in enumerate(zip(motions, predict_many(motions, xv, n_dist,
-                                                                          refs, rho),
+                                                                          refs, rho, cache),
                                                     strict=True)):
             if motion.curve_mode:
                 _, idx = motion.tree().query(predicted[masks[m]])
@@ -376,20 +459,21 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
                 out.append(None)
         return out
 
-    def fun(xf, assoc):
-        r = _residuals(full(xf), motions, n_dist, masks, assoc, refs, rho)
+    def fun(xf, assoc, targets):
+        r = _residuals(full(xf), motions, n_dist, masks, assoc, refs, rho, cache, targets)
         return np.concatenate([r, xf[has_prior] / prior[has_prior]])
 
     for _ in range(outer_iterations):
         assoc = associate(x)
-        x = full(least_squares(fun, x[free], args=(assoc,), loss="soft_l1", f_scale=1.0,
-                               x_scale="jac", max_nfev=200).x)
+        targets = CurveTargets.build(motions, masks, assoc)
+        x = full(least_squares(fun, x[free], args=(assoc, targets), loss="soft_l1",
+                               f_scale=1.0, x_scale="jac", max_nfev=200).x)
         r = _residuals(x, motions, n_dist, masks, assoc, refs, rho)
         if not _reject_outliers(r, motions, masks, outlier_sigmas):
             break
     assoc = associate(x)
-    final = least_squares(fun, x[free], args=(assoc,), loss="linear", x_scale="jac",
-                          max_nfev=100)
+    final = least_squares(fun, x[free], args=(assoc, CurveTargets.build(motions, masks, assoc)),
+                          loss="linear", x_scale="jac", max_nfev=100)
     x = full(final.x)
     r = _residuals(x, motions, n_dist, masks, assoc, refs, rho)
     if not np.all(np.isfinite(x)) or not np.all(np.isfinite(r)):

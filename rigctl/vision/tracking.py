@@ -52,14 +52,20 @@ def _distance(emap: EdgeMap) -> np.ndarray:
 def _collect(emap: EdgeMap, template: np.ndarray, radius: float = RADIUS):
     """Moved edge pixels within ``radius`` of the template points."""
     h, w = emap.edges.shape
-    mask = np.zeros((h, w), np.uint8)
     pts = np.round(template).astype(int)
     inside = (pts[:, 0] >= 0) & (pts[:, 0] < w) & (pts[:, 1] >= 0) & (pts[:, 1] < h)
-    mask[pts[inside, 1], pts[inside, 0]] = 255
+    pts = pts[inside]
+    if not len(pts):
+        return np.zeros((0, 2), int)
     r = int(np.ceil(radius))
+    # only the template's bounding box, grown by the radius, can hold a collected pixel
+    x0, y0 = max(pts[:, 0].min() - r, 0), max(pts[:, 1].min() - r, 0)
+    x1, y1 = min(pts[:, 0].max() + r + 1, w), min(pts[:, 1].max() + r + 1, h)
+    mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
+    mask[pts[:, 1] - y0, pts[:, 0] - x0] = 255
     mask = cv2.dilate(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2))
-    ys, xs = np.nonzero(mask & emap.edges)
-    return np.c_[xs, ys]
+    ys, xs = np.nonzero(mask & emap.edges[y0:y1, x0:x1])
+    return np.c_[xs + x0, ys + y0]
 
 
 def _score(dt: np.ndarray, pts: np.ndarray, cap: float = RADIUS) -> float:
