@@ -140,7 +140,8 @@ class SolveContext:
 
     def defer(self, name: str, work: Callable[[], None]) -> None:
         """Work the result does not depend on (plots): the runner does it after the
-        result is recorded, so it neither delays nor fails the calibration."""
+        result is recorded, so it does not delay the recorded result, and a failure in it
+        does not fail the calibration (the run still holds the rig until it is done)."""
         self.deferred.append((name, work))
 
     def run_deferred(self) -> list[str]:

@@ -517,11 +517,13 @@ def _whoami() -> str:
 
 
 def _run_deferred(ctx: SolveContext) -> float:
-    """The solve's deferred work (plots), after its result is recorded; a failure there
-    is logged and the result stands. Returns the seconds it took."""
+    """The solve's deferred work (plots), after its result is recorded; a failure there,
+    or a Ctrl-C, is logged and the result stands. Returns the seconds it took."""
     started = time.monotonic()
-    with one_blas_thread():
+    try:
         problems = ctx.run_deferred()
+    except KeyboardInterrupt:
+        problems = ["interrupted by Ctrl-C (plots may be missing)"]
     for problem in problems:
         log.warning("after the result was recorded: %s", problem)
     return time.monotonic() - started
@@ -550,14 +552,14 @@ def solve_recorded(run_path, index: RecordIndex | None = None,
     with one_blas_thread():
         result = procedure.solve(ctx)
     run.write_result(result)
-    _run_deferred(ctx)
-    if timings_s is not None:
-        timings_s.update(ctx.timings_s)
     if index is not None:
         try:
             index.get(run.run_id)
             index.update(run.run_id, result_summary=summarize(result))
         except RigError:
             pass  # the run is not in this index (copied from another machine)
+    _run_deferred(ctx)
+    if timings_s is not None:
+        timings_s.update(ctx.timings_s)
     return result
 

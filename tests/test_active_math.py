@@ -297,3 +297,36 @@ def test_degenerate_inputs_raise_named_solve_errors():
         active.strategy_b(st["ref"], st["tilt+"], st["pan+"], -th, th)  # wrong sign
     with pytest.raises(SolveError, match="at least two motions"):
         refine([], {"fx": 1, "fy": 1, "cx": 0, "cy": 0})
+
+
+def test_cached_and_vectorised_residuals_equal_the_plain_ones():
+    """The refinement's speed-ups (undistortion and rotation cache, one-pass curve
+    residuals) change no number: each one-parameter nudge, as a finite-difference
+    Jacobian makes, gives the plain per-motion residuals bit for bit."""
+    from rigctl.calib.active_refine import N_BASE, CurveTargets, PredictionCache, _residuals
+
+    rng = np.random.default_rng(7)
+    motions, masks, assoc = [], [], []
+    for m in range(4):
+        ref = rng.uniform([50, 40], [1230, 680], (300, 2))
+        moved = rng.uniform([50, 40], [1230, 680], (200, 2))
+        normals = rng.normal(size=(200, 2))
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        motions.append(Motion((0.0, 0.0, 0.0), (0.05 * m, -0.03, 0.1 * m), ref, moved,
+                              normals, label=f"m{m}"))
+        masks.append(rng.random(300) > 0.2)
+        assoc.append(rng.integers(0, 200, int(masks[-1].sum())))
+    refs = np.concatenate([m.ref_points for m in motions])
+    x = np.zeros(N_BASE + 5)
+    x[:4] = [900.0, 905.0, 640.0, 360.0]
+    x[4:9] = [0.01, -0.02, 0.005, 0.002, -0.001]
+    x[N_BASE:] = [-0.2, 0.05, 0.001, -0.0005, 0.01]
+    cache = PredictionCache(size=3)
+    targets = CurveTargets.build(motions, masks, assoc)
+    for rho in (None, rng.uniform(0.5, 2.0, len(refs))):
+        for j in range(len(x)):
+            nudged = x.copy()
+            nudged[j] += 1e-6 * max(1.0, abs(x[j]))
+            fast = _residuals(nudged, motions, 5, masks, assoc, refs, rho, cache, targets)
+            plain = _residuals(nudged, motions, 5, masks, assoc, refs, rho)
+            assert np.array_equal(fast, plain), f"parameter {j}"

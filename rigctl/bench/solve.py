@@ -1,7 +1,8 @@
 """``rigctl bench solve``: re-solve recorded runs and time each stage of the solve.
 
-``total_s`` is the time until the result is recorded, which the targets bound; the plots
-drawn after it are ``after_result_s``.
+``to_result_s`` is the time until the result is recorded, which the targets bound;
+``after_result_s`` the plots drawn after it; ``total_s`` both. The procedure's module is
+imported before the clock starts, as a live run imported it when it planned.
 
 Each run directory is copied to a temporary folder and solved there
 (``rigctl.runner.solve_recorded``), so the records stay as they were. Without run
@@ -57,8 +58,9 @@ def time_solve(run_dir: Path) -> dict:
     # is the time to the recorded result
     after = sum(v for k, v in stages.items() if k.startswith("after result"))
     to_result = total - after
-    return {"run": run_dir.name, "procedure": procedure, "total_s": to_result,
-            "after_result_s": after, "stages_s": stages, "target_s": target,
+    return {"run": run_dir.name, "procedure": procedure, "total_s": total,
+            "to_result_s": to_result, "after_result_s": after, "stages_s": stages,
+            "target_s": target,
             "met": None if target is None else to_result <= target}
 
 

@@ -118,7 +118,7 @@ def _undistort(pts, fx, fy, cx, cy, k):
     ``_distort`` by fixed-point iteration (OpenCV's ``undistortPoints`` scheme)."""
     x0 = (pts[:, 0] - cx) / fx
     y0 = (pts[:, 1] - cy) / fy
-    if not np.any(k):
+    if not np.any(k) or not len(pts):
         return np.stack([x0, y0], axis=1)
     k1, k2, p1, p2, k3 = (float(v) for v in k)
     x, y = x0.copy(), y0.copy()
@@ -127,7 +127,8 @@ def _undistort(pts, fx, fy, cx, cy, k):
         radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
         nx = (x0 - (2 * p1 * x * y + p2 * (r2 + 2 * x * x))) / radial
         ny = (y0 - (p1 * (r2 + 2 * y * y) + 2 * p2 * x * y)) / radial
-        converged = max(np.max(np.abs(nx - x)), np.max(np.abs(ny - y))) < UNDISTORT_TOL
+        converged = np.max(np.abs(nx - x)) < UNDISTORT_TOL and \
+            np.max(np.abs(ny - y)) < UNDISTORT_TOL
         x, y = nx, ny
         if converged:
             break
@@ -144,6 +145,8 @@ class PredictionCache:
         self.size = size
         self._undistorted: dict[tuple, np.ndarray] = {}
         self._rotations: dict[tuple, list[np.ndarray]] = {}
+        self._points: np.ndarray | None = None   # what the entries were computed for
+        self._motions: list[Motion] | None = None
 
     def _lookup(self, entries: dict, key: tuple, make):
         hit = entries.pop(key, None)
@@ -155,12 +158,18 @@ class PredictionCache:
         return hit
 
     def undistort(self, pts, fx, fy, cx, cy, k) -> np.ndarray:
+        if pts is not self._points:  # another point set: nothing cached applies
+            self._undistorted.clear()
+            self._points = pts
         key = (float(fx), float(fy), float(cx), float(cy), *map(float, k))
         return self._lookup(self._undistorted, key,
                             lambda: _undistort(pts, fx, fy, cx, cy, k))
 
     def rotations(self, motions: list[Motion], N: np.ndarray, a: np.ndarray
                   ) -> list[np.ndarray]:
+        if motions is not self._motions:
+            self._rotations.clear()
+            self._motions = motions
         return self._lookup(self._rotations, (N.tobytes(), a.tobytes()),
                             lambda: _rotations(motions, N, a))
 
