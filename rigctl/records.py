@@ -239,13 +239,20 @@ class RunDirectory:
         return self.path.name
 
     def write_capture(self, index: int, image: np.ndarray | None, meta: dict[str, Any]) -> Path:
-        """Write ``NNN.png`` (if there is an image) and its ``NNN.json`` sidecar now."""
+        """Write ``NNN.png`` (if there is an image), then its ``NNN.json`` sidecar, now.
+        Both appear whole (written aside, then renamed): a reader such as the service,
+        serving captures during the run, never sees half a file, and a capture is
+        complete once its sidecar exists."""
         import cv2
 
         stem = self.captures_dir / f"{index:03d}"
         if image is not None:
-            if not cv2.imwrite(str(stem.with_suffix(".png")), image):
-                raise RigError(f"{stem}.png: cannot write image")
+            ok, png = cv2.imencode(".png", image)
+            if not ok:
+                raise RigError(f"{stem}.png: cannot encode image")
+            tmp = stem.with_suffix(".png.tmp")
+            tmp.write_bytes(png.tobytes())
+            os.replace(tmp, stem.with_suffix(".png"))
             meta = {**meta, "image": f"{index:03d}.png"}
         write_json(stem.with_suffix(".json"), meta)
         return stem.with_suffix(".json")

@@ -470,7 +470,8 @@ def _run_routes(service: RigService, guarded: list) -> APIRouter:
                       ) -> FileResponse:
         row = _own_run(service, run_id)
         path = Path(row["run_dir"]) / "captures" / f"{n:03d}.png" if row["run_dir"] else None
-        if path is None or not path.is_file():
+        # a capture is complete once its sidecar is written (RunDirectory.write_capture)
+        if path is None or not path.is_file() or not path.with_suffix(".json").is_file():
             raise HTTPException(404, f"run {run_id} has no capture {n}")
         return FileResponse(path, media_type="image/png")
 

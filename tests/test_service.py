@@ -214,19 +214,28 @@ def test_abort_mid_run_and_cli_sees_the_rig_busy(stack):
     params = {"pan_deg": [-20, 20, -20, 20, -20, 20], "tilt_deg": [0, 5], "settle_s": 0.5,
               "image": True}
     run_id = post(stack, "/runs", {"procedure": "head-sweep", "params": params}).json()["run_id"]
-    wait_for(stack, run_id, statuses=("running",), timeout=60)
-    deadline = time.monotonic() + 30
-    while httpx.get(f"{stack.base}/runs/{run_id}/captures/0").status_code != 200:
-        assert time.monotonic() < deadline
-        time.sleep(0.2)
-    cli = subprocess.run([sys.executable, "-m", "rigctl.cli", "run", "head-sweep", "--rig",
-                          str(stack.rig)], capture_output=True, text=True, timeout=60, cwd=ROOT)
-    assert cli.returncode == 2 and f"busy, held by run {run_id}" in cli.stderr
-    assert post(stack, f"/runs/{run_id}/abort", auth=False).status_code == 401
-    assert post(stack, f"/runs/{run_id}/abort").json()["status"] == "aborting"
-    run = wait_for(stack, run_id)
-    assert run["status"] == "aborted" and "aborted via the API" in run["reason"]
-    assert httpx.get(f"{stack.base}/runs/{run_id}/captures/0").status_code == 200
+    try:
+        wait_for(stack, run_id, statuses=("running",), timeout=60)
+        deadline = time.monotonic() + 30
+        # served while the run writes its next captures: each one whole (a half-written
+        # PNG once broke this response mid-body on a busy host)
+        while (capture := httpx.get(f"{stack.base}/runs/{run_id}/captures/0")).status_code \
+                != 200:
+            assert time.monotonic() < deadline
+            time.sleep(0.2)
+        assert capture.content[:8] == b"\x89PNG\r\n\x1a\n"
+        cli = subprocess.run([sys.executable, "-m", "rigctl.cli", "run", "head-sweep", "--rig",
+                              str(stack.rig)], capture_output=True, text=True, timeout=60,
+                             cwd=ROOT)
+        assert cli.returncode == 2 and f"busy, held by run {run_id}" in cli.stderr
+        assert post(stack, f"/runs/{run_id}/abort", auth=False).status_code == 401
+        assert post(stack, f"/runs/{run_id}/abort").json()["status"] == "aborting"
+        run = wait_for(stack, run_id)
+        assert run["status"] == "aborted" and "aborted via the API" in run["reason"]
+        assert httpx.get(f"{stack.base}/runs/{run_id}/captures/0").status_code == 200
+    finally:  # a failure above must not leave the run holding the rig for the next test
+        post(stack, f"/runs/{run_id}/abort")
+        wait_for(stack, run_id)
 
 
 def test_service_run_while_cli_holds_the_rig_fails_busy(stack):
