@@ -87,7 +87,7 @@ class Stack:
             if self.server.poll() is not None:
                 raise RuntimeError(f"service exited: {self.server.stderr.read()[-2000:]}")
             try:
-                return httpx.get(self.base + "/health", timeout=2).status_code == 200
+                return get(self.base + "/health", timeout=2).status_code == 200
             except httpx.HTTPError:
                 return False
 
@@ -125,26 +125,36 @@ def stack(tmp_path_factory):
 def accepted_camera(stack):
     """An accepted active-camera calibration on the ideal world (run here unless an earlier
     test already accepted one), so that drift has something to compare with."""
-    latest = httpx.get(stack.base + "/calibrations/latest").json()
+    latest = get(stack.base + "/calibrations/latest").json()
     if "active-camera" in latest:
         return latest["active-camera"]["run_id"]
     run_id = post(stack, "/runs", {"procedure": "active-camera",
                                    "params": {"pan_deg": 5, "tilt_deg": 5}}).json()["run_id"]
     assert wait_for(stack, run_id, timeout=240)["status"] == "succeeded"
-    wait_until(lambda: httpx.get(f"{stack.base}/runs/{run_id}").json()["decision"],
+    wait_until(lambda: get(f"{stack.base}/runs/{run_id}").json()["decision"],
                what="the decision on the calibration")
     assert post(stack, f"/calibrations/{run_id}/accept").status_code == 200
     return run_id
 
 
+# A generous bound on every request: on a busy host the service can take seconds to
+# answer (e.g. drawing /plots/history.png); the tests wait on conditions, not on speed.
+REQUEST_TIMEOUT_S = 60
+
+
+def get(url, **kwargs):
+    return httpx.get(url, timeout=kwargs.pop("timeout", REQUEST_TIMEOUT_S), **kwargs)
+
+
 def post(stack, path, body=None, auth=True):
-    return httpx.post(stack.base + path, json=body, headers=AUTH if auth else {}, timeout=10)
+    return httpx.post(stack.base + path, json=body, headers=AUTH if auth else {},
+                      timeout=REQUEST_TIMEOUT_S)
 
 
 def wait_for(stack, run_id, statuses=("succeeded", "failed", "aborted"), timeout=120):
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
-        r = httpx.get(f"{stack.base}/runs/{run_id}", timeout=5)
+        r = get(f"{stack.base}/runs/{run_id}")
         if r.status_code == 200 and r.json()["status"] in statuses:
             return r.json()
         time.sleep(0.3)
@@ -152,20 +162,21 @@ def wait_for(stack, run_id, statuses=("succeeded", "failed", "aborted"), timeout
 
 
 def test_token_and_input_validation(stack):
-    assert httpx.get(stack.base + "/health").json()["status"] == "ok"
+    assert get(stack.base + "/health").json()["status"] == "ok"
     assert post(stack, "/runs", {"procedure": "head-sweep"}, auth=False).status_code == 401
     wrong = httpx.post(stack.base + "/runs", json={"procedure": "head-sweep"},
+                       timeout=REQUEST_TIMEOUT_S,
                        headers={"Authorization": "Bearer nope"})
     assert wrong.status_code == 401
     bad = post(stack, "/runs", {"procedure": "head-sweep", "params": {"pan_dgr": [1]}})
     assert bad.status_code == 422 and "pan_dgr: unknown parameter" in bad.text
     assert post(stack, "/runs", {"procedure": "rm -rf /"}).status_code == 422
-    schema = httpx.get(stack.base + "/openapi.json").json()
+    schema = get(stack.base + "/openapi.json").json()
     assert "/runs/{run_id}/abort" in schema["paths"]
-    procs = {p["name"]: p for p in httpx.get(stack.base + "/procedures").json()}
+    procs = {p["name"]: p for p in get(stack.base + "/procedures").json()}
     assert "pan_deg" in procs["active-camera"]["params_schema"]["properties"]
-    assert "rigctl" in httpx.get(stack.base + "/").text
-    assert httpx.get(stack.base + "/rig").json()["devices"]["head"] is not None
+    assert "rigctl" in get(stack.base + "/").text
+    assert get(stack.base + "/rig").json()["devices"]["head"] is not None
 
 
 @pytest.mark.timeout(300)
@@ -188,17 +199,17 @@ def test_active_camera_with_progress_events_then_accept(stack):
     steps = [e for e in events if e["type"] == "step"]
     assert len(steps) > 10 and steps[-1]["index"] >= steps[0]["index"]
     assert events[-1]["decision"] == "pending"  # the first calibration waits for an operator
-    run = httpx.get(f"{stack.base}/runs/{run_id}").json()
+    run = get(f"{stack.base}/runs/{run_id}").json()
     assert run["status"] == "succeeded"
     assert abs(run["result"]["fx"] / 900.0 - 1) < 0.005
     assert post(stack, f"/calibrations/{run_id}/accept", auth=False).status_code == 401
     assert post(stack, f"/calibrations/{run_id}/accept").json()["decision"] == "accepted"
-    latest = httpx.get(stack.base + "/calibrations/latest?procedure=active-camera").json()
+    latest = get(stack.base + "/calibrations/latest?procedure=active-camera").json()
     assert latest["active-camera"]["run_id"] == run_id
-    image = httpx.get(f"{stack.base}/runs/{run_id}/captures/0")
+    image = get(f"{stack.base}/runs/{run_id}/captures/0")
     assert image.status_code == 200 and image.content[:4] == b"\x89PNG"
-    assert httpx.get(f"{stack.base}/runs/{run_id}/captures/99").status_code == 404
-    assert httpx.get(f"{stack.base}/plots/history.png").content[:4] == b"\x89PNG"
+    assert get(f"{stack.base}/runs/{run_id}/captures/99").status_code == 404
+    assert get(f"{stack.base}/plots/history.png").content[:4] == b"\x89PNG"
 
 
 def test_two_requests_run_one_after_the_other(stack):
@@ -219,7 +230,7 @@ def test_abort_mid_run_and_cli_sees_the_rig_busy(stack):
         deadline = time.monotonic() + 30
         # served while the run writes its next captures: each one whole (a half-written
         # PNG once broke this response mid-body on a busy host)
-        while (capture := httpx.get(f"{stack.base}/runs/{run_id}/captures/0")).status_code \
+        while (capture := get(f"{stack.base}/runs/{run_id}/captures/0")).status_code \
                 != 200:
             assert time.monotonic() < deadline
             time.sleep(0.2)
@@ -232,7 +243,7 @@ def test_abort_mid_run_and_cli_sees_the_rig_busy(stack):
         assert post(stack, f"/runs/{run_id}/abort").json()["status"] == "aborting"
         run = wait_for(stack, run_id)
         assert run["status"] == "aborted" and "aborted via the API" in run["reason"]
-        assert httpx.get(f"{stack.base}/runs/{run_id}/captures/0").status_code == 200
+        assert get(f"{stack.base}/runs/{run_id}/captures/0").status_code == 200
     finally:  # a failure above must not leave the run holding the rig for the next test
         post(stack, f"/runs/{run_id}/abort")
         wait_for(stack, run_id)
@@ -275,7 +286,7 @@ def test_schedule_fires_and_records_its_run(tmp_path):
     own = Stack(tmp_path, schedules=[schedule])
     try:
         def scheduled_done():
-            runs = httpx.get(own.base + "/runs?limit=200&procedure=head-sweep").json()
+            runs = get(own.base + "/runs?limit=200&procedure=head-sweep").json()
             done = [r for r in runs if r.get("operator") == "scheduler"
                     and r["status"] in ("succeeded", "skipped")]
             return done if any(r["status"] == "succeeded" for r in done) else None
@@ -297,15 +308,15 @@ def test_drifted_intrinsics_are_flagged_and_wait(stack, accepted_camera):
         stack.restart_sim("ideal")  # the next test finds the rig as it was
     assert run["status"] == "succeeded", run.get("reason")
     deadline = time.monotonic() + 10
-    while httpx.get(f"{stack.base}/runs/{run_id}").json()["decision"] is None:
+    while get(f"{stack.base}/runs/{run_id}").json()["decision"] is None:
         assert time.monotonic() < deadline
         time.sleep(0.2)
-    assert httpx.get(f"{stack.base}/runs/{run_id}").json()["decision"] == "drift"
+    assert get(f"{stack.base}/runs/{run_id}").json()["decision"] == "drift"
     assert stack.hook.received and stack.hook.received[-1]["run_id"] == run_id
     assert any("focal length changed" in d for d in stack.hook.received[-1]["drift"])
-    latest = httpx.get(stack.base + "/calibrations/latest?procedure=active-camera").json()
+    latest = get(stack.base + "/calibrations/latest?procedure=active-camera").json()
     assert latest["active-camera"]["run_id"] == accepted_camera  # still the accepted one
-    history = httpx.get(stack.base + "/calibrations/history?procedure=active-camera").json()
+    history = get(stack.base + "/calibrations/history?procedure=active-camera").json()
     assert {h["decision"] for h in history} >= {"accepted", "drift"}
 
 

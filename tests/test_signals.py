@@ -78,7 +78,7 @@ def test_sigterm_on_the_service_mid_run_aborts_the_run_and_exits(start_sim, tmp_
         params = {"pan_deg": [-40, -20, 0, 20, 40], "tilt_deg": [-20, 0, 20], "settle_s": 0.5}
         run_id = httpx.post(f"{url}/runs", json={"procedure": "head-sweep", "params": params},
                             timeout=30).json()["run_id"]
-        wait_until(lambda: httpx.get(f"{url}/runs/{run_id}", timeout=5).json()["status"]
+        wait_until(lambda: httpx.get(f"{url}/runs/{run_id}", timeout=30).json()["status"]
                    == "running", timeout=60, what="the run to start")
         server.send_signal(signal.SIGTERM)
         server.wait(timeout=60)
