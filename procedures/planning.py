@@ -58,6 +58,19 @@ def nominal_flange_cam(config: RigConfig) -> np.ndarray:
     return _fixed_pose(tuple(mount.xyz_mm), tuple(mount.rpy_deg)).copy()
 
 
+def reach_sphere(model: KinematicModel, T_flange_cam: np.ndarray) -> tuple[np.ndarray, float]:
+    """A sphere that holds every camera position the arm can reach: centred on joint 2's
+    origin at zero joint 1 rotation, with radius |a1| + sum over the later links of
+    hypot(d_i, a_i), plus the flange-to-tool and flange-to-camera offsets (the triangle
+    inequality on the D-H chain of thesis eq. 1.3). Views outside it have no IK solution,
+    so the planner skips them without the (slow, failing) iterative search."""
+    base = model.T_base_link0[:3, 3] + model.T_base_link0[:3, :3] @ [0.0, 0.0, model.d[0]]
+    radius = abs(model.a[0]) + float(np.sum(np.hypot(model.d[1:], model.a[1:]))) + \
+        float(np.linalg.norm(model.T_flange_tool[:3, 3])) + \
+        float(np.linalg.norm(np.asarray(T_flange_cam)[:3, 3]))
+    return base, radius
+
+
 def plan_target_views(config: RigConfig, n: int, distance_m: float = 0.45,
                       max_tilt_deg: float = 25.0, seed: int = 0,
                       up_axis: np.ndarray | None = None, max_spin_deg: float = 60.0,
@@ -74,6 +87,7 @@ def plan_target_views(config: RigConfig, n: int, distance_m: float = 0.45,
     T_base_target, centre = target_centre(config)
     normal = -T_base_target[:3, 2]  # board z points into the board; the camera is outside
     T_cam_flange = inv_T(nominal_flange_cam(config))
+    shoulder, reach = reach_sphere(model, nominal_flange_cam(config))
     limits = arm.joint_limits_rad()
     rng = np.random.default_rng(seed)
     poses, notes = [], []
@@ -94,6 +108,10 @@ def plan_target_views(config: RigConfig, n: int, distance_m: float = 0.45,
         eye = centre + distance_m * rng.uniform(0.9, 1.1) * direction
         spin = math.radians(rng.uniform(-max_spin_deg, max_spin_deg))
         up = math.cos(spin) * u + math.sin(spin) * v
+        if np.linalg.norm(eye - shoulder) > reach:  # no IK solution exists: skip the search
+            notes.append(f"view {attempts}: eye {np.round(eye, 3).tolist()} m beyond the "
+                         f"arm's reach ({reach:.2f} m from the shoulder); skipped")
+            continue
         T_base_flange = look_at(eye, centre, up) @ T_cam_flange
         seeds = ([previous] if previous is not None else []) + \
             [np.radians(s) for s in VIEW_SEEDS_DEG]
