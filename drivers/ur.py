@@ -23,6 +23,7 @@ import time
 from typing import Any
 
 from drivers.base import Arm, ArmState, DeviceError, SafetyError, Status, load_note
+from drivers.ur_primary import PrimaryInfo, read_primary_info
 
 log = logging.getLogger(__name__)
 
@@ -61,6 +62,7 @@ class URArm(Arm):
         self._last_ts = (0.0, time.monotonic())
         self.serial = None
         self.polyscope = None
+        self.primary: PrimaryInfo | None = None
         self._monitor_stop = threading.Event()
 
     # -- connection -----------------------------------------------------------------
@@ -102,6 +104,11 @@ class URArm(Arm):
             dash.disconnect()
         except Exception as exc:
             log.info("arm: dashboard not available for provenance: %s", exc)
+        try:
+            self.primary = read_primary_info(self.cfg.host, timeout_s=self.cfg.primary_timeout_s)
+        except DeviceError as exc:
+            log.warning("arm: no controller version or kinematics from the primary "
+                        "interface: %s", exc)
         self.check_safety()
 
     def close(self) -> None:
@@ -153,10 +160,19 @@ class URArm(Arm):
                     self.cfg.teardown_timeout_s)
 
     def describe(self) -> dict[str, Any]:
-        return {"model": self.cfg.model, "host": self.cfg.host, "serial": self.serial,
+        primary = self.primary.as_dict() if self.primary else {}
+        kinematics = primary.get("kinematics")
+        return {"controller": primary.get("controller_version"),
+                "kinematics_hash": kinematics["hash"] if kinematics else None,
+                "model": self.cfg.model, "host": self.cfg.host, "serial": self.serial,
                 "firmware": self.polyscope, "connect_s": self.connect_s,
                 "teardown_s": self.teardown_s,
-                "speed_cap_dps": self.cfg.speed_cap_dps, "accel_cap_dps2": self.cfg.accel_cap_dps2}
+                "speed_cap_dps": self.cfg.speed_cap_dps, "accel_cap_dps2": self.cfg.accel_cap_dps2,
+                "controller_kinematics": kinematics}
+
+    def controller_kinematics(self):
+        """The controller's own DH table (``KinematicsInfo``), or None if it sent none."""
+        return self.primary.kinematics if self.primary else None
 
     # -- state ------------------------------------------------------------------------
 

@@ -11,7 +11,8 @@ that every solver and planner can be judged on a distribution of rigs rather tha
 - head: roll axis tilted up to 0.5 deg, centre of projection off the axes by up to 3 mm;
 - arm: UR3e, UR5e or UR10e with kinematic errors at the spread of factory variation
   (encoder offsets ~0.1 deg, lengths ~1 mm, twists ~0.08 deg; Hayati beta on the
-  parallel joints 2-3 and 3-4);
+  parallel joints 2-3 and 3-4); the controller's factory calibration (``factory_errors``)
+  is the truth's plain-DH part up to a third of that spread;
 - hand-eye: any yaw, a few degrees of tilt, tens of millimetres of offset;
 - scene: shapes from 0.6-2 m out to 2-5 times that, in a cone just wider than the view;
 - target: a checkerboard sized for the arm, on or near the table anywhere in the arm's
@@ -72,6 +73,15 @@ def _arm_errors(rng: np.random.Generator) -> dict:
             "beta_deg": beta.round(4).tolist()}
 
 
+def _factory_errors(rng: np.random.Generator, truth: dict) -> dict:
+    """What the controller believes: its factory calibration found the truth's plain-DH
+    part up to a residual of about a third of the factory spread, and cannot hold beta."""
+    spread = {"theta_deg": 0.1, "d_mm": 1.0, "a_mm": 1.2, "alpha_deg": 0.08}
+    digits = {"theta_deg": 4, "d_mm": 3, "a_mm": 3, "alpha_deg": 4}
+    return {k: (np.asarray(truth[k]) + rng.normal(0, spread[k] / 3, 6)).round(digits[k]).tolist()
+            for k in spread}
+
+
 def _target(rng: np.random.Generator, model: str) -> dict:
     reach = REACH_M[model]
     square = rng.uniform(0.025, 0.045) * reach  # 12-22 mm on a UR3e, 33-58 mm on a UR10e
@@ -108,7 +118,9 @@ def random_world(seed: int) -> dict:
                  "camera_offset_mm": np.round(_within(rng, 3.0, 3), 3).tolist(),
                  "encoder_noise_deg": 0.0},
         "arm": {"model": model, "home_deg": [0.0, -90.0, 90.0, -90.0, -90.0, 0.0],
-                "errors": _arm_errors(rng)},
+                "errors": (errors := _arm_errors(rng)),
+                # drawn from its own stream: every other draw of a seed stays as it was
+                "factory_errors": _factory_errors(np.random.default_rng([seed, 15]), errors)},
         "hand_eye": {"xyz_mm": np.round([*rng.uniform(-30, 30, 2), rng.uniform(30, 90)],
                                         1).tolist(),
                      "rpy_deg": np.round([*_within(rng, 4.0, 2), rng.uniform(-180, 180)],

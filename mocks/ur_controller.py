@@ -1,12 +1,13 @@
 """A Universal Robots e-Series controller stand-in that the real ``ur_rtde`` client drives.
 
-Serves RTDE (30004), the dashboard (29999) and the script port (30003) on one loopback
-address, accepts and ignores 30001/30002, and runs a 500 Hz controller loop reporting
+Serves RTDE (30004), the dashboard (29999), the script port (30003) and the primary and
+secondary interfaces (30001/30002: version, then robot state with KINEMATICS_INFO at 10 Hz)
+on one loopback address, and runs a 500 Hz controller loop reporting
 version 5.11.1. It recognises the uploaded ``rtde_control`` script and emulates its
 register handshake (see ``shared/reference/ur-controller-protocol.md``)::
 
     rigctl mock arm [--host 127.0.0.1] [--model ur5e] [--world FILE] [--control SOCKET]
-                    [--tcp-model nominal|true]
+                    [--tcp-model factory|nominal|true]
 
 Prints one JSON ready line and runs until SIGTERM. Control socket (JSON lines):
 ``protective_stop``, ``emergency_stop``, ``release_estop``, ``drop_connections``,
@@ -35,6 +36,7 @@ import yaml
 from mocks.jsonlines import listen, serve_stream
 from mocks.ur_kinematics import ArmModel, matrix_to_pose, pose_to_matrix
 from mocks.ur_motion import JointMove, LinearMove, ServoMove, SpeedMove, StopMove
+from mocks.ur_primary import dh_table, robot_state, version_message
 
 log = logging.getLogger("mock.ur")
 
@@ -109,11 +111,19 @@ class Controller:
     """Robot state, the running control script, and the 500 Hz loop."""
 
     def __init__(self, model: str, errors: dict, tcp_model: str,
-                 home_deg: list[float] | None = None) -> None:
+                 home_deg: list[float] | None = None, factory_errors: dict | None = None,
+                 calibration_status: int = 0) -> None:
         self.nominal = ArmModel.nominal(model)
         self.true = self.nominal.with_errors(**errors)
+        self.factory = None if factory_errors is None else \
+            self.nominal.with_errors(**factory_errors)
         self.model_name = model
-        self.ctrl_model = self.true if tcp_model == "true" else self.nominal
+        # The controller's own kinematics (behind actual_TCP_pose, FK, IK and the primary
+        # interface's KINEMATICS_INFO): its factory calibration when the world has one.
+        self.ctrl_model = {"true": self.true, "nominal": self.nominal}.get(
+            tcp_model, self.factory or self.nominal)
+        self.dh = dh_table(self.ctrl_model)
+        self.calibration_status = calibration_status
         self.lock = threading.RLock()
         self.tick_cond = threading.Condition(self.lock)
         self.tick = 0
@@ -613,8 +623,8 @@ class Server:
         self.clients_lock = threading.Lock()
         self.listeners = {}
         for port, handler in ((30004, self.on_rtde), (29999, self.on_dashboard),
-                              (30003, self.on_script), (30001, self.on_ignore),
-                              (30002, self.on_ignore)):
+                              (30003, self.on_script), (30001, self.on_primary),
+                              (30002, self.on_primary)):
             sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             sock.bind((host, port))
@@ -657,13 +667,32 @@ class Server:
     def on_rtde(self, sock: socket.socket) -> None:
         RTDEConnection(self.ctrl, sock, self).serve()
 
-    def on_ignore(self, sock: socket.socket) -> None:
+    def on_primary(self, sock: socket.socket) -> None:
+        """Primary/secondary interface: the version message once, then robot state at
+        10 Hz (joint data, cartesian info, KINEMATICS_INFO). Scripts sent here are read
+        and ignored."""
+        ctrl = self.ctrl
+        threading.Thread(target=self._drain, args=(sock,), daemon=True).start()
+        try:
+            sock.sendall(version_message(int(ctrl.t * 1e6)))
+            while not self.stop_event.is_set():
+                with ctrl.lock:
+                    package = robot_state(ctrl.q, ctrl.qd, ctrl.snapshot["actual_TCP_pose"],
+                                          matrix_to_pose(ctrl.tcp), ctrl.dh,
+                                          ctrl.calibration_status)
+                sock.sendall(package)
+                if self.stop_event.wait(0.1):
+                    break
+        except OSError:
+            pass
+        self.forget(sock)
+
+    def _drain(self, sock: socket.socket) -> None:
         try:
             while sock.recv(65536):
                 pass
         except OSError:
             pass
-        self.forget(sock)
 
     def on_script(self, sock: socket.socket) -> None:
         data = b""
@@ -766,9 +795,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--model", default="ur5e", choices=["ur3e", "ur5e", "ur10e"])
     parser.add_argument("--world", default=None, help="world file (arm.errors) or errors YAML")
     parser.add_argument("--control", type=Path, default=None, help="JSON-lines control socket")
-    parser.add_argument("--tcp-model", choices=("nominal", "true"), default="nominal",
-                        help="model behind actual_TCP_pose, FK and IK: uncalibrated (nominal) "
-                             "or factory-calibrated (true)")
+    parser.add_argument("--tcp-model", choices=("factory", "nominal", "true"),
+                        default="factory",
+                        help="model behind actual_TCP_pose, FK, IK and KINEMATICS_INFO: the "
+                             "world's arm.factory_errors (nominal when it has none), nominal, "
+                             "or the truth")
     return parser
 
 
@@ -779,14 +810,15 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     arm = load_arm_section(args.world)
     model = arm.get("model", args.model) if args.world else args.model
-    ctrl = Controller(model, arm.get("errors") or {}, args.tcp_model, arm.get("home_deg"))
+    ctrl = Controller(model, arm.get("errors") or {}, args.tcp_model, arm.get("home_deg"),
+                      arm.get("factory_errors"))
     server = Server(ctrl, args.host, args.control)
     server.start()
     done = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: done.set())
     signal.signal(signal.SIGINT, lambda *_: done.set())
     print(json.dumps({"host": args.host, "rtde_port": 30004, "dashboard_port": 29999,
-                      "script_port": 30003, "pid": os.getpid(),
+                      "script_port": 30003, "primary_port": 30001, "pid": os.getpid(),
                       "control": str(args.control) if args.control else None}), flush=True)
     done.wait()
     server.close()

@@ -70,10 +70,21 @@ class ArmErrors(_Strict):
     beta_deg: list[float] = Field(default_factory=lambda: [0.0] * 6)
 
 
+class FactoryErrors(_Strict):
+    """What the controller believes (its factory calibration), as errors from nominal.
+    Plain DH: a UR controller's kinematics have no beta."""
+
+    theta_deg: list[float] = Field(default_factory=lambda: [0.0] * 6)
+    d_mm: list[float] = Field(default_factory=lambda: [0.0] * 6)
+    a_mm: list[float] = Field(default_factory=lambda: [0.0] * 6)
+    alpha_deg: list[float] = Field(default_factory=lambda: [0.0] * 6)
+
+
 class ArmTruth(_Strict):
     model: Literal["ur3e", "ur5e", "ur10e"] = "ur5e"
     home_deg: list[float] = Field(default_factory=lambda: [0.0, -90.0, 90.0, -90.0, -90.0, 0.0])
     errors: ArmErrors = ArmErrors()
+    factory_errors: FactoryErrors | None = None
 
 
 class PoseTruth(_Strict):

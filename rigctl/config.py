@@ -176,6 +176,8 @@ class ArmConfig(_Strict):
     stream_timeout_s: float = Field(1.0, gt=0, le=30)
     # Bound on each teardown call (stopScript, stopJ) into ur_rtde.
     teardown_timeout_s: float = Field(3.0, gt=0, le=60)
+    # Reading the version and the controller's kinematics from the primary interface.
+    primary_timeout_s: float = Field(5.0, gt=0, le=60)
     park: ArmPark = ArmPark()
 
     @field_validator("joint_limits_deg")

@@ -37,7 +37,7 @@ def check_rig(config: RigConfig, factories: dict | None = None, samples: int = 2
             info = device.describe()
             report.append({"device": kind, "state": "ok", "describe": info,
                            "message": ", ".join(f"{k}={v}" for k, v in info.items()
-                                                if not isinstance(v, (dict, list)))[:120],
+                                                if not isinstance(v, (dict, list)))[:160],
                            "latency_ms": 1000 * statistics.median(times)})
         except Exception as exc:
             report.append({"device": kind, "state": "error",
