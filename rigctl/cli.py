@@ -255,11 +255,12 @@ def solve(run_dir: Path = typer.Argument(..., help="A run directory."),
 
 @app.command()
 def export(run: str = typer.Argument(..., help="Run directory, or run id with --rig."),
-           fmt: str = typer.Option("json", "--format", help="json | opencv | ros"),
+           fmt: str = typer.Option("json", "--format",
+                                   help="json | opencv | ros | ur | ur-kinematics | urdf"),
            output: Path | None = typer.Option(None, "--out", help="Output file."),
            rig: Path | None = typer.Option(None, "--rig")) -> None:
     """Export a run's calibration."""
-    from rigctl.exports import export_result
+    from rigctl.exports import SUFFIXES, export_result
     from rigctl.records import RecordIndex, RunDirectory
 
     try:
@@ -270,10 +271,9 @@ def export(run: str = typer.Argument(..., help="Run directory, or run id with --
             config = load_rig(rig)
             run_path = Path(RecordIndex(config.database_url()).get(run)["run_dir"])
         run_dir = RunDirectory(run_path)
-        suffix = {"json": ".json", "opencv": ".opencv.yaml", "ros": ".camera_info.yaml",
-                  "ur": ".ur_calibration.yaml"}
-        target = output or run_dir.path / f"export{suffix.get(fmt, '.out')}"
-        path = export_result(run_dir.result(), fmt, target, run_dir.run_id)
+        target = output or run_dir.path / f"export{SUFFIXES.get(fmt, '.out')}"
+        path = export_result(run_dir.result(), fmt, target, run_dir.run_id,
+                             run_dir.versions())
     except RigError as exc:
         _fail(exc, False, EXIT_FAILED)
     except (OSError, ValueError, TypeError) as exc:

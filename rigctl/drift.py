@@ -1,5 +1,6 @@
 """Drift of a new calibration against the last accepted one, with the rig file's
-thresholds (focal %, principal point px, link mm/deg, hand-eye mm/deg).
+thresholds (focal %, principal point px, link mm/deg, hand-eye mm/deg), and a changed
+robot: a calibration whose controller kinematics hash differs from the accepted one's.
 
 Where both calibrations report a 1-sigma for a quantity, a change over its threshold is
 drift only if it is also significant: ``|new - old| > SIGNIFICANT * sqrt(s_new^2 +
@@ -66,6 +67,11 @@ def compare(procedure: str, new: dict[str, Any], old: dict[str, Any],
             breaches.append(f"principal point moved {pp:.2f} px "
                             f"(limit {limits.principal_point_px} px"
                             + (f", {z_c:.1f} sigma of the difference)" if z_c else ")"))
+    if procedure in ("hand-eye", "robot-kinematics") and new.get("robot_hash") \
+            and old.get("robot_hash") and new["robot_hash"] != old["robot_hash"]:
+        breaches.append(f"robot recalibrated or replaced: the controller's kinematics hash "
+                        f"is {new['robot_hash']}, the accepted calibration was made with "
+                        f"{old['robot_hash']}")
     if procedure in ("hand-eye", "robot-kinematics") and "T_flange_cam" in new \
             and "T_flange_cam" in old:
         mm, deg = _transform_delta(new["T_flange_cam"], old["T_flange_cam"])

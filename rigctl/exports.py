@@ -1,4 +1,6 @@
-"""Exports of a recorded result: JSON, OpenCV FileStorage YAML, ROS camera_info YAML."""
+"""Exports of a recorded result: JSON, OpenCV FileStorage YAML, ROS camera_info YAML,
+UR-style DH deltas, and (``rigctl.exports_ur``) the UR ROS 2 driver's kinematics YAML
+and a URDF."""
 
 from __future__ import annotations
 
@@ -11,7 +13,10 @@ import yaml
 
 from rigctl.errors import ConfigError, RigError
 
-FORMATS = ("json", "opencv", "ros", "ur")
+FORMATS = ("json", "opencv", "ros", "ur", "ur-kinematics", "urdf")
+SUFFIXES = {"json": ".json", "opencv": ".opencv.yaml", "ros": ".camera_info.yaml",
+            "ur": ".ur_calibration.yaml", "ur-kinematics": ".ur_kinematics.yaml",
+            "urdf": ".urdf"}
 
 
 def _intrinsics(result: dict[str, Any], run_id: str) -> tuple[np.ndarray, np.ndarray, int, int]:
@@ -77,7 +82,12 @@ def export_ur(result: dict[str, Any], path: Path, run_id: str) -> None:
     path.write_text(yaml.safe_dump(doc, sort_keys=False))
 
 
-def export_result(result: dict[str, Any], fmt: str, path: Path, run_id: str) -> Path:
+def export_result(result: dict[str, Any], fmt: str, path: Path, run_id: str,
+                  versions: dict | None = None) -> Path:
+    """Write ``result`` in ``fmt``; ``versions`` (the run's ``versions.json``) carries the
+    robot's own kinematics hash for ``ur-kinematics``."""
+    from rigctl.exports_ur import export_ur_kinematics, export_urdf
+
     if fmt == "json":
         keys = ("convention", "units", "links", "T_base_link0", "T_flange_cam",
                 "T_base_target", "uncertainty", "heldout")
@@ -89,6 +99,10 @@ def export_result(result: dict[str, Any], fmt: str, path: Path, run_id: str) -> 
         export_ros(result, path, run_id)
     elif fmt == "ur":
         export_ur(result, path, run_id)
+    elif fmt == "ur-kinematics":
+        export_ur_kinematics(result, path, run_id, versions)
+    elif fmt == "urdf":
+        export_urdf(result, path, run_id, versions)
     else:
         raise ConfigError(f"--format: unknown export format {fmt!r}; known: {', '.join(FORMATS)}")
     return path

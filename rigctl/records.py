@@ -300,6 +300,12 @@ class RunDirectory:
     def params(self) -> dict[str, Any]:
         return self.read_json("params.json")
 
+    def versions(self) -> dict[str, Any] | None:
+        """``versions.json`` (software and device versions), or None if not written."""
+        if not (self.path / "versions.json").exists():
+            return None
+        return self.read_json("versions.json")
+
 
 def summarize(result: dict[str, Any]) -> dict[str, Any]:
     """The small subset of a result kept in the index row."""

@@ -178,3 +178,16 @@ def test_a_link_change_within_its_uncertainty_is_not_drift():
     new["uncertainty"]["parameters"] = old["uncertainty"]["parameters"] = unsure
     breaches, metrics = compare("robot-kinematics", new, old, LIMITS)
     assert breaches == [] and metrics["link_mm"] == pytest.approx(0.8)
+
+
+@pytest.mark.parametrize("procedure", ["hand-eye", "robot-kinematics"])
+def test_a_different_robot_hash_is_flagged_even_when_nothing_moved(procedure):
+    same = {"T_flange_cam": BASE.tolist(), "links": links()}
+    breaches, _ = compare(procedure, {**same, "robot_hash": "calib_2"},
+                          {**same, "robot_hash": "calib_1"}, LIMITS)
+    assert breaches == ["robot recalibrated or replaced: the controller's kinematics hash is "
+                        "calib_2, the accepted calibration was made with calib_1"]
+    # the same robot, or a calibration that recorded no hash: nothing to say
+    assert compare(procedure, {**same, "robot_hash": "calib_1"},
+                   {**same, "robot_hash": "calib_1"}, LIMITS)[0] == []
+    assert compare(procedure, {**same, "robot_hash": "calib_2"}, same, LIMITS)[0] == []
