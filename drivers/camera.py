@@ -26,6 +26,7 @@ from typing import Any
 import cv2
 
 from drivers.base import Camera, DeviceError, Frame, load_note
+from drivers.v4l2_controls import V4L2Controls
 
 log = logging.getLogger(__name__)
 
@@ -112,23 +113,15 @@ class OpenCVCamera(Camera):
         cap, cfg = self.cap, self.cfg
         failed = []
         if self.is_stream:
-            if cfg.controls:
-                raise DeviceError(f"{self.name}: controls {sorted(cfg.controls)} cannot be set "
-                                  "on a stream URL; remove them from the rig file")
-            self.settings = {"backend": cap.getBackendName(), "device": cfg.device,
-                             "width": int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)),
-                             "height": int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)),
-                             "fourcc": "MJPG (stream)"}
-            fps = cap.get(cv2.CAP_PROP_FPS)
-            if fps and 0 < fps < 240:
-                self.fps = cfg.fps or fps
+            self._stream_settings()
             return
         cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*cfg.fourcc))
         cap.set(cv2.CAP_PROP_FRAME_WIDTH, cfg.width)
         cap.set(cv2.CAP_PROP_FRAME_HEIGHT, cfg.height)
         if cfg.fps:
             cap.set(cv2.CAP_PROP_FPS, cfg.fps)
-        if cfg.auto_off:
+        v4l2 = self._v4l2_controls()
+        if cfg.auto_off and v4l2 is None:
             cap.set(cv2.CAP_PROP_AUTO_EXPOSURE, 1)  # V4L2: 1 = manual exposure
             cap.set(cv2.CAP_PROP_AUTOFOCUS, 0)
             cap.set(cv2.CAP_PROP_AUTO_WB, 0)
@@ -149,6 +142,39 @@ class OpenCVCamera(Camera):
         if failed:
             raise DeviceError(f"{self.name}: settings did not take: " + "; ".join(failed))
         self.settings = {"backend": cap.getBackendName(), "device": str(cfg.device), **got}
+        if v4l2 is not None:
+            self.settings["v4l2"] = v4l2
+
+    def _stream_settings(self) -> None:
+        """A stream URL: nothing to set; record what it delivers."""
+        cap, cfg = self.cap, self.cfg
+        if cfg.controls or cfg.v4l2_controls:
+            names = sorted(cfg.controls) + sorted(cfg.v4l2_controls)
+            raise DeviceError(f"{self.name}: controls {names} cannot be set on a stream URL; "
+                              "remove them from the rig file")
+        self.settings = {"backend": cap.getBackendName(), "device": cfg.device,
+                         "width": int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)),
+                         "height": int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)),
+                         "fourcc": "MJPG (stream)"}
+        fps = cap.get(cv2.CAP_PROP_FPS)
+        if fps and 0 < fps < 240:
+            self.fps = cfg.fps or fps
+
+    def _v4l2_controls(self) -> dict[str, int] | None:
+        """Automatics off and ``v4l2_controls`` set by name through the kernel, every value
+        read back (``drivers.v4l2_controls``); None where the device is no V4L2 node."""
+        device = self.cfg.device
+        path = f"/dev/video{device}" if isinstance(device, int) or str(device).isdigit() \
+            else str(device)
+        if not path.startswith("/dev/"):
+            if self.cfg.v4l2_controls:
+                raise DeviceError(f"{self.name}: v4l2_controls need a /dev/video device")
+            return None
+        controls = V4L2Controls.open(path)
+        try:
+            return controls.apply(self.cfg.v4l2_controls, self.cfg.auto_off)
+        finally:
+            controls.close()
 
     def _grab(self) -> None:
         seq = 0

@@ -103,6 +103,8 @@ class DynamixelHead(Head):
         self.info: dict[int, dict[str, Any]] = {}
         self.eeprom_writes: list[str] = []
         self.retries_used = 0
+        # per servo id (or "group" for sync reads and writes): transactions, retries, errors
+        self.bus_stats: dict[str, dict[str, int]] = {}
         self._stop_event = threading.Event()
         self._motion: threading.Thread | None = None
 
@@ -150,8 +152,14 @@ class DynamixelHead(Head):
         last = ""
         reopened = False
         t0 = time.monotonic()
+        stats = self.bus_stats.setdefault(
+            "group" if dxl_id is None else str(dxl_id),
+            {"transactions": 0, "retries": 0, "errors": 0})
+        stats["transactions"] += 1
         with self._lock:
             for attempt in range(attempts):
+                if attempt:
+                    stats["retries"] += 1
                 if attempt and self.cfg.retry_backoff_s:
                     time.sleep(self.cfg.retry_backoff_s * 2 ** (attempt - 1))
                 if self.port is None:
@@ -173,6 +181,7 @@ class DynamixelHead(Head):
                 if comm not in RETRYABLE:
                     break
                 log.info("head: %s: %s (try %d/%d)", what, last, attempt + 1, attempts)
+        stats["errors"] += 1
         target = self._name(dxl_id) if dxl_id is not None else f"head bus {self.cfg.port}"
         spent = time.monotonic() - t0
         note = load_note("devices.head.packet_timeout_ms, retries and retry_backoff_s")
@@ -313,6 +322,7 @@ class DynamixelHead(Head):
                 "servos": {str(k): v for k, v in self.info.items()},
                 "firmware": sorted({v["firmware"] for v in self.info.values()}),
                 "profile": getattr(self, "profile", None), "eeprom_writes": self.eeprom_writes,
+                "bus_stats": {k: dict(v) for k, v in self.bus_stats.items()},
                 "sdk": getattr(sdk, "__version__", "dynamixel-sdk")}
 
     def limits(self) -> dict[str, tuple[float, float]]:

@@ -280,8 +280,10 @@ def _spin_until(deadline: float) -> None:
 class BusServer:
     """The pty, the wire-time emulation, fault injection and the control socket."""
 
-    def __init__(self, bus: Bus, link: Path, control: Path | None, wire_timing: bool) -> None:
+    def __init__(self, bus: Bus, link: Path, control: Path | None, wire_timing: bool,
+                 latency_timer_s: float = 0.0) -> None:
         self.bus = bus
+        self.latency_timer_s = latency_timer_s
         self.link = link
         self.control_path = control
         self.wire_timing = wire_timing
@@ -346,6 +348,7 @@ class BusServer:
         if not replies:
             return
         byte_time = 10.0 / baud if (self.wire_timing and baud) else 0.0
+        held = []  # replies a USB-serial latency timer holds back until it expires
         request_bytes = 10 + (len(packet.params) if isinstance(packet, Packet) else 0)
         t = t_rx + request_bytes * byte_time
         for servo, reply in replies:
@@ -361,9 +364,18 @@ class BusServer:
             if self.wire_timing:
                 t += servo.values["return_delay_time"] * 2e-6
             t += len(reply) * byte_time
+            if self.latency_timer_s:
+                held.append(reply)
+                continue
             _spin_until(t)
             os.write(self.master, reply)
             self.bus.stats["replies"] += 1
+        if held:
+            # An FTDI adapter passes fewer than 62 received bytes to the host only when
+            # its latency timer expires: the transaction's replies arrive together, late.
+            _spin_until(t + self.latency_timer_s)
+            os.write(self.master, b"".join(held))
+            self.bus.stats["replies"] += len(held)
 
     def _on_control(self, key) -> None:
         conn = key.fileobj
@@ -438,6 +450,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="stay silent on a bad CRC instead of answering ERR=3")
     parser.add_argument("--position-noise", type=float, default=0.0,
                         help="sigma of present-position readings, pulses")
+    parser.add_argument("--latency-timer-ms", type=float, default=0.0,
+                        help="emulate a USB-serial adapter's latency timer (FTDI default: "
+                             "16 ms): replies reach the host that long after the last byte")
     return parser
 
 
@@ -451,7 +466,7 @@ def main(argv: list[str] | None = None) -> int:
         servo.values["baud_rate"] = code
         servos.append(servo)
     server = BusServer(Bus(servos, crc_error_reply=not args.no_crc_reply), args.link,
-                       args.control, args.wire_timing)
+                       args.control, args.wire_timing, args.latency_timer_ms / 1000.0)
 
     def stop(*_):
         server.running = False

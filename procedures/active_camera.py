@@ -22,6 +22,7 @@ from pydantic import Field
 from rigctl.calib.active_pipeline import SHIFT, ActiveSettings, solve_active
 
 from .base import CaptureStep, MoveArmJoints, MoveHead, Params, Procedure, Settle, SolveContext
+from .camera_settings import settings_of_run
 
 
 class ActiveCameraParams(Params):
@@ -96,6 +97,8 @@ class ActiveCamera(Procedure):
         with ctx.stage("pipeline"):
             solution = solve_active(images, angles, settings)
         ctx.timings_s.update({f"pipeline: {k}": v for k, v in solution.timings_s.items()})
+        # the size and focus these intrinsics hold for (checked by procedures using them)
+        solution.result["camera_settings"] = settings_of_run(ctx.run)
         with ctx.stage("exports"):
             _exports(ctx, solution.result)
         ctx.defer("plots", lambda: _plots(ctx, images, solution.contours, solution.matches,

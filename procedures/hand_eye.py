@@ -1,6 +1,7 @@
 """``hand-eye``: T_flange_cam and T_base_target from N diverse views of the target (head
 held at home): OpenCV ``calibrateHandEye`` (every method), then a joint refinement of both
-transforms on pixel reprojection error, with the nominal arm model."""
+transforms on pixel reprojection error, with the arm's own model as its controller reports
+it (the nominal model when the run recorded none)."""
 
 from __future__ import annotations
 
@@ -15,11 +16,21 @@ from rigctl.geometry.kinematics import nominal_ur
 
 from .base import Params, Procedure, SolveContext
 from .planning import view_steps
-from .robot_common import board_observations, camera_matrix, intrinsics_from, planning_K
+from .robot_common import (
+    board_observations,
+    camera_matrix,
+    controller_model,
+    intrinsics_from,
+    planning_K,
+)
 
 
 class HandEyeParams(Params):
     intrinsics: dict[str, Any] | None = None
+    # use intrinsics calibrated at another camera size or focus (recorded in the inputs)
+    allow_settings_change: bool = False
+    # the controller's own (factory) arm model, as the run recorded it; off: nominal
+    use_controller_model: bool = True
     poses: int = Field(12, ge=3, le=100)
     view_distance_m: float = Field(0.45, gt=0.2, le=1.0)
     max_tilt_deg: float = Field(30.0, ge=0, le=50)
@@ -41,7 +52,8 @@ class HandEye(Procedure):
                           K=planning_K(config, params.intrinsics))
 
     def resolve_inputs(self, params: HandEyeParams, config) -> dict[str, Any]:
-        return {"intrinsics": intrinsics_from(config, params.intrinsics)}
+        return {"intrinsics": intrinsics_from(config, params.intrinsics,
+                                              params.allow_settings_change)}
 
     def solve(self, ctx: SolveContext) -> dict[str, Any]:
         intr = ctx.input("intrinsics")
@@ -49,8 +61,10 @@ class HandEye(Procedure):
         found = [o for o in board_observations(ctx, intr) if o["found"]]
         if len(found) < 3:
             raise SolveError(f"hand-eye: the board was found in {len(found)} views (need 3)")
-        nominal = nominal_ur(ctx.config.devices.arm.model)
-        F = [nominal.fk(o["q"]) for o in found]
+        controller, robot_hash = controller_model(ctx) if ctx.params.use_controller_model \
+            else (None, None)
+        arm = controller or nominal_ur(ctx.config.devices.arm.model)
+        F = [arm.fk(o["q"]) for o in found]
         C = [o["C"] for o in found]
         tg = ctx.config.target
         obj = board_points(tg.rows, tg.cols, tg.square_mm / 1000.0)
@@ -64,7 +78,9 @@ class HandEye(Procedure):
                 "sigma": refined.sigma.tolist(), "residual_rms_px": refined.rms,
                 "closed_form": {k: v.tolist() for k, v in closed.items()},
                 "closed_form_vs_refined_deg_mm": spread, "intrinsics": intr,
-                "order": handeye.order_samples(F), "summary": summary}
+                "order": handeye.order_samples(F), "summary": summary,
+                "arm_model_used": "controller" if controller else "nominal",
+                "robot_hash": robot_hash}
 
 
 PROCEDURE = HandEye()

@@ -16,6 +16,7 @@ from rigctl.geometry.kinematics import KinematicModel, nominal_ur
 from rigctl.geometry.transforms import inv_T
 from rigctl.records import RecordIndex, RunDirectory
 
+from .camera_settings import check_settings
 from .planning import (
     MIN_CLEARANCE_M,
     board_visible,
@@ -25,10 +26,17 @@ from .planning import (
 )
 
 
-def intrinsics_from(config: RigConfig, given: dict | None) -> dict[str, Any]:
-    """``given`` (fx, fy, cx, cy, distortion, optionally sigma) or the result of the latest
-    accepted (or succeeded) ``active-camera`` run of this rig, with its 1-sigma. Read when
-    a run is planned, never while solving (``Procedure.resolve_inputs``)."""
+def intrinsics_from(config: RigConfig, given: dict | None,
+                    allow_settings_change: bool = False) -> dict[str, Any]:
+    """``given`` (fx, fy, cx, cy, distortion, optionally sigma and settings) or the result
+    of the latest accepted (or succeeded) ``active-camera`` run of this rig, with its
+    1-sigma and the camera settings it was calibrated at (``check_settings`` refuses them
+    for another size or focus). Read when a run is planned, never while solving
+    (``Procedure.resolve_inputs``)."""
+    return check_settings(_intrinsics(config, given), config, allow_settings_change)
+
+
+def _intrinsics(config: RigConfig, given: dict | None) -> dict[str, Any]:
     if given:
         missing = [k for k in ("fx", "fy", "cx", "cy") if k not in given]
         if missing:
@@ -37,6 +45,8 @@ def intrinsics_from(config: RigConfig, given: dict | None) -> dict[str, Any]:
                "distortion": list(given.get("distortion", [0.0] * 5)), "source": "parameter"}
         if "sigma" in given:
             out["sigma"] = {k: float(given["sigma"][k]) for k in ("fx", "fy", "cx", "cy")}
+        if given.get("settings"):
+            out["settings"] = dict(given["settings"])
         return out
     row = RecordIndex(config.database_url()).latest("active-camera", config.name)
     if row is None:
@@ -47,7 +57,22 @@ def intrinsics_from(config: RigConfig, given: dict | None) -> dict[str, Any]:
         "distortion": result.get("distortion", [0.0] * 5), "source": f"run {row['run_id']}"}
     if "sigma" in result:
         out["sigma"] = {k: float(result["sigma"][k]) for k in ("fx", "fy", "cx", "cy")}
+    if result.get("camera_settings"):
+        out["settings"] = result["camera_settings"]
     return out
+
+
+def controller_model(ctx) -> tuple[KinematicModel | None, str | None]:
+    """The controller's own DH table and hash, as the run recorded them (``versions.json``
+    of the run directory, so a re-solve reads the same), or (None, None)."""
+    versions = ctx.run.versions() or {}
+    arm = (versions.get("devices") or {}).get("arm") or {}
+    k = arm.get("controller_kinematics")
+    if not k:
+        return None, None
+    model = KinematicModel(np.array(k["d"]), np.array(k["a"]), np.array(k["alpha"]),
+                           theta_offset=np.array(k["theta"]))
+    return model, k.get("hash")
 
 
 def default_prior_sigma(intr: dict) -> dict[str, float]:
@@ -103,7 +128,7 @@ def planning_K(config: RigConfig, given: dict | None) -> np.ndarray:
     """Intrinsics for planning: given, else the latest active-camera result, else a
     60-degree field of view guess."""
     try:
-        return camera_matrix(intrinsics_from(config, given))[0]
+        return camera_matrix(intrinsics_from(config, given, allow_settings_change=True))[0]
     except ConfigError:
         w, h = config.devices.camera.width, config.devices.camera.height
         f = w / (2 * math.tan(math.radians(30)))

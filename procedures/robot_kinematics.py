@@ -45,6 +45,7 @@ from .planning import CLOSER, closest_plan, informative_views, plan_target_views
 from .robot_common import (
     board_observations,
     camera_matrix,
+    controller_model,
     default_prior_sigma,
     export_model,
     intrinsics_from,
@@ -58,6 +59,8 @@ MAX_RESIDUAL_PX = 3.0
 
 class RobotKinematicsParams(Params):
     intrinsics: dict[str, Any] | None = None
+    # use intrinsics calibrated at another camera size or focus (recorded in the inputs)
+    allow_settings_change: bool = False
     sweep_steps: int = Field(4, ge=2, le=6)
     random_poses: int = Field(20, ge=0, le=200)
     heldout_poses: int = Field(6, ge=1, le=100)
@@ -73,6 +76,9 @@ class RobotKinematicsParams(Params):
     # the final bundle adjustment frees intrinsics and distortion, with the intrinsics in
     # use (and their sigma) as a prior; off: they are held as given
     refine_camera: bool = True
+    # the arm's own (factory) model from its controller, recorded in versions.json: a
+    # start of the joint refinement and a held-out baseline beside nominal
+    use_controller_model: bool = True
     seed: int = 0
 
 
@@ -163,7 +169,8 @@ class RobotKinematics(Procedure):
         return steps
 
     def resolve_inputs(self, params: RobotKinematicsParams, config) -> dict[str, Any]:
-        return {"intrinsics": intrinsics_from(config, params.intrinsics)}
+        return {"intrinsics": intrinsics_from(config, params.intrinsics,
+                                              params.allow_settings_change)}
 
     def solve(self, ctx: SolveContext) -> dict[str, Any]:
         """Thesis 4.3 on the run's board views (``rigctl.calib.robot_pipeline``)."""
@@ -175,9 +182,11 @@ class RobotKinematics(Procedure):
             obs = board_observations(ctx, intr)
         views = [BoardView(o["label"], o["kind"], o["joint"], o["q"], o["corners"], o["C"])
                  for o in obs if o["found"]]
+        controller, robot_hash = controller_model(ctx) if ctx.params.use_controller_model \
+            else (None, None)
         sol = solve_robot(views, nominal_ur(ctx.config.devices.arm.model), obj, K, dist,
                           intr.get("sigma") or default_prior_sigma(intr),
-                          ctx.params.refine_camera)
+                          ctx.params.refine_camera, controller=controller)
         if sol.ref.rms > MAX_RESIDUAL_PX:
             # a refinement stuck in a wrong minimum still "converges"; its residual says so
             # (unseen random world 4015: 20.7 px, the exported model 12 mm off the truth)
@@ -195,7 +204,11 @@ class RobotKinematics(Procedure):
             except (SolveError, cv2.error) as exc:
                 check = {"error": str(exc)}
         ctx.defer("plots", lambda: _plot(ctx, sol.ref, sol.meas))
-        return {**_export(sol, intr), "arm_model": ctx.config.devices.arm.model,
+        exported = _export(sol, intr)
+        if exported["factory"] is not None:
+            exported["factory"]["links"] = controller.links()
+        return {**exported, "arm_model": ctx.config.devices.arm.model,
+                "robot_hash": robot_hash,
                 "intrinsics_check": check, "summary": _summary(sol),
                 "lost_views": [o["label"] for o in obs if not o["found"]],
                 # training views the refined model missed by far, left out (label: RMS px)
@@ -212,6 +225,8 @@ def _summary(sol: RobotSolution) -> dict[str, Any]:
             "heldout_mm_before": _mm(held["before"]), "heldout_mm_after": _mm(held["after"]),
             "heldout_mm_link_by_link": _mm(held["link_by_link"]),
             "heldout_mm_axis_based": _mm(held["axis_based"]),
+            "heldout_mm_factory": _mm(held.get("factory")),
+            "moved_from_controller_mm": _mm(sol.moved_from_controller),
             "condition_number": ref.condition,
             "condition_number_kinematic": ref.condition_kinematic,
             "residual_rms_px": ref.rms, "sweep_span_deg": sol.sweep_span_deg}
@@ -245,7 +260,8 @@ def _export(sol: RobotSolution, intr: dict) -> dict[str, Any]:
     camera = ({"intrinsics": {**cam.intrinsics(),
                               "sigma": {k: cam.sigma[k] for k in robot.CAMERA_KEYS},
                               "source": "robot-kinematics joint refinement (prior: "
-                                        f"{intr.get('source')})"},
+                                        f"{intr.get('source')})",
+                              "settings": intr.get("settings")},
                "intrinsics_prior": intr, "intrinsics_moved_px": cam.moved()}
               if cam else {"intrinsics": intr, "camera_note": sol.camera_note})
     names = ref.names + ([f"camera.{k}" for k in robot.CAMERA_KEYS + robot.DIST_KEYS]
@@ -254,6 +270,11 @@ def _export(sol: RobotSolution, intr: dict) -> dict[str, Any]:
             **camera, "covariance": {"names": names, "matrix": ref.covariance.tolist()},
             "before": {"heldout": sol.heldout["before"], "T_flange_cam": sol.hand_eye.X.tolist(),
                        "T_base_target": sol.hand_eye.W.tolist()},
+            "factory": None if sol.controller_hand_eye is None else {
+                "heldout": sol.heldout.get("factory"),
+                "T_flange_cam": sol.controller_hand_eye.X.tolist(),
+                "T_base_target": sol.controller_hand_eye.W.tolist(),
+                "moved": sol.moved_from_controller},
             "axis_based": {"heldout": sol.heldout["axis_based"], "error": sol.axis_error,
                            "links": axis.model.links() if axis else None},
             "link_by_link": {"heldout": sol.heldout["link_by_link"],

@@ -35,6 +35,8 @@ from .robot_common import board_observations, camera_matrix, intrinsics_from, pl
 
 class ValidateArmParams(Params):
     intrinsics: dict[str, Any] | None = None
+    # use intrinsics calibrated at another camera size or focus (recorded in the inputs)
+    allow_settings_change: bool = False
     calibration_run: str | None = Field(None, description="default: latest robot-kinematics")
     poses: int = Field(8, ge=1, le=100)
     view_distance_m: float = Field(0.5, gt=0.2, le=1.0)
@@ -70,7 +72,8 @@ class ValidateArm(Procedure):
                               f"{row['rig_name']}, not {config.name}")
         cal = RunDirectory(row["run_dir"]).result()
         return {"calibration_run": row["run_id"], "calibration": cal,
-                "intrinsics": intrinsics_from(config, params.intrinsics or cal.get("intrinsics"))}
+                "intrinsics": intrinsics_from(config, params.intrinsics or cal.get("intrinsics"),
+                                              params.allow_settings_change)}
 
     def solve(self, ctx: SolveContext) -> dict[str, Any]:
         cal = ctx.input("calibration")

@@ -306,6 +306,9 @@ def doctor(rig: Path = typer.Option(..., "--rig"),
             table.add_row(row["device"], f"[{colour}]{row['state']}[/{colour}]",
                           row["message"], latency)
         out.print(table)
+        for row in report:
+            if row.get("hint"):
+                out.print(f"{row['device']}: {row['hint']}", highlight=False)
     raise typer.Exit(0 if all(r["state"] in ("ok", "missing") for r in report) else EXIT_FAILED)
 
 
@@ -335,6 +338,10 @@ def bench_head(as_json: bool = typer.Option(False, "--json"),
         return
     print_table("bench head (ms)", ["baud", "transaction", "median", "p99", "wire limit",
                                     "ratio", "failures"], head.rows(result), out)
+    lt = result["latency_timer"]
+    out.print(f"USB-serial latency timer, median ms at 1 Mbaud: 1 ms {lt['1ms']}, 16 ms "
+              f"{lt['16ms']}: +{lt['added_s_per_1000_transactions']:.1f} s per 1000 "
+              "fast sync reads")
     out.print(f"failures: {result['failures']}")
     out.print(f"settle: {result['settle']}")
     out.print(f"targets: {result['targets']}")

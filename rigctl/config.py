@@ -211,6 +211,11 @@ class CameraConfig(_Strict):
     fourcc: str = "MJPG"
     fps: float | None = Field(None, gt=0)
     controls: dict[str, float] = Field(default_factory=dict)
+    # V4L2 controls by their v4l2-ctl names (either side of Linux 5.16's renames, e.g.
+    # focus_absolute, exposure_time_absolute or exposure_absolute), set through the
+    # kernel's ioctls on a /dev/video device and read back
+    v4l2_controls: dict[str, int] = Field(default_factory=dict)
+    # turn automatic focus, exposure and white balance off (calibration needs them fixed)
     auto_off: bool = True
     timeout_s: float = Field(3.0, gt=0)  # open, and wait for a fresh frame
     # longest time from exposure to a frame's arrival beyond one frame period (encode,
@@ -236,6 +241,15 @@ class CameraConfig(_Strict):
         unknown = sorted(set(value) - known)
         if unknown:
             raise ValueError(f"unknown camera control(s) {unknown}; known: {sorted(known)}")
+        return value
+
+    @field_validator("v4l2_controls")
+    @classmethod
+    def _v4l2_names(cls, value: dict[str, int]) -> dict[str, int]:
+        bad = sorted(k for k in value if not re.fullmatch(r"[a-z0-9_]+", k))
+        if bad:
+            raise ValueError(f"V4L2 control names are v4l2-ctl's (lower case, underscores): "
+                             f"{bad}")
         return value
 
 

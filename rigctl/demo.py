@@ -7,7 +7,9 @@ through the runner, recorded under ``demo-records/``:
 1. ``active-camera``: intrinsics from head rotations (thesis ch. 3), printed against the
    world's truth;
 2. ``hand-eye``: T_flange_cam with the nominal arm model;
-3. ``robot-kinematics``: sweeps (link-by-link) and random views (joint refinement);
+3. ``robot-kinematics``: sweeps (link-by-link) and random views (joint refinement),
+   held out against the nominal and the controller's factory model, and exported for the
+   UR ROS 2 driver (kinematics YAML) and as a URDF;
 4. ``validate-arm``: held-out views, camera pose error before and after;
 
 and prints every estimate against the world's truth.
@@ -25,6 +27,9 @@ from rich.table import Table
 from mocks.world import WORLDS, load_world
 from rigctl.bench.truth import model_against_truth
 from rigctl.config import load_rig
+from rigctl.errors import RigError
+from rigctl.exports import SUFFIXES, export_result
+from rigctl.records import RunDirectory
 from rigctl.runner import Runner
 from rigctl.simrig import SimulatedRig
 
@@ -101,8 +106,11 @@ def main() -> int:
             elif name == "robot-kinematics":
                 console.print(robot_table(outcome.result, truth))
                 s = outcome.result["summary"]
-                console.print(f"held-out camera position RMS: before {s['heldout_mm_before']:.2f}"
-                              f" mm, after {s['heldout_mm_after']:.3f} mm; condition number "
+                factory = (f", the controller's factory model {s['heldout_mm_factory']:.2f} mm"
+                           if s.get("heldout_mm_factory") is not None else "")
+                console.print(f"held-out camera position RMS: nominal {s['heldout_mm_before']:.2f}"
+                              f" mm{factory}, calibrated {s['heldout_mm_after']:.3f} mm; "
+                              "condition number "
                               f"{s['condition_number']:.0f} (link parameters alone, X and W "
                               f"projected out: {s['condition_number_kinematic']:.0f})")
                 singles = ", ".join(f"{label} {s[key]:.2f} mm" for label, key in (
@@ -126,6 +134,20 @@ def main() -> int:
                 console.print(f"exported model against the world's forward kinematics, {count} "
                               f"configurations never seen: camera position RMS {rms:.3f} mm, "
                               f"max {worst:.3f} mm")
+                if s.get("moved_from_controller_mm") is not None:
+                    moved = s["moved_from_controller_mm"]
+                    console.print(f"the calibration moved the camera {moved:.2f} mm RMS from "
+                                  "where the controller's own model puts it")
+                run_dir = RunDirectory(outcome.run_dir)
+                for fmt in ("ur-kinematics", "urdf"):
+                    try:
+                        path = export_result(outcome.result, fmt, run_dir.path /
+                                             f"export{SUFFIXES[fmt]}", run_dir.run_id,
+                                             run_dir.versions())
+                        console.print(f"exported {fmt}: {path}")
+                    except RigError as exc:
+                        console.print(f"[red]export {fmt} failed: {exc}[/red]")
+                        status = 1
             else:
                 r = outcome.result
                 b, a = r["before"], r["after"]

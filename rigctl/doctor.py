@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import os
 import statistics
 import time
+from pathlib import Path
 from typing import Any
 
 from rigctl.config import RigConfig
@@ -14,6 +16,34 @@ PROBES = {
     "arm": lambda d: d.read_state(),
     "camera": lambda d: d.capture(),
 }
+
+
+UDEV_RULE = ('ACTION=="add", SUBSYSTEM=="usb-serial", DRIVER=="ftdi_sio", '
+             'ATTR{latency_timer}="1"')
+
+
+def serial_latency(port: str, sysfs: Path = Path("/sys")) -> dict[str, Any]:
+    """The USB-serial latency timer of the head's port (``latency_timer`` in sysfs, ms),
+    and what to do when it is not 1 ms: an FTDI adapter holds every short servo reply
+    until it expires (16 ms by default)."""
+    real = Path(os.path.realpath(port))
+    timer = sysfs / "bus" / "usb-serial" / "devices" / real.name / "latency_timer"
+    if not timer.exists():
+        return {"latency_timer_ms": None, "hint": None,
+                "latency_timer_note": f"{port} ({real}) has no USB-serial latency timer "
+                                      f"({timer} is missing): nothing to set"}
+    try:
+        value = int(timer.read_text().strip())
+    except (OSError, ValueError) as exc:
+        return {"latency_timer_ms": None, "hint": f"{timer}: cannot read it: {exc}"}
+    if value <= 1:
+        return {"latency_timer_ms": value, "hint": None}
+    return {"latency_timer_ms": value,
+            "hint": f"{port} ({real.name}): the USB-serial latency timer is {value} ms, so "
+                    f"every servo reply waits up to {value} ms. Set 1 ms now with "
+                    f"`echo 1 | sudo tee {timer}`, and for good with the udev rule "
+                    f"`{UDEV_RULE}` in /etc/udev/rules.d/99-usb-serial-latency.rules "
+                    "(then `sudo udevadm control --reload` and replug)"}
 
 
 def check_rig(config: RigConfig, factories: dict | None = None, samples: int = 20) -> list[dict]:
@@ -42,5 +72,7 @@ def check_rig(config: RigConfig, factories: dict | None = None, samples: int = 2
         except Exception as exc:
             report.append({"device": kind, "state": "error",
                            "message": f"{type(exc).__name__}: {exc}"})
+        if kind == "head":
+            report[-1] |= serial_latency(config.devices.head.port)
     rig.close_all()
     return report

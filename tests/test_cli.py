@@ -91,6 +91,13 @@ def test_run_list_show_solve_export_against_stand_in(tmp_path):
         assert rows["head"]["state"] == "ok" and rows["arm"]["state"] == "missing"
         assert rows["head"]["describe"]["servos"]["2"]["model"] == 1020
         assert rows["head"]["latency_ms"] > 0  # measured; timing belongs to benchmarks
+        # a pty has no USB-serial latency timer: nothing to set, and doctor says so
+        assert rows["head"]["latency_timer_ms"] is None and rows["head"]["hint"] is None
+        assert "no USB-serial latency timer" in rows["head"]["latency_timer_note"]
+        # the bus record: every transaction counted, per servo and for the group reads
+        stats = rows["head"]["describe"]["bus_stats"]
+        assert stats["2"]["transactions"] >= 5 and stats["2"]["errors"] == 0
+        assert stats["group"]["transactions"] >= 20
     finally:
         assert proc.stop() == 0
 

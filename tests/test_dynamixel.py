@@ -198,6 +198,43 @@ def test_corrupted_and_dropped_replies_are_retried(bus):
         head.move_to(math.radians(5), 0.0, 0.0).wait(10)
         assert abs(head.read_angles().pan - math.radians(5)) < 0.002
         assert head.retries_used >= 2
+        stats = head.describe()["bus_stats"]
+        assert sum(v["retries"] for v in stats.values()) == head.retries_used
+        assert all(v["errors"] == 0 for v in stats.values())
+
+
+def test_persistent_silence_is_counted_against_the_servo(bus):
+    head = DynamixelHead(head_config(bus.ready["link"], retries=2))
+    with head:
+        before = dict(head.describe()["bus_stats"]["1"])
+        control(bus.ready["control"], {"cmd": "drop_next", "count": 10})
+        with pytest.raises(DeviceError):
+            head._read1(1, 65, "read LED")
+        after = head.describe()["bus_stats"]["1"]
+        assert after["transactions"] == before["transactions"] + 1
+        assert after["retries"] == before["retries"] + 2
+        assert after["errors"] == before["errors"] + 1
+
+
+def test_latency_timer_emulation_holds_every_reply(tmp_path):
+    """--latency-timer-ms 16: no reply reaches the host sooner than 16 ms after its
+    request (a lower bound: a busy host only makes it later)."""
+    link = tmp_path / "dxl-lt"
+    proc = MockProcess(["-m", "mocks.dynamixel_bus", "--link", str(link),
+                        "--latency-timer-ms", "16"])
+    try:
+        handler = TimedPortHandler(proc.ready["link"], 500.0)
+        assert handler.openPort() and handler.setBaudRate(1_000_000)
+        try:
+            for _ in range(5):
+                t0 = time.perf_counter()
+                _, comm, _ = ph.read4ByteTxRx(handler, 1, 132)
+                assert comm == sdk.COMM_SUCCESS
+                assert time.perf_counter() - t0 >= 0.016
+        finally:
+            handler.closePort()
+    finally:
+        assert proc.stop() == 0
 
 
 def test_persistent_silence_raises_device_error_naming_servo(bus):

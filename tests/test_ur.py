@@ -89,11 +89,12 @@ def test_streams_every_subscribed_variable_consistently(clients):
     pose = receive.getActualTCPPose()
     assert np.allclose(pose[:3], T[:3, 3], atol=1e-9)
     assert np.allclose(rotation(pose), T[:3, :3], atol=1e-9)
-    # the controller clock advances, never faster than real time (a loaded host only
-    # slows it: the stand-in's clock stops counting while its loop is behind)
-    t0, wall0 = receive.getTimestamp(), time.monotonic()
+    # the controller clock advances. (How fast is not asserted: the client's cached
+    # timestamp may be stale by however long its reader was descheduled, so controller
+    # time can seem to outrun the wall clock between two reads; the load check caught
+    # 0.104 s of controller time in 0.093 s.)
+    t0 = receive.getTimestamp()
     wait_until(lambda: receive.getTimestamp() - t0 >= 0.1, what="0.1 s of controller time")
-    assert receive.getTimestamp() - t0 <= time.monotonic() - wall0 + 0.01
 
 
 def test_movej_lands_within_1e4_rad(clients):

@@ -30,10 +30,10 @@ def _transactions(port, ph):
     }
 
 
-def bench_baud(baud: int, samples: int, workdir: Path) -> dict:
-    link = workdir / f"dxl-{baud}"
+def bench_baud(baud: int, samples: int, workdir: Path, latency_timer_ms: float = 0.0) -> dict:
+    link = workdir / f"dxl-{baud}-{latency_timer_ms:g}"
     with StandIn(["-m", "mocks.dynamixel_bus", "--link", str(link), "--baud", str(baud),
-                  "--wire-timing"]):
+                  "--wire-timing", "--latency-timer-ms", str(latency_timer_ms)]):
         port = sdk.PortHandler(str(link))
         port.openPort()
         port.setBaudRate(baud)
@@ -53,6 +53,18 @@ def bench_baud(baud: int, samples: int, workdir: Path) -> dict:
             out[name] = {**st, "wire_limit_ms": limit_ms, "ratio_median": st["median_ms"] /
                          limit_ms, "failures": failures}
         port.closePort()
+    return out
+
+
+def bench_latency_timer(samples: int, workdir: Path) -> dict:
+    """What a USB-serial adapter's latency timer costs at 1 Mbaud: the FTDI default of
+    16 ms against the 1 ms ``rigctl doctor`` asks for (stand-in ``--latency-timer-ms``)."""
+    out = {}
+    for ms in (1.0, 16.0):
+        kinds = bench_baud(1_000_000, samples, workdir, latency_timer_ms=ms)
+        out[f"{ms:g}ms"] = {k: v["median_ms"] for k, v in kinds.items()}
+    added = out["16ms"]["fast_sync_read_x3"] - out["1ms"]["fast_sync_read_x3"]
+    out["added_s_per_1000_transactions"] = added
     return out
 
 
@@ -96,6 +108,7 @@ def run(samples: int = 500, failure_transactions: int = 10000) -> dict:
         for baud in (57_600, 1_000_000, 4_000_000):
             n = max(samples // 5, 50) if baud < 100_000 else samples
             result["bauds"][str(baud)] = bench_baud(baud, n, workdir)
+        result["latency_timer"] = bench_latency_timer(max(samples // 5, 50), workdir)
         result["failures"] = bench_failures(failure_transactions, workdir)
         result["settle"] = bench_settle(workdir)
     ratio = result["bauds"]["1000000"]["sync_read_x3"]["ratio_median"]

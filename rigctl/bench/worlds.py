@@ -36,6 +36,7 @@ from mocks.world import World, WorldFile
 from rigctl.bench.truth import intrinsics_errors, link_z, model_against_truth, position_z
 from rigctl.config import load_rig, parse_rig
 from rigctl.errors import RigError
+from rigctl.geometry.kinematics import nominal_ur
 from rigctl.runner import Runner
 from rigctl.simrig import SimulatedRig
 
@@ -55,13 +56,25 @@ def _metrics(name: str, result: dict, truth: dict, config, world: World) -> dict
         return {**intrinsics_errors(result, truth), "rms_px": result["summary"]["rms_px"]}
     if name == "hand-eye":
         X, X_true = np.array(result["T_flange_cam"]), np.array(truth["T_flange_cam"])
-        return {"t_mm_nominal_arm": 1000 * float(np.linalg.norm(X[:3, 3] - X_true[:3, 3]))}
+        # with the arm model hand-eye used: the controller's own, or nominal without one
+        return {"t_mm": 1000 * float(np.linalg.norm(X[:3, 3] - X_true[:3, 3])),
+                "arm_model_used": result.get("arm_model_used", "nominal")}
     if name == "robot-kinematics":
         rms, worst, count = model_against_truth(result, config, world)
         s = result["summary"]
+        # the same check for the models the calibration started from: nominal and the
+        # controller's own (each with the hand-eye solved for it)
+        nominal = {"links": nominal_ur(config.devices.arm.model).links(), **{
+            k: result["before"][k] for k in ("T_flange_cam", "T_base_target")}}
+        factory = result.get("factory")
         return {"model_rms_mm": rms, "model_max_mm": worst, "model_configs": count,
                 "heldout_mm_before": s["heldout_mm_before"],
                 "heldout_mm_after": s["heldout_mm_after"],
+                # the controller's own (factory) model with its hand-eye, when it has one
+                "heldout_mm_factory": s.get("heldout_mm_factory"),
+                "nominal_model_rms_mm": model_against_truth(nominal, config, world)[0],
+                "factory_model_rms_mm": model_against_truth(factory, config, world)[0]
+                if factory else None,
                 "training_views": s["training_views"], "z": link_z(result, truth),
                 "intrinsics_agree": result.get("intrinsics_check", {}).get("agrees"),
                 # the camera model the arm model was fitted with (free in the final bundle
@@ -206,6 +219,10 @@ def summarise(rows: list[dict]) -> dict:
                          "centre_px": _dist([c["centre_px"] for c in cams])},
         "model_rms_mm": _dist(_values(rows, "robot-kinematics", "model_rms_mm")),
         "model_max_mm": _dist(_values(rows, "robot-kinematics", "model_max_mm")),
+        # the same check for the models the calibration started from
+        "nominal_model_rms_mm": _dist(_values(rows, "robot-kinematics", "nominal_model_rms_mm")),
+        "factory_model_rms_mm": _dist(_values(rows, "robot-kinematics", "factory_model_rms_mm")),
+        "hand_eye_t_mm": _dist(_values(rows, "hand-eye", "t_mm")),
         "heldout_mm_after": _dist(_values(rows, "robot-kinematics", "heldout_mm_after")),
         "validate_mm_after": _dist(_values(rows, "validate-arm", "position_rms_mm_after")),
         "coverage": {"intrinsics": _coverage(z_cam), "links": _coverage(z_arm),

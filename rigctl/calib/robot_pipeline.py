@@ -74,6 +74,11 @@ class RobotSolution:
     camera_note: str | None = None  # why the camera stayed held, when it was to be free
     views: list[BoardView] = field(default_factory=list)
     rejected_views: dict[str, float] = field(default_factory=dict)  # label: RMS px
+    # the controller's own model, when given: its hand-eye, and how far the calibrated
+    # model's camera (in the target frame) lies from that model's over the held-out
+    # configurations
+    controller_hand_eye: Any = None
+    moved_from_controller: dict[str, float] | None = None
 
 
 def _sweeps(train: list[BoardView]) -> dict[int, robot.Sweep]:
@@ -133,11 +138,14 @@ def outlier_views(ref: robot.RefineResult, meas: robot.Measurements) -> dict[int
 @with_one_blas_thread
 def solve_robot(views: list[BoardView], nominal: KinematicModel, obj: np.ndarray,
                 K: np.ndarray, dist: np.ndarray, prior_sigma: dict[str, float] | None,
-                refine_camera: bool = True, reject_outliers: bool = True) -> RobotSolution:
+                refine_camera: bool = True, reject_outliers: bool = True,
+                controller: KinematicModel | None = None) -> RobotSolution:
     """Stages 1-6 above on the board views. ``prior_sigma``: 1-sigma of the intrinsics
     ``K`` (their prior weight when ``refine_camera``). With ``reject_outliers``, training
     views the refined model misses by far (``outlier_views``) are left out once and the
-    solve runs again; the solution lists them in ``rejected_views``."""
+    solve runs again; the solution lists them in ``rejected_views``. ``controller``: the
+    arm's own (factory) model, when it reports one: a start of the joint refinement, and
+    held out like the nominal model."""
     timings: dict[str, float] = {}
     stage = stage_timer(timings)
     train = [v for v in views if v.kind in ("sweep", "train")]
@@ -152,20 +160,29 @@ def solve_robot(views: list[BoardView], nominal: KinematicModel, obj: np.ndarray
         closed = handeye.closed_form(F, meas.C)
         he = handeye.refine_pixels(F, meas.corners, obj, K, dist,
                                    handeye.best_closed_form(closed), C=meas.C)
+    he_controller = None
+    if controller is not None:
+        with stage("hand-eye (controller's arm model)"):
+            Fc = [controller.fk(v.q) for v in train]
+            he_controller = handeye.refine_pixels(
+                Fc, meas.corners, obj, K, dist,
+                handeye.best_closed_form(handeye.closed_form(Fc, meas.C)), C=meas.C)
     sweeps = _sweeps(train)
     with stage("link-by-link and axis-based"):
         lbl, lbl_error, axis, axis_error = _single_methods(sweeps, he, nominal, meas)
     with stage("joint refinement"):
         start = lbl.model if lbl is not None else nominal
         W_start = handeye.average_W([start.fk(v.q) for v in train], meas.C, he.X)
-        starts = [(nominal, he.X, he.W)] + ([(axis.model, axis.X, axis.W)] if axis else [])
+        starts = [(nominal, he.X, he.W)] + ([(axis.model, axis.X, axis.W)] if axis else []) \
+            + ([(controller, he_controller.X, he_controller.W)] if controller else [])
         ref = robot.refine(start, he.X, W_start, meas, extra_starts=starts)
     if reject_outliers:
         rejected = outlier_views(ref, meas)
         if rejected and len(train) - len(rejected) >= MIN_TRAINING_VIEWS:
             dropped = {id(train[k]) for k in rejected}
             again = solve_robot([v for v in views if id(v) not in dropped], nominal, obj,
-                                K, dist, prior_sigma, refine_camera, reject_outliers=False)
+                                K, dist, prior_sigma, refine_camera, reject_outliers=False,
+                                controller=controller)
             again.rejected_views = {train[k].label: e for k, e in rejected.items()}
             again.timings_s = {f"{k} (with outliers)": t for k, t in timings.items()} | \
                 again.timings_s
@@ -197,7 +214,20 @@ def solve_robot(views: list[BoardView], nominal: KinematicModel, obj: np.ndarray
             heldout["link_by_link"] = heldout_errors(lbl.model, he.X, W_lbl, held)
         if axis is not None:
             heldout["axis_based"] = heldout_errors(axis.model, axis.X, axis.W, held)
+        moved = None
+        if controller is not None:
+            heldout["factory"] = heldout_errors(controller, he_controller.X, he_controller.W,
+                                                held)
+            # camera in the target frame under each model (free of the base frame's gauge)
+            qs = [v.q for v in (held or train)]
+            W_inv, Wc_inv = np.linalg.inv(ref.W), np.linalg.inv(he_controller.W)
+            gap = [np.linalg.norm((W_inv @ ref.model.fk(q) @ ref.X)[:3, 3]
+                                  - (Wc_inv @ controller.fk(q) @ he_controller.X)[:3, 3])
+                   for q in qs]
+            moved = {"position_rms_m": float(np.sqrt(np.mean(np.square(gap)))),
+                     "position_max_m": float(np.max(gap)), "configurations": len(qs)}
     spans = {f"joint{j + 1}": float(np.degrees(np.ptp([q[j] for q in sw.q])))
              for j, sw in sweeps.items()}
     return RobotSolution(ref, cam, he, closed, heldout, lbl, lbl_error, axis, axis_error, dh_sv,
-                         spans, meas, len(train), len(held), timings, camera_note, views)
+                         spans, meas, len(train), len(held), timings, camera_note, views,
+                         controller_hand_eye=he_controller, moved_from_controller=moved)
