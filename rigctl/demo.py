@@ -6,7 +6,8 @@ through the runner, recorded under ``demo-records/``:
 
 1. ``active-camera``: intrinsics from head rotations (thesis ch. 3), printed against the
    world's truth;
-2. ``hand-eye``: T_flange_cam with the nominal arm model;
+2. ``hand-eye``: T_flange_cam with the arm model the controller reports (its factory
+   calibration; nominal when it reports none);
 3. ``robot-kinematics``: sweeps (link-by-link) and random views (joint refinement),
    held out against the nominal and the controller's factory model, and exported for the
    UR ROS 2 driver (kinematics YAML) and as a URDF;
@@ -102,7 +103,7 @@ def main() -> int:
                 console.print(f"T_flange_cam translation (mm): estimated "
                               f"{np.round(1000 * X[:3, 3], 2).tolist()}, true "
                               f"{np.round(1000 * X_true[:3, 3], 2).tolist()} (with the "
-                              "uncalibrated nominal arm model)")
+                              f"{outcome.result.get('arm_model_used', 'nominal')} arm model)")
             elif name == "robot-kinematics":
                 console.print(robot_table(outcome.result, truth))
                 s = outcome.result["summary"]

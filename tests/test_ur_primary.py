@@ -4,10 +4,12 @@ driver over TCP on loopback."""
 
 from __future__ import annotations
 
+import json
 import math
 import shutil
 import struct
 import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -205,5 +207,16 @@ def test_stand_in_reports_its_factory_kinematics_and_moves_by_them(tmp_path):
         finally:
             receive.disconnect()
         assert np.allclose(pose[:3], dh_fk(q, k)[:3, 3], atol=1e-9)
+        # doctor reports the controller's version and its kinematics hash
+        rig = tmp_path / "rig.yaml"
+        rig.write_text(f"name: primary\ndevices:\n  arm: {{host: {host}, model: ur10e}}\n")
+        done = subprocess.run([sys.executable, "-m", "rigctl.cli", "doctor", "--rig", str(rig),
+                               "--json"], capture_output=True, text=True, timeout=120)
+        arm = {r["device"]: r for r in json.loads(done.stdout)}["arm"]
+        assert arm["state"] == "ok", arm
+        assert arm["describe"]["controller"] == "5.11.1.108318"
+        assert arm["describe"]["kinematics_hash"] == k.ur_hash()
+        assert arm["describe"]["controller_kinematics"]["d"] == list(k.d)
+        assert f"kinematics_hash={k.ur_hash()}" in arm["message"]
     finally:
         proc.stop()
