@@ -106,7 +106,7 @@ def _link_drift(new: dict, old: dict, limits: DriftThresholds, metrics: dict) ->
             value = 1000 * abs(n[k] - o[k]) if kind == "length" else \
                 math.degrees(abs(n[k] - o[k]))
             changes[kind].append((value, z, name))
-    mm, deg = max(changes["length"]), max(changes["angle"])
+    mm, deg = (max(changes[k], key=lambda c: c[0]) for k in ("length", "angle"))
     metrics |= {"link_mm": mm[0], "link_deg": deg[0]}
     out = []
     for kind, limit, unit, fmt in (("length", limits.link_mm, "mm", ".3f"),

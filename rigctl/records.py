@@ -19,6 +19,7 @@ as ``interrupted``.
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
 import json
 import os
@@ -168,7 +169,10 @@ class RecordIndex:
     def get(self, run_id: str) -> dict[str, Any]:
         with self.engine.connect() as conn:
             rows = [dict(r._mapping) for r in conn.execute(
-                select(runs_table).where(runs_table.c.run_id.startswith(run_id)))]
+                select(runs_table).where(runs_table.c.run_id.startswith(run_id,
+                                                                        autoescape=True)))]
+        exact = [r for r in rows if r["run_id"] == run_id]
+        rows = exact or rows  # a whole id wins over the longer ids it is a prefix of
         if not rows:
             raise RigError(f"no run with id {run_id!r} in the index")
         if len(rows) > 1:
@@ -299,6 +303,29 @@ class RunDirectory:
 
     def params(self) -> dict[str, Any]:
         return self.read_json("params.json")
+
+    def append_decision(self, decision: str, by: str, comment: str = "",
+                        **extra: Any) -> dict[str, Any]:
+        """Append one decision on this calibration (accepted, rejected, drift, pending),
+        who made it and why, to ``decisions.jsonl``: the index keeps only the latest
+        decision, the run directory keeps them all."""
+        entry = {"time": utcnow().isoformat(), "decision": decision, "by": by,
+                 "comment": comment, **to_jsonable(extra)}
+        with open(self.path / "decisions.jsonl", "a", encoding="utf-8") as f:
+            f.write(json.dumps(entry) + "\n")
+        return entry
+
+    def decisions(self) -> list[dict[str, Any]]:
+        """The decisions on this run, oldest first (empty if none was made); a torn last
+        line (a crash while appending) is skipped."""
+        path = self.path / "decisions.jsonl"
+        if not path.exists():
+            return []
+        out = []
+        for line in path.read_text(encoding="utf-8").splitlines():
+            with contextlib.suppress(json.JSONDecodeError):
+                out.append(json.loads(line))
+        return out
 
     def versions(self) -> dict[str, Any] | None:
         """``versions.json`` (software and device versions), or None if not written."""

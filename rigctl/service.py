@@ -1,5 +1,6 @@
 """``rigctl serve``: HTTP API, a FIFO run queue with the rig's one lock, scheduled
-recalibration, drift checks and a status page (FastAPI + uvicorn + APScheduler).
+recalibration, drift checks and the operator console (FastAPI + uvicorn + APScheduler;
+the console's pages are in ``rigctl.console``).
 
 Runs execute in one worker thread through the same ``Runner`` as the CLI, under the same
 per-rig ``flock``: a CLI run while the service holds the rig fails with "busy, held by
@@ -14,7 +15,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import datetime as dt
-import io
 import json
 import logging
 import os
@@ -29,18 +29,13 @@ from typing import Any
 from fastapi import APIRouter, Depends, FastAPI, Header, HTTPException, Query, Request
 from fastapi import Path as PathParam
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import (
-    FileResponse,
-    HTMLResponse,
-    JSONResponse,
-    Response,
-    StreamingResponse,
-)
+from fastapi.responses import FileResponse, JSONResponse, StreamingResponse
 from pydantic import BaseModel, Field
 
 import procedures
 from rigctl import __version__, drift
 from rigctl.config import RigConfig, parse_duration
+from rigctl.console.pages import console_routes, mount_static
 from rigctl.errors import BusyError, ConfigError, RigError, SafetyError
 from rigctl.locks import RigLock
 from rigctl.records import RecordIndex, RunDirectory, new_run_id, utcnow
@@ -230,10 +225,40 @@ class RigService:
             decision = "accepted"
         else:
             decision = "pending"
-        self.index.update(run_id, decision=decision)
-        self.events.publish({"type": "decision", "run_id": run_id, "decision": decision,
-                             "drift": breaches, "metrics": metrics})
+        self.set_decision(self.index.get(run_id), decision, "service",
+                          "; ".join(breaches), drift=breaches, metrics=metrics,
+                          compared_with=previous["run_id"] if previous else None)
         return decision
+
+    def status(self) -> dict[str, Any]:
+        """The rig without moving anything: its devices from the rig file, the lock
+        holder, the last recorded readings (the newest capture's sidecar)."""
+        config = self.config
+        lock = RigLock(config.records_dir() / "locks", config.name)
+        last = {}
+        for row in self.runs(20):
+            sidecars = sorted(Path(row["run_dir"], "captures").glob("[0-9][0-9][0-9].json")) \
+                if row["run_dir"] else []
+            if sidecars:  # the newest only: pages ask for this often
+                with contextlib.suppress(OSError, json.JSONDecodeError):
+                    meta = json.loads(sidecars[-1].read_text())
+                    last = {"run_id": row["run_id"], "head": meta.get("head"),
+                            "arm": meta.get("arm"), "time": meta.get("time")}
+                break
+        devices = {k: (getattr(config.devices, k).model_dump() if getattr(config.devices, k)
+                       else None) for k in ("head", "arm", "camera")}
+        return {"rig": config.name, "busy": self.busy_reason(), "lock": lock.holder(),
+                "devices": devices, "last_readings": last}
+
+    def set_decision(self, row: dict, decision: str, by: str, comment: str = "",
+                     **extra: Any) -> None:
+        """Record a decision on a finished calibration: the index's ``decision``, and
+        the whole trail (who, when, why) in the run's ``decisions.jsonl``."""
+        self.index.update(row["run_id"], decision=decision)
+        if row.get("run_dir") and Path(row["run_dir"]).is_dir():
+            RunDirectory(row["run_dir"]).append_decision(decision, by, comment, **extra)
+        self.events.publish({"type": "decision", "run_id": row["run_id"],
+                             "decision": decision, "by": by, **extra})
 
     def runs(self, limit: int, procedure: str | None = None) -> list[dict]:
         """This rig's runs, newest first (an index may be shared by several rigs)."""
@@ -347,6 +372,7 @@ def create_app(service: RigService, stop_service_on_shutdown: bool = False) -> F
     app.include_router(_run_routes(service, guarded))
     app.include_router(_calibration_routes(service, guarded))
     app.include_router(_page_routes(service))
+    mount_static(app)
     return app
 
 
@@ -379,14 +405,19 @@ def _calibration_rows(service: RigService, procedure: str | None,
     return sorted(rows, key=lambda r: r["started_at"], reverse=True)
 
 
-def _set_decision(service: RigService, run_id: str, decision: str) -> dict:
+class DecisionRequest(BaseModel):
+    comment: str = Field("", max_length=2000, description="why; kept in decisions.jsonl")
+    operator: str | None = Field(None, max_length=100)
+
+
+def _set_decision(service: RigService, run_id: str, decision: str,
+                  request: DecisionRequest | None) -> dict:
     row = _own_run(service, run_id)
     if row["procedure"] not in drift.CALIBRATIONS or row["status"] != "succeeded":
         raise HTTPException(409, f"run {run_id} is not a finished calibration")
-    service.index.update(row["run_id"], decision=decision)
-    service.events.publish({"type": "decision", "run_id": row["run_id"],
-                            "decision": decision, "by": "operator"})
-    return {"run_id": row["run_id"], "decision": decision}
+    request = request or DecisionRequest()
+    service.set_decision(row, decision, request.operator or "operator", request.comment)
+    return {"run_id": row["run_id"], "decision": decision, "comment": request.comment}
 
 
 def _rig_routes(service: RigService) -> APIRouter:
@@ -401,20 +432,7 @@ def _rig_routes(service: RigService) -> APIRouter:
     def rig_state() -> dict:
         """Device status read without moving anything: configuration, lock holder, the
         last recorded readings."""
-        lock = RigLock(config.records_dir() / "locks", config.name)
-        last = {}
-        for row in service.runs(20):
-            sidecars = sorted(Path(row["run_dir"], "captures").glob("[0-9][0-9][0-9].json")) \
-                if row["run_dir"] else []
-            if sidecars:  # the newest only: the status page polls this every few seconds
-                meta = json.loads(sidecars[-1].read_text())
-                last = {"run_id": row["run_id"], "head": meta.get("head"),
-                        "arm": meta.get("arm"), "time": meta.get("time")}
-                break
-        devices = {k: (getattr(config.devices, k).model_dump() if getattr(config.devices, k)
-                       else None) for k in ("head", "arm", "camera")}
-        return {"rig": config.name, "busy": service.busy_reason(), "lock": lock.holder(),
-                "devices": devices, "last_readings": last}
+        return service.status()
 
     @router.get("/procedures")
     def list_procedures() -> list[dict]:
@@ -498,18 +516,20 @@ def _calibration_routes(service: RigService, guarded: list) -> APIRouter:
         return [_row(r) for r in _calibration_rows(service, procedure)]
 
     @router.post("/calibrations/{run_id}/accept", dependencies=guarded)
-    def accept(run_id: str = RUN_ID) -> dict:
-        return _set_decision(service, run_id, "accepted")
+    def accept(run_id: str = RUN_ID, request: DecisionRequest | None = None) -> dict:
+        """Accept a finished calibration, with an optional comment that is recorded."""
+        return _set_decision(service, run_id, "accepted", request)
 
     @router.post("/calibrations/{run_id}/reject", dependencies=guarded)
-    def reject(run_id: str = RUN_ID) -> dict:
-        return _set_decision(service, run_id, "rejected")
+    def reject(run_id: str = RUN_ID, request: DecisionRequest | None = None) -> dict:
+        """Reject a finished calibration, with an optional comment that is recorded."""
+        return _set_decision(service, run_id, "rejected", request)
 
     return router
 
 
 def _page_routes(service: RigService) -> APIRouter:
-    """The event stream, the history plot and the status page."""
+    """The event stream and the operator console (``rigctl.console``)."""
     router = APIRouter()
 
     @router.get("/events")
@@ -533,101 +553,8 @@ def _page_routes(service: RigService) -> APIRouter:
 
         return StreamingResponse(stream(), media_type="text/event-stream")
 
-    @router.get("/plots/history.png")
-    def history_plot() -> Response:
-        return Response(_history_png(_calibration_rows(service, None)), media_type="image/png")
-
-    @router.get("/", response_class=HTMLResponse)
-    def status_page() -> str:
-        return STATUS_PAGE.replace("{{rig}}", service.config.name)
-
+    router.include_router(console_routes(service))
     return router
-
-
-def _history_png(rows: list[dict]) -> bytes:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 3, figsize=(12, 3.2))
-    colours = {"accepted": "tab:green", "drift": "tab:red", "pending": "tab:orange",
-               "rejected": "tab:gray"}
-    cam = [r for r in rows if r["procedure"] == "active-camera" and r["result_summary"]]
-    rob = [r for r in rows if r["procedure"] == "robot-kinematics" and r["result_summary"]]
-    for ax, keys, title in ((axes[0], ("fx", "fy"), "focal lengths (px)"),
-                            (axes[1], ("cx", "cy"), "principal point (px)")):
-        for key in keys:
-            pts = [(r["started_at"], r["result_summary"].get(key)) for r in cam
-                   if r["result_summary"].get(key) is not None]
-            if pts:
-                ax.plot([p[0] for p in pts], [p[1] for p in pts], "-", lw=0.8, label=key)
-                ax.scatter([p[0] for p in pts], [p[1] for p in pts],
-                           c=[colours.get(r["decision"], "k") for r in cam
-                              if r["result_summary"].get(key) is not None], s=16, zorder=3)
-        ax.set_title(title)
-        ax.legend(fontsize=7)
-    pts = [(r["started_at"], r["result_summary"].get("heldout_mm_after")) for r in rob]
-    pts = [p for p in pts if p[1] is not None]
-    if pts:
-        axes[2].plot([p[0] for p in pts], [p[1] for p in pts], "o-")
-    axes[2].set_title("arm: held-out camera error after calibration (mm)")
-    for ax in axes:
-        ax.tick_params(axis="x", labelrotation=30, labelsize=7)
-    fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=80)
-    plt.close(fig)
-    return buf.getvalue()
-
-
-STATUS_PAGE = """<!doctype html>
-<html><head><meta charset="utf-8"><title>rigctl: {{rig}}</title>
-<style>
-body{font-family:system-ui,sans-serif;margin:1.5em;color:#222}
-table{border-collapse:collapse;font-size:90%}td,th{padding:3px 8px;border-bottom:1px solid #ddd}
-.succeeded,.accepted{color:#1a7f37}.failed,.drift,.aborted{color:#c62828}
-.running,.pending,.queued{color:#b26a00}
-progress{width:20em}
-</style></head><body>
-<h1>rigctl &middot; {{rig}}</h1>
-<h2>Rig</h2><div id="rig">loading...</div>
-<h2>Current run</h2><div id="current">idle</div>
-<h2>Recent runs</h2><table id="runs"><thead><tr><th>run</th><th>procedure</th>
-<th>status</th><th>decision</th><th>started</th><th>reason</th></tr></thead><tbody></tbody></table>
-<h2>Calibration history</h2><img id="history" src="/plots/history.png" alt="history">
-<script>
-async function refresh(){
-  const rig = await (await fetch('/rig')).json();
-  document.getElementById('rig').textContent =
-    (rig.busy ? 'busy: ' + rig.busy : 'idle') + ' | devices: ' +
-    Object.entries(rig.devices).filter(([k,v])=>v).map(([k])=>k).join(', ');
-  const runs = await (await fetch('/runs?limit=15')).json();
-  const body = document.querySelector('#runs tbody'); body.innerHTML = '';
-  let current = null;
-  for (const r of runs){
-    const tr = document.createElement('tr');
-    for (const v of [r.run_id, r.procedure, r.status, r.decision||'', r.started_at||'',
-                     (r.reason||'').slice(0,80)]){
-      const td = document.createElement('td'); td.textContent = v; tr.appendChild(td);}
-    tr.children[2].className = r.status; tr.children[3].className = r.decision||'';
-    body.appendChild(tr);
-    if (r.status === 'running') current = r;
-  }
-  const cur = document.getElementById('current');
-  if (current){
-    const d = await (await fetch('/runs/' + current.run_id)).json();
-    const p = d.progress || {};
-    cur.innerHTML = '';
-    cur.append(current.run_id + ' ' + (p.step || ''));
-    const bar = document.createElement('progress');
-    bar.max = p.total || 1; bar.value = p.index || 0; cur.append(' ', bar);
-  } else { cur.textContent = 'idle'; }
-  document.getElementById('history').src = '/plots/history.png?t=' + Date.now();
-}
-refresh(); setInterval(refresh, 3000);
-</script></body></html>
-"""
 
 
 def serve(config: RigConfig, host: str | None = None, port: int | None = None) -> None:

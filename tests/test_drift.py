@@ -180,6 +180,18 @@ def test_a_link_change_within_its_uncertainty_is_not_drift():
     assert breaches == [] and metrics["link_mm"] == pytest.approx(0.8)
 
 
+def test_unchanged_links_with_and_without_sigma_compare_without_a_crash():
+    """A real model: the fixed parameters (link1.d, ...) have no sigma, the identified
+    ones do, and most are unchanged; equal changes with and without a z once made the
+    comparison raise TypeError (seen on the console's first two robot calibrations)."""
+    identified = {f"link{i + 1}.a": 1e-5 for i in range(6)}
+    new = {"links": links(d_mm=0.8), "uncertainty": {"parameters": identified}}
+    old = {"links": links(), "uncertainty": {"parameters": identified}}
+    breaches, metrics = compare("robot-kinematics", new, old, LIMITS)
+    assert breaches == ["a link length changed 0.800 mm (limit 0.5 mm)"]
+    assert metrics["link_mm"] == pytest.approx(0.8) and metrics["link_deg"] == 0.0
+
+
 @pytest.mark.parametrize("procedure", ["hand-eye", "robot-kinematics"])
 def test_a_different_robot_hash_is_flagged_even_when_nothing_moved(procedure):
     same = {"T_flange_cam": BASE.tolist(), "links": links()}

@@ -2,116 +2,25 @@
 
 from __future__ import annotations
 
-import http.server
 import json
 import subprocess
 import sys
-import threading
 import time
 
 import httpx
 import pytest
-import yaml
 
-from rigctl.loopback import free_port
-from rigctl.simrig import SimulatedRig
 from tests.mockproc import ROOT
+from tests.service_stack import (
+    REQUEST_TIMEOUT_S,
+    Stack,
+    get,
+    post,
+    wait_for,
+)
 from tests.waiting import wait_until
 
 pytestmark = pytest.mark.integration
-
-TOKEN = "s3cret"
-AUTH = {"Authorization": f"Bearer {TOKEN}"}
-
-
-class Webhook:
-    def __init__(self) -> None:
-        self.received: list[dict] = []
-        owner = self
-
-        class Handler(http.server.BaseHTTPRequestHandler):
-            def log_message(self, *a):
-                pass
-
-            def do_POST(self):
-                body = self.rfile.read(int(self.headers["Content-Length"]))
-                owner.received.append(json.loads(body))
-                self.send_response(204)
-                self.end_headers()
-
-        self.server = http.server.HTTPServer(("127.0.0.1", 0), Handler)
-        self.url = f"http://127.0.0.1:{self.server.server_port}/hook"
-        threading.Thread(target=self.server.serve_forever, daemon=True).start()
-
-    def close(self):
-        self.server.shutdown()
-        self.server.server_close()
-
-
-def start_sim(tmp, world, host=None, camera_port=0):
-    """`sim up` on a fresh loopback address; a restart passes the old host and camera port
-    so that the service's rig file still points at the stand-ins."""
-    return SimulatedRig(world, records=tmp / "records", host=host, camera_port=camera_port,
-                        workdir=tmp / "simwork", rig_out=tmp / "sim-rig.yaml")
-
-
-class Stack:
-    """The simulated rig and `rigctl serve` on it; whatever was started is stopped by PID,
-    also when the constructor fails half-way."""
-
-    def __init__(self, tmp, schedules=()):
-        self.tmp, self.sim, self.server = tmp, None, None
-        self.hook = Webhook()
-        try:
-            self._start(tmp, list(schedules))
-        except BaseException:
-            self.stop()
-            raise
-
-    def _start(self, tmp, schedules):
-        self.sim = start_sim(tmp, "ideal")
-        rig = yaml.safe_load((tmp / "sim-rig.yaml").read_text())
-        port = free_port()
-        rig["service"] = {"bind": "127.0.0.1", "port": port, "token": TOKEN,
-                          "webhook": self.hook.url, "auto_accept": False,
-                          "schedules": schedules,
-                          "drift": {"focal_pct": 0.5, "principal_point_px": 3.0}}
-        self.rig = tmp / "service-rig.yaml"
-        self.rig.write_text(yaml.safe_dump(rig))
-        self.server = subprocess.Popen([sys.executable, "-m", "rigctl.cli", "serve", "--rig",
-                                        str(self.rig)], cwd=ROOT, stdout=subprocess.DEVNULL,
-                                       stderr=subprocess.PIPE, text=True)
-        self.base = f"http://127.0.0.1:{port}"
-
-        def healthy():
-            if self.server.poll() is not None:
-                raise RuntimeError(f"service exited: {self.server.stderr.read()[-2000:]}")
-            try:
-                return get(self.base + "/health", timeout=2).status_code == 200
-            except httpx.HTTPError:
-                return False
-
-        wait_until(healthy, timeout=90, what="the service to answer /health")
-
-    def restart_sim(self, world):
-        """The same devices (loopback host, camera port) on another world."""
-        ready = self.sim.ready
-        self.sim.stop(timeout=20)
-        self.sim = None
-        self.sim = start_sim(self.tmp, world, host=ready["host"],
-                             camera_port=ready["camera"]["port"])
-
-    def stop(self):
-        if self.server is not None and self.server.poll() is None:
-            self.server.terminate()
-            try:
-                self.server.wait(20)
-            except subprocess.TimeoutExpired:
-                self.server.kill()
-                self.server.wait(5)
-        if self.sim is not None:
-            self.sim.stop(timeout=20)
-        self.hook.close()
 
 
 @pytest.fixture(scope="module")
@@ -137,30 +46,6 @@ def accepted_camera(stack):
     return run_id
 
 
-# A generous bound on every request: on a busy host the service can take seconds to
-# answer (e.g. drawing /plots/history.png); the tests wait on conditions, not on speed.
-REQUEST_TIMEOUT_S = 60
-
-
-def get(url, **kwargs):
-    return httpx.get(url, timeout=kwargs.pop("timeout", REQUEST_TIMEOUT_S), **kwargs)
-
-
-def post(stack, path, body=None, auth=True):
-    return httpx.post(stack.base + path, json=body, headers=AUTH if auth else {},
-                      timeout=REQUEST_TIMEOUT_S)
-
-
-def wait_for(stack, run_id, statuses=("succeeded", "failed", "aborted"), timeout=120):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        r = get(f"{stack.base}/runs/{run_id}")
-        if r.status_code == 200 and r.json()["status"] in statuses:
-            return r.json()
-        time.sleep(0.3)
-    raise AssertionError(f"run {run_id} did not reach {statuses}")
-
-
 def test_token_and_input_validation(stack):
     assert get(stack.base + "/health").json()["status"] == "ok"
     assert post(stack, "/runs", {"procedure": "head-sweep"}, auth=False).status_code == 401
@@ -175,7 +60,8 @@ def test_token_and_input_validation(stack):
     assert "/runs/{run_id}/abort" in schema["paths"]
     procs = {p["name"]: p for p in get(stack.base + "/procedures").json()}
     assert "pan_deg" in procs["active-camera"]["params_schema"]["properties"]
-    assert "rigctl" in get(stack.base + "/").text
+    console = get(stack.base + "/", follow_redirects=True)
+    assert console.url.path == "/console/" and f"rigctl · {stack.rig_name}" in console.text
     assert get(stack.base + "/rig").json()["devices"]["head"] is not None
 
 
@@ -203,13 +89,17 @@ def test_active_camera_with_progress_events_then_accept(stack):
     assert run["status"] == "succeeded"
     assert abs(run["result"]["fx"] / 900.0 - 1) < 0.005
     assert post(stack, f"/calibrations/{run_id}/accept", auth=False).status_code == 401
-    assert post(stack, f"/calibrations/{run_id}/accept").json()["decision"] == "accepted"
+    accepted = post(stack, f"/calibrations/{run_id}/accept",
+                    {"comment": "first intrinsics of this lens", "operator": "ada"})
+    assert accepted.json()["decision"] == "accepted"
+    page = get(f"{stack.base}/console/runs/{run_id}").text
+    assert "first intrinsics of this lens" in page and "ada" in page
     latest = get(stack.base + "/calibrations/latest?procedure=active-camera").json()
     assert latest["active-camera"]["run_id"] == run_id
     image = get(f"{stack.base}/runs/{run_id}/captures/0")
     assert image.status_code == 200 and image.content[:4] == b"\x89PNG"
     assert get(f"{stack.base}/runs/{run_id}/captures/99").status_code == 404
-    assert get(f"{stack.base}/plots/history.png").content[:4] == b"\x89PNG"
+    assert get(f"{stack.base}/console/history/active-camera.png").content[:4] == b"\x89PNG"
 
 
 def test_two_requests_run_one_after_the_other(stack):

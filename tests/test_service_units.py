@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 
 import numpy as np
 import pytest
@@ -138,7 +139,7 @@ def test_accept_reject_and_their_404_and_409(tmp_path):
     _record(service, "h1-head-sweep", "head-sweep", {"poses": 1})
     with TestClient(create_app(service)) as api:
         assert api.post("/calibrations/c1-active-camera/reject").json() == {
-            "run_id": "c1-active-camera", "decision": "rejected"}
+            "run_id": "c1-active-camera", "decision": "rejected", "comment": ""}
         assert service.index.get("c1")["decision"] == "rejected"
         assert api.get("/calibrations/latest?procedure=active-camera").status_code == 404
         assert api.post("/calibrations/c1/accept").json()["decision"] == "accepted"
@@ -152,3 +153,48 @@ def test_accept_reject_and_their_404_and_409(tmp_path):
         assert api.get("/runs/nope").status_code == 404
         history = api.get("/calibrations/history?procedure=active-camera").json()
         assert [h["run_id"] for h in history] == ["c1-active-camera"]  # succeeded only
+
+
+def test_decisions_keep_their_comments_and_the_console_shows_them(tmp_path):
+    """Every decision (the service's drift check, the operator's accept or reject) goes to
+    the run's decisions.jsonl with who and why; the index keeps the latest; the console's
+    pages show them and refuse what they should."""
+    service = _service(tmp_path)
+    camera = {**CAMERA, "width": 1280, "height": 720}
+    _record(service, "d1-active-camera", "active-camera", camera)
+    _record(service, "d1-active-camera-2", "active-camera", {**camera, "fx": 909.0})
+    with TestClient(create_app(service)) as api:
+        assert service.decide("d1-active-camera", "active-camera", CAMERA) == "pending"
+        r = api.post("/calibrations/d1-active-camera/accept",
+                     json={"comment": "first one <b>bold</b>", "operator": "ada"})
+        assert r.json()["decision"] == "accepted"  # the whole id, not a prefix: no 404
+        assert service.decide("d1-active-camera-2", "active-camera",
+                              {**CAMERA, "fx": 909.0}) == "drift"
+        trail = RunDirectory(tmp_path / "records" / "d1-active-camera").decisions()
+        assert [(d["decision"], d["by"], d["comment"]) for d in trail] == [
+            ("pending", "service", ""), ("accepted", "ada", "first one <b>bold</b>")]
+        drifted = RunDirectory(tmp_path / "records" / "d1-active-camera-2").decisions()
+        assert drifted[-1]["decision"] == "drift" and "focal length changed 1.000 %" in \
+            drifted[-1]["comment"] and drifted[-1]["compared_with"] == "d1-active-camera"
+        run_page = api.get("/console/runs/d1-active-camera").text
+        assert "first one &lt;b&gt;bold&lt;/b&gt;" in run_page  # escaped, not markup
+        diff_page = api.get("/console/runs/d1-active-camera-2").text
+        assert "focal length changed 1.000 %" in diff_page
+        png = api.get("/console/runs/d1-active-camera-2/difference.png")
+        assert png.status_code == 200 and png.content[:4] == b"\x89PNG"
+        history = api.get("/console/history?procedure=active-camera").text
+        rows = {m[0]: m[1] for m in re.findall(
+            r'href="/console/runs/([^"]+)">[^<]*</a></td><td>[^<]*</td>\s*<td><span '
+            r'class="badge (\w+)"', history)}
+        assert rows == {"d1-active-camera": "accepted", "d1-active-camera-2": "drift"}
+        assert api.get("/console/history/active-camera.png").content[:4] == b"\x89PNG"
+        runs = api.get("/console/runs?status=succeeded&procedure=active-camera").text
+        assert runs.count('href="/console/runs/d1-active-camera') == 2
+        assert api.get("/console/runs?status=bogus!").status_code == 422
+        assert api.get("/console/runs/d1-active-camera/plots/..%2Frig.yaml").status_code \
+            in (404, 422)
+        assert api.get("/console/runs/nope").status_code == 404
+        assert api.get("/console/history/head-sweep.png").status_code == 404
+        assert api.get("/console/start?procedure=nope").status_code == 404
+        assert api.post("/calibrations/d1-active-camera/accept",
+                        json={"comment": "x" * 3000}).status_code == 422

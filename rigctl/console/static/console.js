@@ -1,0 +1,196 @@
+// rigctl console: the live parts (the service's event stream) and the actions (its JSON
+// API). The bearer token stays in this browser session only (sessionStorage).
+"use strict";
+
+const TOKEN_KEY = "rigctl-token";
+
+function token() { return sessionStorage.getItem(TOKEN_KEY) || ""; }
+
+function showMessage(text, kind) {
+  const box = document.getElementById("message");
+  box.textContent = text;
+  box.className = kind || "error";
+  box.hidden = !text;
+}
+
+function detailText(data, status) {
+  // FastAPI answers {"detail": "..."} or {"detail": [{"loc": [...], "msg": "..."}]}
+  const detail = data && data.detail;
+  if (typeof detail === "string") return detail;
+  if (Array.isArray(detail)) {
+    return detail.map(e => (e.loc || []).join(".") + ": " + e.msg).join("\n");
+  }
+  return "HTTP " + status;
+}
+
+async function post(url, body) {
+  const headers = { "Content-Type": "application/json" };
+  if (token()) headers.Authorization = "Bearer " + token();
+  const response = await fetch(url, { method: "POST", headers, body: JSON.stringify(body || {}) });
+  let data = null;
+  try { data = await response.json(); } catch (e) { data = null; }
+  if (!response.ok) {
+    let text = "refused (" + response.status + "): " + detailText(data, response.status);
+    if (response.status === 401) text += "\nEnter the service's bearer token above.";
+    showMessage(text, "error");
+    if (response.status === 401) document.getElementById("token").focus();
+  }
+  return { ok: response.ok, status: response.status, data };
+}
+
+function setupToken() {
+  const form = document.getElementById("token-form");
+  const state = document.getElementById("token-state");
+  const show = () => { state.textContent = token() ? " set" : ""; };
+  show();
+  form.addEventListener("submit", ev => {
+    ev.preventDefault();
+    const value = document.getElementById("token").value.trim();
+    if (value) sessionStorage.setItem(TOKEN_KEY, value); else sessionStorage.removeItem(TOKEN_KEY);
+    document.getElementById("token").value = "";
+    show();
+  });
+}
+
+function markNav() {
+  const path = location.pathname;
+  const current = path.startsWith("/console/runs") ? "runs"
+    : path.startsWith("/console/history") ? "history"
+    : path.startsWith("/console/start") ? "start" : "rig";
+  document.querySelectorAll("[data-nav]").forEach(a => {
+    if (a.dataset.nav === current) a.classList.add("active");
+  });
+}
+
+// aborts: any button with data-abort (also in fragments loaded later)
+document.addEventListener("click", async ev => {
+  const button = ev.target.closest("[data-abort]");
+  if (!button) return;
+  const runId = button.dataset.abort;
+  if (!confirm("Abort run " + runId + "?")) return;
+  const r = await post("/runs/" + encodeURIComponent(runId) + "/abort");
+  if (r.ok) showMessage("run " + runId + ": " + r.data.status, "info");
+});
+
+async function refreshLive() {
+  for (const el of document.querySelectorAll("[data-live]")) {
+    const response = await fetch(el.dataset.live);
+    if (response.ok) el.innerHTML = await response.text();
+  }
+}
+
+function onProgress(event) {
+  const bar = document.getElementById("progress");
+  if (bar && (!bar.dataset.run || bar.dataset.run === event.run_id)) {
+    bar.max = event.total || 1;
+    bar.value = event.index || 0;
+    const text = document.getElementById("progress-text");
+    if (text) text.textContent = "step " + event.index + "/" + event.total + ": " + event.step;
+  }
+}
+
+function subscribe(handlers) {
+  const source = new EventSource("/events");
+  for (const [type, handler] of Object.entries(handlers)) {
+    source.addEventListener(type, ev => handler(JSON.parse(ev.data)));
+  }
+  return source;
+}
+
+function setupLive() {
+  const live = document.querySelector("[data-live]");
+  const runBar = document.querySelector("progress[data-run]");
+  if (!live && !runBar) return;
+  subscribe({
+    step: e => { if (live && !document.getElementById("progress")) refreshLive(); onProgress(e); },
+    queued: () => refreshLive(), started: () => refreshLive(),
+    finished: e => {
+      if (live) refreshLive();
+      if (runBar && runBar.dataset.run === e.run_id) location.reload();
+    },
+  });
+}
+
+function setupDecision() {
+  const form = document.getElementById("decision-form");
+  if (!form) return;
+  form.addEventListener("submit", async ev => {
+    ev.preventDefault();
+    const action = ev.submitter ? ev.submitter.value : "accept";
+    const comment = form.elements.comment.value;
+    const r = await post("/calibrations/" + encodeURIComponent(form.dataset.run) + "/" + action,
+                         { comment, operator: sessionStorage.getItem("rigctl-operator") || null });
+    if (r.ok) location.reload();
+  });
+}
+
+function fieldValue(el) {
+  const kind = el.dataset.kind;
+  if (kind === "boolean") return el.checked;
+  const text = el.value.trim();
+  if (text === "") return undefined;          // the procedure's default
+  if (kind === "integer" || kind === "number") {
+    const n = Number(text);
+    return Number.isFinite(n) ? n : text;     // let the server say what is wrong
+  }
+  if (kind === "array") {
+    return text.split(/[\s,]+/).filter(Boolean).map(v => (Number.isFinite(Number(v)) ? Number(v) : v));
+  }
+  if (kind === "json") {
+    try { return JSON.parse(text); } catch (e) { return text; }
+  }
+  return text;
+}
+
+function setupStart() {
+  const form = document.getElementById("start-form");
+  if (!form) return;
+  const operator = document.getElementById("operator");
+  operator.value = sessionStorage.getItem("rigctl-operator") || "";
+  let watching = null;
+  const early = [];  // events that arrived before POST /runs answered with the run id
+  const bar = document.getElementById("started-progress");
+  const text = document.getElementById("started-text");
+  const show = e => {
+    if (e.type === "started") text.textContent = "running";
+    if (e.type === "step") {
+      bar.max = e.total || 1; bar.value = e.index || 0;
+      text.textContent = "step " + e.index + "/" + e.total + ": " + e.step;
+    }
+    if (e.type === "finished") {
+      if (e.status === "succeeded") bar.value = bar.max;
+      text.textContent = "finished: " + e.status + (e.reason ? " (" + e.reason + ")" : "");
+      text.className = e.status;
+    }
+  };
+  const handle = e => {
+    if (watching === null) early.push(e);
+    else if (e.run_id === watching) show(e);
+  };
+  subscribe({ started: handle, step: handle, finished: handle });
+  form.addEventListener("submit", async ev => {
+    ev.preventDefault();
+    showMessage("");
+    const params = {};
+    for (const el of form.querySelectorAll("[data-kind]")) {
+      const value = fieldValue(el);
+      if (value !== undefined) params[el.name] = value;
+    }
+    if (operator.value.trim()) sessionStorage.setItem("rigctl-operator", operator.value.trim());
+    const r = await post("/runs", { procedure: form.dataset.procedure, params,
+                                    operator: operator.value.trim() || null });
+    if (!r.ok) return;
+    watching = r.data.run_id;
+    const link = document.getElementById("started-link");
+    link.textContent = watching;
+    link.href = "/console/runs/" + encodeURIComponent(watching);
+    bar.value = 0; text.textContent = "queued (position " + r.data.position + ")"; text.className = "";
+    document.getElementById("started").hidden = false;
+    early.splice(0).filter(e => e.run_id === watching).forEach(show);
+    showMessage("queued " + watching, "info");
+  });
+}
+
+document.addEventListener("DOMContentLoaded", () => {
+  setupToken(); markNav(); setupLive(); setupDecision(); setupStart();
+});
