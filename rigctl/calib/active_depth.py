@@ -23,9 +23,12 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
+from rigctl.calib.active_refine import DepthPrior
 from rigctl.errors import SolveError
 
 MIN_CONTOURS = 3
+# prior sigma of an unmeasured contour's inverse depth, in units of the nearest measured
+UNMEASURED_SPAN = 3.0
 
 
 def camera_shift_joints(model, q_home, T_flange_cam: np.ndarray, distance_m: float
@@ -73,6 +76,17 @@ class SceneDepths:
         out = self.inv_depth.copy()
         out[~np.isfinite(out)] = float(np.nanmedian(self.inv_depth))
         return out
+
+    def prior(self) -> DepthPrior:
+        """The inverse depths for the refinement: a measured one held (freeing them lets
+        the offset trade against the centre where the depths are alike); an unmeasured
+        one (a contour lost in the move, e.g. on a periodic board) free, anywhere from the
+        farthest to a few times nearer than the nearest measured, for the rotations to
+        pin down."""
+        measured = np.isfinite(self.inv_depth)
+        sigma = np.zeros(len(self.inv_depth))
+        sigma[~measured] = max(UNMEASURED_SPAN * float(np.max(self.inv_depth[measured])), 1.0)
+        return DepthPrior(self.filled(), sigma)
 
     def as_dict(self) -> dict:
         finite = self.inv_depth[np.isfinite(self.inv_depth)]

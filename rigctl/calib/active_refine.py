@@ -38,12 +38,12 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
+from rigctl.calib.active_jacobian import N_BASE, distort, pixel_jacobian, rotation_derivatives
 from rigctl.calib.synthetic import rot_axis, rot_x, rot_y
 from rigctl.errors import SolveError
 
 PARAM_NAMES = ["fx", "fy", "cx", "cy", "n_x", "n_y", "n_z", "a_x", "a_y", "s_x", "s_y", "s_z",
                "k1", "k2", "p1", "p2"]
-N_BASE = 12  # parameters before the distortion terms
 DIST_NAMES = ("k1", "k2", "p1", "p2", "k3")  # OpenCV's order
 # which of DIST_NAMES each choice of ``n_dist`` estimates
 DIST_SLOTS = {0: (), 1: (0,), 2: (0, 1), 3: (0, 1, 4), 4: (0, 1, 2, 3), 5: (0, 1, 2, 3, 4)}
@@ -99,23 +99,9 @@ def _unpack(x: np.ndarray, n_dist: int):
     return fx, fy, cx, cy, N, a, x[9:12], k
 
 
-def _radial(r2, k):
-    return 1 + r2 * (k[0] + r2 * (k[1] + r2 * k[4]))
-
-
-def _distort(xn, k):
-    """OpenCV's radial (k1, k2) and tangential (p1, p2) model on normalised points."""
-    x, y = xn[:, 0], xn[:, 1]
-    r2 = x * x + y * y
-    radial = _radial(r2, k)
-    dx = 2 * k[2] * x * y + k[3] * (r2 + 2 * x * x)
-    dy = k[2] * (r2 + 2 * y * y) + 2 * k[3] * x * y
-    return np.stack([x * radial + dx, y * radial + dy], axis=1)
-
-
 def _undistort(pts, fx, fy, cx, cy, k):
     """Normalised, undistorted coordinates of pixels ``pts`` (N, 2): the inverse of
-    ``_distort`` by fixed-point iteration (OpenCV's ``undistortPoints`` scheme)."""
+    ``distort`` by fixed-point iteration (OpenCV's ``undistortPoints`` scheme)."""
     x0 = (pts[:, 0] - cx) / fx
     y0 = (pts[:, 1] - cy) / fy
     if not np.any(k) or not len(pts):
@@ -221,7 +207,7 @@ def _predict_all(motions, x, n_dist, refs=None, rho=None, cache=None) -> np.ndar
     # large) so the optimiser backs off instead of failing.
     xn = moved[:, :2] / np.maximum(moved[:, 2:3], 1e-3)
     if n_dist:
-        xn = _distort(xn, k)
+        xn = distort(xn, k)
     return np.stack([fx * xn[:, 0] + cx, fy * xn[:, 1] + cy], axis=1)
 
 
@@ -313,9 +299,9 @@ def _residuals(x, motions, n_dist, masks, associations, refs=None, rho=None, cac
 
 
 def _prior_sigmas(n_dist: int, prior_deg: float, parallax_prior: float) -> np.ndarray:
-    """Per-parameter prior sigma (inf: no prior): the mounting rotation and the roll-axis
-    tilt near the nominal head, the parallax near zero, the tangential terms within their
-    usual magnitude (``TANGENTIAL_PRIOR``)."""
+    """Per-parameter prior sigma (inf: no prior) of the camera parameters: the mounting
+    rotation and the roll-axis tilt near the nominal head, the parallax near zero, the
+    tangential terms within their usual magnitude (``TANGENTIAL_PRIOR``)."""
     prior = np.full(N_BASE + n_dist, np.inf)
     prior[4:9] = np.radians(prior_deg)
     prior[9:12] = parallax_prior
@@ -323,6 +309,16 @@ def _prior_sigmas(n_dist: int, prior_deg: float, parallax_prior: float) -> np.nd
         if DIST_NAMES[slot] in ("p1", "p2"):
             prior[N_BASE + j] = TANGENTIAL_PRIOR
     return prior
+
+
+@dataclass
+class DepthPrior:
+    """Each contour's inverse depth (1/m, indexed by the motions' ``groups``): measured
+    ones held (sigma 0), the others free about ``mean`` within ``sigma``, estimated
+    together with the centre of projection's offset (``active_depth``)."""
+
+    mean: np.ndarray
+    sigma: np.ndarray
 
 
 def _clusters(motions: list[Motion], masks: list[np.ndarray]) -> np.ndarray:
@@ -409,26 +405,136 @@ def _consider(J_free: np.ndarray, J_consider: np.ndarray, cov_free: np.ndarray,
     return cov_free + S @ np.diag(sigma_consider ** 2) @ S.T
 
 
+class _Problem:
+    """The refinement's least-squares problem: parameters ``x`` = the camera's
+    (``param_names(n_dist)``) then, with depths, one inverse depth per contour; which of
+    them are free, their priors (mean and sigma), and the residuals at fixed
+    associations."""
+
+    def __init__(self, motions: list[Motion], initial: dict, n_dist: int, prior_deg: float,
+                 parallax_sigma: float, depths: DepthPrior | None, offset_sigma_m: float):
+        self.motions, self.n_dist = motions, n_dist
+        n_cam = N_BASE + n_dist
+        n_rho = 0 if depths is None else len(depths.mean)
+        self.x = np.zeros(n_cam + n_rho)
+        self.x[:4] = [initial["fx"], initial["fy"], initial["cx"], initial["cy"]]
+        self.free = np.ones(len(self.x), bool)
+        # the parallax: estimated with depths, else a consider parameter (held at zero)
+        self.free[9:12] = depths is not None
+        self.prior_mean = np.zeros(len(self.x))
+        self.prior_sigma = np.r_[_prior_sigmas(
+            n_dist, prior_deg, offset_sigma_m if depths is not None else parallax_sigma),
+            np.zeros(n_rho)]
+        if depths is not None:
+            self.x[n_cam:] = self.prior_mean[n_cam:] = depths.mean
+            self.prior_sigma[n_cam:] = depths.sigma
+            self.free[n_cam:] = depths.sigma > 0  # sigma 0: measured, held
+        self.n_cam = n_cam
+        self.groups = None if depths is None else \
+            np.concatenate([m.groups for m in motions])
+        self.masks = [np.ones(len(m.ref_points), bool) for m in motions]
+        self.refs = np.concatenate([m.ref_points for m in motions])
+        self.cache = PredictionCache()
+
+    def full(self, xf: np.ndarray) -> np.ndarray:
+        xv = self.x.copy()
+        xv[self.free] = xf
+        return xv
+
+    def rho(self, xv: np.ndarray) -> np.ndarray | None:
+        """Each reference point's inverse depth (its contour's), or None without depths."""
+        return None if self.groups is None else xv[self.n_cam:][self.groups]
+
+    def predicted(self, xv: np.ndarray) -> list[np.ndarray]:
+        return predict_many(self.motions, xv[:self.n_cam], self.n_dist, self.refs,
+                            self.rho(xv), self.cache)
+
+    def associate(self, xv: np.ndarray) -> list:
+        """For curve-mode motions, the nearest tracked contour point to each prediction."""
+        out = []
+        for m, (motion, pred) in enumerate(zip(self.motions, self.predicted(xv), strict=True)):
+            out.append(motion.tree().query(pred[self.masks[m]])[1] if motion.curve_mode
+                       else None)
+        return out
+
+    def residuals(self, xv: np.ndarray, assoc, targets=None, cache: bool = True) -> np.ndarray:
+        return _residuals(xv[:self.n_cam], self.motions, self.n_dist, self.masks, assoc,
+                          self.refs, self.rho(xv), self.cache if cache else None, targets)
+
+    def fun(self, xf: np.ndarray, assoc, targets) -> np.ndarray:
+        """Residuals and the priors' rows, over the free parameters."""
+        xv = self.full(xf)
+        has = np.isfinite(self.prior_sigma[self.free])
+        prior_rows = (xf - self.prior_mean[self.free])[has] / self.prior_sigma[self.free][has]
+        return np.concatenate([self.residuals(xv, assoc, targets), prior_rows])
+
+    def jac(self, xf: np.ndarray, assoc, targets) -> np.ndarray:
+        """The analytic Jacobian of ``fun`` (``active_jacobian``)."""
+        xv = self.full(xf)
+        cam = xv[:self.n_cam]
+        fx, fy, cx, cy, N, a, o, k = _unpack(cam, self.n_dist)
+        rho = self.rho(xv)
+        und = self.cache.undistort(self.refs, fx, fy, cx, cy, k)
+        rotations = self.cache.rotations(self.motions, N, a)
+        d_rot = rotation_derivatives(
+            lambda xx: _rotations(self.motions, *_unpack(xx, self.n_dist)[4:6]), cam)
+        s = o if rho is None else rho[:, None] * o
+        P, d_rho = pixel_jacobian(cam, self.n_dist, DIST_SLOTS[self.n_dist], und, rotations,
+                                  d_rot, [len(m.ref_points) for m in self.motions], s, rho)
+        n_rho = len(xv) - self.n_cam
+        if n_rho:  # each point's inverse depth is its contour's parameter
+            full = np.zeros((len(und), 2, len(xv)))
+            full[:, :, :self.n_cam] = P
+            full[np.arange(len(und)), :, self.n_cam + self.groups] = d_rho
+            P = full
+        J = self._rows(P[:, :, self.free], assoc, targets)
+        has = np.flatnonzero(np.isfinite(self.prior_sigma[self.free]))
+        prior_rows = np.zeros((len(has), J.shape[1]))
+        prior_rows[np.arange(len(has)), has] = 1.0 / self.prior_sigma[self.free][has]
+        return np.vstack([J, prior_rows])
+
+    def _rows(self, P: np.ndarray, assoc, targets) -> np.ndarray:
+        """Pixel derivatives (points, 2, params) as residual rows: along the associated
+        contour normal (curve mode) or both coordinates (correspondences)."""
+        if targets is not None:
+            return np.einsum("ni,nij->nj", targets.normals, P[targets.rows])
+        out, start = [], 0
+        for m, motion in enumerate(self.motions):
+            block = P[start:start + len(motion.ref_points)][self.masks[m]]
+            start += len(motion.ref_points)
+            if motion.curve_mode:
+                out.append(np.einsum("ni,nij->nj", motion.moved_normals[assoc[m]], block))
+            else:
+                out.append(block.reshape(-1, block.shape[2]))
+        return np.concatenate(out)
+
+    def solve(self, assoc, loss: str, max_nfev: int):
+        targets = CurveTargets.build(self.motions, self.masks, assoc)
+        fit = least_squares(self.fun, self.x[self.free], jac=self.jac, args=(assoc, targets),
+                            loss=loss, f_scale=1.0, x_scale="jac", max_nfev=max_nfev)
+        self.x = self.full(fit.x)
+        return fit
+
+
 def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
            outlier_sigmas: float = 3.0, outer_iterations: int = 4,
            prior_deg: float = 5.0, parallax_sigma: float = 0.003,
-           inv_depth: np.ndarray | None = None, offset_sigma_m: float = 0.003
+           depths: DepthPrior | None = None, offset_sigma_m: float = 0.003
            ) -> RefineResult:
     """Joint refinement of fx, fy, cx, cy, the mounting rotation and the roll axis (and
-    ``n_dist`` distortion terms: k1; k1, k2; or k1, k2, p1, p2) over all motions with the
-    exact rotation model (thesis Lemma 3.1, eq. 3.3), from ``initial`` (fx, fy, cx, cy;
-    e.g. Strategy D), with a soft-L1 robust loss, then 3-sigma outlier rejection.
+    ``n_dist`` distortion terms, ``DIST_SLOTS``) over all motions with the exact rotation
+    model (thesis Lemma 3.1, eq. 3.3), from ``initial`` (fx, fy, cx, cy; e.g. Strategy
+    D), with a soft-L1 robust loss, then 3-sigma outlier rejection.
 
-    The parallax ``s`` (module docstring) is held at zero: estimating it trades the
-    focal length and the centre against the scene's unknown depths and made the fit
-    unstable on random rigs. It is a *consider* parameter instead: ``parallax_sigma``
-    (per axis; 0.003: 3 mm off the axes with the scene at 1 m) enters the reported
-    sigma through its effect on the solution. 1-sigma uncertainties: the cluster-robust
-    covariance plus that consider term.
+    Without ``depths`` the parallax ``s`` (module docstring) is held at zero: estimating
+    it trades the focal length and the centre against the scene's unknown depths. It is
+    a *consider* parameter instead: ``parallax_sigma`` (per axis; 0.003: 3 mm off the
+    axes with the scene at 1 m) enters the reported sigma through its effect on the
+    solution. 1-sigma uncertainties: the cluster-robust covariance plus that term.
 
-    With ``inv_depth`` (each contour's inverse depth, 1/m, indexed by the motions'
-    ``groups``; ``active_depth``) the parallax is estimated instead: the centre of
-    projection's offset ``o`` from the axes (prior sigma ``offset_sigma_m`` per axis),
+    With ``depths`` (each contour's inverse depth as a prior, ``DepthPrior``) the
+    parallax is estimated instead: the centre of projection's offset ``o`` from the axes
+    (prior sigma ``offset_sigma_m`` per axis) and every contour's inverse depth ``rho``,
     each contour moving by its own ``rho o``; no consider term then."""
     if len(motions) < 2:
         raise SolveError("refinement: needs at least two motions")
@@ -436,76 +542,45 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
         raise SolveError("refinement: too few contour points")
     if n_dist not in DIST_SLOTS:
         raise SolveError(f"refinement: n_dist must be one of {sorted(DIST_SLOTS)}, got {n_dist}")
-    n_params = N_BASE + n_dist
-    depth_mode = inv_depth is not None
-    free = np.ones(n_params, bool)
-    free[9:12] = depth_mode  # the parallax: estimated with depths, else consider parameters
-    rho = np.concatenate([np.asarray(inv_depth, float)[m.groups] for m in motions]) \
-        if depth_mode else None
-    x = np.zeros(n_params)
-    x[:4] = [initial["fx"], initial["fy"], initial["cx"], initial["cy"]]
-    masks = [np.ones(len(m.ref_points), bool) for m in motions]
-    prior = _prior_sigmas(n_dist, prior_deg,
-                          offset_sigma_m if depth_mode else parallax_sigma)[free]
-    has_prior = np.isfinite(prior)
-    refs = np.concatenate([m.ref_points for m in motions])
-    cache = PredictionCache()
-
-    def full(xf):
-        xv = x.copy()
-        xv[free] = xf
-        return xv
-
-    def associate(xv):
-        out = []
-        for m, (motion, predicted) in enumerate(zip(motions, predict_many(motions, xv, n_dist,
-                                                                          refs, rho, cache),
-                                                    strict=True)):
-            if motion.curve_mode:
-                _, idx = motion.tree().query(predicted[masks[m]])
-                out.append(idx)
-            else:
-                out.append(None)
-        return out
-
-    def fun(xf, assoc, targets):
-        r = _residuals(full(xf), motions, n_dist, masks, assoc, refs, rho, cache, targets)
-        return np.concatenate([r, xf[has_prior] / prior[has_prior]])
-
+    pb = _Problem(motions, initial, n_dist, prior_deg, parallax_sigma, depths, offset_sigma_m)
     for _ in range(outer_iterations):
-        assoc = associate(x)
-        targets = CurveTargets.build(motions, masks, assoc)
-        x = full(least_squares(fun, x[free], args=(assoc, targets), loss="soft_l1",
-                               f_scale=1.0, x_scale="jac", max_nfev=200).x)
-        r = _residuals(x, motions, n_dist, masks, assoc, refs, rho)
-        if not _reject_outliers(r, motions, masks, outlier_sigmas):
+        assoc = pb.associate(pb.x)
+        pb.solve(assoc, "soft_l1", 200)
+        if not _reject_outliers(pb.residuals(pb.x, assoc, cache=False), motions, pb.masks,
+                                outlier_sigmas):
             break
-    assoc = associate(x)
-    final = least_squares(fun, x[free], args=(assoc, CurveTargets.build(motions, masks, assoc)),
-                          loss="linear", x_scale="jac", max_nfev=100)
-    x = full(final.x)
-    r = _residuals(x, motions, n_dist, masks, assoc, refs, rho)
-    if not np.all(np.isfinite(x)) or not np.all(np.isfinite(r)):
+    assoc = pb.associate(pb.x)
+    final = pb.solve(assoc, "linear", 100)
+    r = pb.residuals(pb.x, assoc, cache=False)
+    if not np.all(np.isfinite(pb.x)) or not np.all(np.isfinite(r)):
         raise SolveError("refinement diverged (non-finite parameters)")
+    return _result(pb, final, r, assoc, parallax_sigma)
+
+
+def _result(pb: _Problem, final, r: np.ndarray, assoc, parallax_sigma: float) -> RefineResult:
+    """The refinement's estimate with its 1-sigma uncertainties (cluster-robust, plus the
+    consider term of the parallax when it was held)."""
+    x, n_dist = pb.x, pb.n_dist
     J = final.jac[:len(r)]
-    cov, A_inv = _covariance(J, r, _clusters(motions, masks), prior)
-    held = np.flatnonzero(~free)  # the consider parameters (none when depths are known)
-    J_s = _jacobian_columns(lambda xv: _residuals(xv, motions, n_dist, masks, assoc, refs),
-                            x, held, r)
+    J = J.toarray() if hasattr(J, "toarray") else np.asarray(J)
+    prior = pb.prior_sigma[pb.free]
+    cov, A_inv = _covariance(J, r, _clusters(pb.motions, pb.masks), prior)
+    held = np.flatnonzero(~pb.free)  # the consider parameters (none when depths are known)
+    J_s = _jacobian_columns(lambda xv: pb.residuals(xv, assoc, cache=False), x, held, r)
     cov = _consider(J, J_s, cov, A_inv, np.full(len(held), parallax_sigma))
-    sig = np.full(n_params, np.nan)
-    sig[free] = np.sqrt(np.clip(np.diag(cov), 0, None))
-    sig[~free] = parallax_sigma
+    sig = np.full(len(x), np.nan)
+    sig[pb.free] = np.sqrt(np.clip(np.diag(cov), 0, None))
+    sig[~pb.free] = parallax_sigma
     fx, fy, cx, cy, _, a, parallax, k = _unpack(x, n_dist)
-    total = sum(len(m.ref_points) for m in motions)
-    inliers = int(sum(mk.sum() for mk in masks))
+    names = param_names(n_dist) + [f"rho{i}" for i in range(len(x) - pb.n_cam)]
+    total = sum(len(m.ref_points) for m in pb.motions)
+    inliers = int(sum(mk.sum() for mk in pb.masks))
     return RefineResult(float(fx), float(fy), float(cx), float(cy), float(k[0]), float(k[1]),
                         float(k[2]), float(k[3]), x[4:7].copy(),
-                        a, {name: float(s) for name, s in zip(param_names(n_dist), sig,
-                                                               strict=True)},
+                        a, {name: float(s) for name, s in zip(names, sig, strict=True)},
                         float(np.sqrt(np.mean(r ** 2))), inliers, total - inliers,
-                        _rms_by_motion(r, motions, masks), parallax.copy(), float(k[4]),
-                        x.copy(), n_dist)
+                        _rms_by_motion(r, pb.motions, pb.masks), parallax.copy(), float(k[4]),
+                        x[:pb.n_cam].copy(), n_dist)
 
 
 def _jacobian_columns(residuals, x: np.ndarray, columns, r0: np.ndarray,
