@@ -4,15 +4,19 @@ through `rigctl serve` on the simulated rig. Screenshots go to test-artifacts/co
 
 from __future__ import annotations
 
+import math
 import os
 import re
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
+import yaml
 
 from tests.mockproc import ROOT
 from tests.service_stack import TOKEN, Stack, get, post, wait_for
+from tests.waiting import wait_until
 
 pytestmark = pytest.mark.integration
 
@@ -85,6 +89,46 @@ def _start(page, stack, procedure: str, values: dict[str, str]) -> None:
     page.click("#start-form button[type=submit]")
 
 
+def _metric(page, name: str) -> float:
+    """A number of the run page's difference table (shown with 4 significant digits)."""
+    return float(page.inner_text(f"#difference tr[data-metric='{name}'] td"))
+
+
+def _run_ids(page) -> list[str]:
+    return [a.inner_text().strip() for a in page.locator("#runs tbody td:first-child a").all()]
+
+
+def _truth_camera(world: str) -> dict:
+    return yaml.safe_load((ROOT / "mocks" / "worlds" / f"{world}.yaml").read_text())["camera"]
+
+
+def _pinhole_difference_px(new: dict, old: dict, cols: int = 48, rows: int = 27) -> np.ndarray:
+    """Closed form for two distortion-free pinholes over the console's grid of pixel
+    centres: the ray through old pixel p lands at c_new + f_new / f_old (p - c_old)."""
+    w, h = old["width"], old["height"]
+    u, v = np.meshgrid((np.arange(cols) + 0.5) * w / cols, (np.arange(rows) + 0.5) * h / rows)
+    du = new["cx"] + new["fx"] / old["fx"] * (u - old["cx"]) - u
+    dv = new["cy"] + new["fy"] / old["fy"] * (v - old["cy"]) - v
+    return np.hypot(du, dv)
+
+
+def _projection_sigma_px(result: dict, u: float, v: float) -> float:
+    """1-sigma (px) of where a calibration projects the ray through pixel (u, v), from its
+    fx, fy, cx, cy sigma: u = fx x + cx, v = fy y + cy."""
+    s = result["sigma"]
+    x, y = (u - result["cx"]) / result["fx"], (v - result["cy"]) / result["fy"]
+    return math.hypot(math.hypot(x * s["fx"], s["cx"]), math.hypot(y * s["fy"], s["cy"]))
+
+
+def _open_following(page, stack, run_id: str) -> None:
+    """Open a run's page while it is queued or running and let the page follow it: it
+    reloads itself when the run starts, and when it finishes (a calibration: when its
+    decision is recorded), so the comparison appears without a reload from here."""
+    page.goto(f"{stack.base}/console/runs/{run_id}")
+    page.wait_for_selector("#run-decision", timeout=WAIT_MS)
+    assert page.inner_text("#run-status") == "succeeded"
+
+
 @pytest.mark.timeout(900)
 def test_console_end_to_end(page, stack, artifacts):
     base = stack.base
@@ -133,6 +177,9 @@ def test_console_end_to_end(page, stack, artifacts):
     full = page.locator(".thumb").first.get_attribute("href")
     assert get(base + full).headers["content-type"] == "image/png"
     assert '"views": 2' in page.inner_text("pre")
+    log_tail = page.inner_text("pre.log").splitlines()
+    assert f"run {run_id} succeeded" in log_tail[-1]
+    assert sum("INFO rigctl.run: step" in line for line in log_tail) == done[1]
     page.screenshot(path=artifacts / "run-capture-survey.png", full_page=True)
 
     # 5. a calibration from the form, followed live on the rig page; a second run queued
@@ -171,7 +218,11 @@ def test_console_end_to_end(page, stack, artifacts):
     assert row.locator(".badge").inner_text() == "accepted"
     assert "lens refocused, checked by hand" in row.inner_text()
     page.wait_for_function("document.querySelector('img.plot').naturalWidth > 0")
-    page.screenshot(path=artifacts / "history.png", full_page=True)
+    page.screenshot(path=artifacts / "history-one-point.png", full_page=True)
+
+    _compare_with_the_accepted_calibration(page, stack, artifacts, camera_run)
+    aborted, behind = _abort_the_current_run_from_the_rig_page(page, stack, artifacts)
+    _filter_the_runs(page, stack, {run_id, behind}, camera_run, {queued, aborted})
 
     # 6. bad parameters show the server's refusal, and nothing is queued
     before = len(get(base + "/runs?limit=1000").json())
@@ -188,13 +239,235 @@ def test_console_end_to_end(page, stack, artifacts):
     assert len(get(base + "/runs?limit=1000").json()) == before
 
 
+def _compare_with_the_accepted_calibration(page, stack, artifacts, accepted: str) -> None:
+    """Two more active-camera runs, each compared with the accepted one on its page: one
+    on the same world, one on the same devices with the lens refocused (drift.yaml)."""
+    base = stack.base
+    # the same noise-free, seeded world and parameters: the same camera again; the
+    # comparison is there, and the difference is nothing against its sigma
+    _start(page, stack, "active-camera", {"pan_deg": "5", "tilt_deg": "5"})
+    page.wait_for_selector("#started:not([hidden])")
+    same = page.inner_text("#started-link").strip()
+    _open_following(page, stack, same)  # opened while queued or running
+    assert page.inner_text("#run-decision") == "pending"
+    assert page.locator("#progress").count() == 0  # no bar left behind on a finished run
+    assert page.get_attribute("#difference a", "href") == f"/console/runs/{accepted}"
+    page.wait_for_function("document.querySelector('#difference img.plot').complete"
+                           " && document.querySelector('#difference img.plot').naturalWidth"
+                           " > 0")
+    assert page.locator("#difference .ok-text").count() == 1  # no breaches
+    # measured 5e-7 and 3e-4 px between two such runs (where the solver stops); a tenth
+    # of a pixel and of sigma leaves room, a wrong camera or a wrong run compared does not
+    assert 0 <= _metric(page, "max_px") < 0.1
+    assert 0 <= _metric(page, "max_z") < 0.1
+    assert _metric(page, "focal_pct") < 0.01 and _metric(page, "principal_point_px") < 0.1
+    assert page.locator("#difference tr[data-metric='fitted_rotation_deg']").count() == 0
+    tail = page.inner_text("pre.log").splitlines()
+    assert len(tail) <= 60 and f"run {same} succeeded" in tail[-1]
+    assert _fits_width(page), "the comparison overflows 1280 px"
+    page.screenshot(path=artifacts / "run-compare.png", full_page=True)
+    # nothing new: reject it, with a comment that the run's decisions keep
+    page.fill("#decision-form textarea", "same camera as the accepted one")
+    page.click("#decision-form button[value=reject]")
+    page.wait_for_selector("#run-decision.rejected")
+    decisions = page.locator(".decide tbody tr").all_inner_texts()
+    assert len(decisions) == 2 and "pending" in decisions[0]
+    assert "rejected" in decisions[1] and "same camera as the accepted one" in decisions[1]
+
+    # the lens refocused: fx, fy +2 %, centre moved (+5, -3) px. The heat map's maximum is
+    # the closed-form difference of the two worlds' cameras, within 3 sigma of the
+    # difference (each calibration's own sigma, at the pixel where the change peaks)
+    stack.restart_sim("drift")
+    try:
+        _start(page, stack, "active-camera", {"pan_deg": "5", "tilt_deg": "5"})
+        page.wait_for_selector("#started:not([hidden])")
+        drifted = page.inner_text("#started-link").strip()
+        _open_following(page, stack, drifted)
+    finally:
+        stack.restart_sim("ideal")  # the rest of the test finds the rig as it was
+    assert page.inner_text("#run-decision") == "drift"
+    assert page.get_attribute("#difference a", "href") == f"/console/runs/{accepted}"
+    assert "focal length changed" in page.inner_text("#difference ul.breaches")
+    page.wait_for_function("document.querySelector('#difference img.plot').complete"
+                           " && document.querySelector('#difference img.plot').naturalWidth"
+                           " > 0")
+    ideal, drift = _truth_camera("ideal"), _truth_camera("drift")
+    truth = _pinhole_difference_px(drift, ideal)
+    peak = np.unravel_index(np.argmax(truth), truth.shape)
+    u = (peak[1] + 0.5) * ideal["width"] / 48
+    v = (peak[0] + 0.5) * ideal["height"] / 27
+    new = get(f"{base}/runs/{drifted}").json()["result"]
+    old = get(f"{base}/runs/{accepted}").json()["result"]
+    sigma = math.hypot(_projection_sigma_px(new, u, v), _projection_sigma_px(old, u, v))
+    assert truth.max() == pytest.approx(20.06, abs=0.01)  # top right: (+17.3, -10.2) px
+    assert abs(_metric(page, "max_px") - truth.max()) < 3 * sigma
+    assert _metric(page, "max_z") > 3  # resolved: far beyond the noise
+    assert _metric(page, "focal_pct") == pytest.approx(2.0, abs=3 * math.hypot(
+        new["sigma"]["fx"], old["sigma"]["fx"]) / ideal["fx"] * 100)
+    assert _metric(page, "principal_point_px") == pytest.approx(5.0, abs=3 * math.hypot(
+        new["sigma"]["cx"], old["sigma"]["cx"]))
+    # the centre's move of (+5, -3) px is about a 0.36 degree turn (atan(5.8 / 918)); the
+    # best-fit rotation takes up most of it (0.31 degree between the worlds' cameras)
+    assert 0.1 < _metric(page, "best_rotation_deg") < 0.6
+    assert _metric(page, "max_px_after_best_rotation") < _metric(page, "max_px")
+    page.screenshot(path=artifacts / "run-compare-drift.png", full_page=True)
+
+    # the history tells them apart (pending was seen before the first was accepted)
+    page.goto(base + "/console/history?procedure=active-camera")
+    badges = {r: page.locator(f"tr:has(a[href='/console/runs/{r}']) .badge").inner_text()
+              for r in (accepted, same, drifted)}
+    assert badges == {accepted: "accepted", same: "rejected", drifted: "drift"}
+    page.wait_for_function("document.querySelector('img.plot').naturalWidth > 0")
+    page.screenshot(path=artifacts / "history.png", full_page=True)
+
+
+def _abort_the_current_run_from_the_rig_page(page, stack, artifacts) -> tuple[str, str]:
+    """In one tab, the page of a run queued behind a slow one; in another, the rig page's
+    abort button on the slow one. The rig page goes back to idle and free, and the queued
+    run's page follows its run through start and end, both by themselves (the event
+    stream). Returns (the aborted run, the one that was queued)."""
+    slow = post(stack, "/runs", {"procedure": "capture-survey",
+                                 "params": {"views": 6, "settle_s": 0.5}}).json()["run_id"]
+    behind = post(stack, "/runs", {"procedure": "capture-survey",
+                                   "params": {"views": 1, "settle_s": 0.05}}).json()["run_id"]
+    page.goto(f"{stack.base}/console/runs/{behind}")
+    assert page.inner_text("#run-status") == "queued"
+    assert page.inner_text("#progress-text") == "queued"
+    rig = page.context.new_page()
+    errors: list[str] = []
+    rig.on("pageerror", lambda exc: errors.append(str(exc)))
+    rig.on("dialog", lambda dialog: dialog.accept())
+    try:
+        rig.goto(stack.base + "/console/")
+        rig.fill("#token", TOKEN)  # a new tab: the token is kept per tab (sessionStorage)
+        rig.click("#token-form button")
+        button = f"#current-run button[data-abort='{slow}']"
+        rig.wait_for_selector(button, timeout=WAIT_MS)
+        rig.wait_for_function("document.getElementById('progress')"
+                              " && document.getElementById('progress').value > 0",
+                              timeout=WAIT_MS)
+        assert rig.inner_text("#rig-state .badge") == "busy"
+        assert f"held by run {slow}" in rig.inner_text("#rig-state")
+        rig.click(button)
+        rig.wait_for_selector("#message.info")
+        assert rig.inner_text("#message") == f"run {slow}: aborting"
+        run = wait_for(stack, slow, timeout=WAIT_MS // 1000)
+        assert run["status"] == "aborted" and run["reason"] == "aborted via the API"
+        assert wait_for(stack, behind, timeout=WAIT_MS // 1000)["status"] == "succeeded"
+        rig.wait_for_selector("#current-run .muted", timeout=WAIT_MS)
+        rig.wait_for_function("document.querySelector('#rig-state .badge').textContent"
+                              " === 'free'", timeout=WAIT_MS)
+        assert "lock: free" in rig.inner_text("#rig-state")
+        rig.screenshot(path=artifacts / "rig-after-abort.png", full_page=True)
+    finally:
+        rig.close()
+    assert not errors, f"JavaScript errors on the rig page: {errors}"
+    page.wait_for_function("document.getElementById('run-status').textContent"
+                           " === 'succeeded'", timeout=WAIT_MS)
+    assert page.locator("#progress").count() == 0
+    assert page.locator(".thumb img").count() == 10  # 3 x 3 head grid + 1 arm view
+    return slow, behind
+
+
+def _filter_the_runs(page, stack, surveys: set[str], camera: str, aborted: set[str]) -> None:
+    """The runs page's filters, set the way an operator does (one left at "any")."""
+    everything = get(stack.base + "/runs?limit=1000").json()
+    page.goto(stack.base + "/console/runs")
+    assert _run_ids(page) == [r["run_id"] for r in everything]  # newest first
+    page.select_option("select[name=procedure]", "active-camera")
+    page.click(".filters button")
+    page.wait_for_url("**/console/runs?procedure=active-camera&status=")
+    ids = _run_ids(page)
+    assert len(ids) == 3 and camera in ids
+    assert {t.strip() for t in page.locator("#runs tbody td:nth-child(2)").all_inner_texts()} \
+        == {"active-camera"}
+    page.select_option("select[name=procedure]", label="any")
+    page.select_option("select[name=status]", "aborted")
+    page.click(".filters button")
+    page.wait_for_url("**/console/runs?procedure=&status=aborted")
+    assert set(_run_ids(page)) == aborted
+    page.select_option("select[name=procedure]", "capture-survey")
+    page.select_option("select[name=status]", "succeeded")
+    page.click(".filters button")
+    page.wait_for_url("**/console/runs?procedure=capture-survey&status=succeeded")
+    assert set(_run_ids(page)) == surveys
+    page.select_option("select[name=procedure]", "hand-eye")
+    page.click(".filters button")
+    page.wait_for_url("**/console/runs?procedure=hand-eye&status=succeeded")
+    assert page.inner_text("#runs tbody") == "no runs match"
+
+
+# robot-kinematics small enough for a test (about 30 views), as in test_service
+ARM_MODEL = {"sweep_steps": 3, "random_poses": 8, "heldout_poses": 2,
+             "sweep_base_candidates": 4, "settle_s": 0.05}
+CAMERA_MOVED_MM = 3.0  # over the 2 mm hand-eye drift limit
+
+
+def _decided(stack, run_id: str) -> str:
+    """The service's own decision, recorded just after the run's end (accepting before it
+    would be overwritten)."""
+    return wait_until(lambda: get(f"{stack.base}/runs/{run_id}").json()["decision"],
+                      timeout=WAIT_MS // 1000, what=f"the decision on {run_id}")
+
+
+@pytest.mark.timeout(900)
+def test_console_compares_arm_models(page, stack, artifacts, tmp_path):
+    """An arm model compared with the accepted one: the camera's position over the run's
+    configurations. The second run is on the same devices with the camera 3 mm further
+    along the flange's z axis, so its position moves by 3 mm at every configuration,
+    however the calibration splits that between the arm's last link and the hand-eye."""
+    base = stack.base
+    if get(base + "/calibrations/latest?procedure=active-camera").status_code == 404:
+        camera = post(stack, "/runs", {"procedure": "active-camera",
+                                       "params": {"pan_deg": 5, "tilt_deg": 5}}).json()
+        assert wait_for(stack, camera["run_id"], timeout=WAIT_MS // 1000)["status"] \
+            == "succeeded"
+        _decided(stack, camera["run_id"])
+        post(stack, f"/calibrations/{camera['run_id']}/accept", {"comment": "for the arm"})
+    first = post(stack, "/runs", {"procedure": "robot-kinematics",
+                                  "params": ARM_MODEL}).json()["run_id"]
+    assert wait_for(stack, first, timeout=WAIT_MS // 1000)["status"] == "succeeded"
+    _decided(stack, first)
+    assert post(stack, f"/calibrations/{first}/accept", {}).status_code == 200
+
+    world = yaml.safe_load((ROOT / "mocks" / "worlds" / "ideal.yaml").read_text())
+    world["hand_eye"]["xyz_mm"][2] += CAMERA_MOVED_MM
+    moved = tmp_path / "camera-moved.yaml"
+    moved.write_text(yaml.safe_dump(world))
+    stack.restart_sim(moved)
+    try:
+        second = post(stack, "/runs", {"procedure": "robot-kinematics",
+                                       "params": ARM_MODEL}).json()["run_id"]
+        _open_following(page, stack, second)
+    finally:
+        stack.restart_sim("ideal")  # the next test finds the rig as it was
+    assert page.inner_text("#run-decision") == "drift"
+    assert page.get_attribute("#difference a", "href") == f"/console/runs/{first}"
+    page.wait_for_function("document.querySelector('#difference img.plot').complete"
+                           " && document.querySelector('#difference img.plot').naturalWidth"
+                           " > 0")
+    # every capture of the run is a configuration of the comparison
+    assert _metric(page, "configurations") == page.locator(".thumb").count() >= 20
+    # the 1-sigma of the difference the runs report is ~0.05 mm at every configuration
+    # (the plot's line): 0.2 mm is four of it (measured: 3.002 median, 3.025 max)
+    assert _metric(page, "median_mm") == pytest.approx(CAMERA_MOVED_MM, abs=0.2)
+    assert _metric(page, "max_mm") == pytest.approx(CAMERA_MOVED_MM, abs=0.2)
+    assert _metric(page, "max_z") > 3  # resolved
+    assert _fits_width(page), "the arm model comparison overflows 1280 px"
+    page.screenshot(path=artifacts / "run-compare-arm.png", full_page=True)
+
+
 @pytest.mark.timeout(300)
 def test_console_fits_a_tablet(browser, stack, artifacts):
     context = browser.new_context(viewport={"width": 820, "height": 1180}, has_touch=True)
     page = context.new_page()
+    # the newest calibration: after the end-to-end test, one compared with the accepted
+    newest = get(stack.base + "/runs?procedure=active-camera&limit=1").json()
+    run = [("run", f"/console/runs/{newest[0]['run_id']}")] if newest else []
     try:
         for name, path in (("rig", "/console/"), ("runs", "/console/runs"),
-                           ("history", "/console/history"), ("start", "/console/start")):
+                           ("history", "/console/history"), ("start", "/console/start"),
+                           *run):
             page.goto(stack.base + path)
             assert _fits_width(page), f"{path} overflows a tablet's width"
             page.screenshot(path=artifacts / f"tablet-{name}.png", full_page=True)

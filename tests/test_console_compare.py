@@ -4,13 +4,19 @@ and camera-position differences of arm models, with their sigma."""
 from __future__ import annotations
 
 import copy
+import datetime as dt
 import math
+import time
 
 import numpy as np
 import pytest
+from matplotlib.dates import date2num
+from matplotlib.figure import Figure
 
+from rigctl.console import plots
 from rigctl.console.compare import arm_difference, hand_eye_difference, projection_difference
 from rigctl.console.forms import form_fields
+from rigctl.console.pages import _fmt, _when
 from rigctl.geometry.kinematics import nominal_ur
 
 W, H = 1280, 720
@@ -96,6 +102,72 @@ def test_hand_eye_difference_in_mm_deg_and_sigma():
     assert d["translation_z"] == pytest.approx(3.0 / math.sqrt(2) / 1.0, rel=1e-6)
 
 
+def test_equal_cameras_show_as_one_flat_colour():
+    # rounding leaves ~1e-7 px between two runs of the same camera: the heat map's scale
+    # must not stretch that over all its colours
+    nudged = {**CAMERA, "fx": CAMERA["fx"] * (1 + 1e-10)}
+    pd = projection_difference(nudged, CAMERA, W, H)
+    assert 0 < pd.diff_px.max() < 1e-6
+    assert plots.heat_map_max_px(pd) == 0.1
+    shifted = projection_difference({**CAMERA, "cx": CAMERA["cx"] + 2.0}, CAMERA, W, H)
+    assert plots.heat_map_max_px(shifted) == pytest.approx(2.0)
+    assert plots.projection_difference_png(pd, W, H).startswith(b"\x89PNG")
+
+
+def _axis(times: list[dt.datetime]):
+    fig = Figure()
+    ax = fig.subplots()
+    ax.plot(times, range(len(times)), "o")
+    plots._time_axis(ax, times)
+    fig.canvas.draw()
+    lo, hi = ax.get_xlim()
+    ticks = [t for t in ax.get_xticks() if lo <= t <= hi]
+    labels = [t.get_text() for t in ax.get_xticklabels() if t.get_text()]
+    return lo, hi, ticks, labels
+
+
+def test_history_time_axis_with_one_and_with_many_points():
+    t0 = dt.datetime(2026, 3, 4, 10, 0, 0)
+    # one point: an hour either side, not years; a few readable ticks
+    lo, hi, ticks, labels = _axis([t0])
+    assert (hi - lo) * 24 == pytest.approx(2.0)
+    assert 3 <= len(ticks) <= 7 and len(labels) >= 3
+    # a dozen runs over three minutes (a demo, a test, a busy afternoon): they spread over
+    # the axis (8 % margin each side) instead of crowding the middle of a two-hour one
+    times = [t0 + dt.timedelta(seconds=15 * k) for k in range(12)]
+    lo, hi, ticks, labels = _axis(times)
+    span = date2num(times[-1]) - date2num(times[0])
+    assert span / (hi - lo) == pytest.approx(1 / 1.16)
+    assert lo < date2num(times[0]) and date2num(times[-1]) < hi
+    assert 3 <= len(ticks) <= 7 and len(set(labels)) == len(labels)
+    # two runs a second apart still get an axis of a few seconds (5 s margins)
+    lo, hi, _, _ = _axis([t0, t0 + dt.timedelta(seconds=1)])
+    assert (hi - lo) * 86400 == pytest.approx(11.0)
+    # a year of monthly runs: the axis is the year and a margin
+    times = [t0 + dt.timedelta(days=30 * k) for k in range(13)]
+    lo, hi, ticks, _ = _axis(times)
+    assert (hi - lo) == pytest.approx(1.16 * 360)
+    assert 3 <= len(ticks) <= 7
+
+
+def test_times_in_utc_whatever_the_servers_zone_and_missing_numbers(monkeypatch):
+    # SQLite gives the index's times back naive; they were written in UTC
+    monkeypatch.setenv("TZ", "America/New_York")
+    time.tzset()
+    try:
+        assert _when(dt.datetime(2026, 1, 2, 3, 4, 5)) == "2026-01-02 03:04:05 UTC"
+        plus2 = dt.timezone(dt.timedelta(hours=2))
+        assert _when(dt.datetime(2026, 1, 2, 3, 4, 5, tzinfo=plus2)) == \
+            "2026-01-02 01:04:05 UTC"
+        assert _when("2026-01-02T03:04:05.123+00:00") == "2026-01-02 03:04:05 UTC"
+        assert _when("not a time") == "not a time" and _when(None) == ""
+        # and a missing number reads as such, not as Python's None
+        assert _fmt(None) == "n/a" and _fmt(1.23456) == "1.235"
+    finally:
+        monkeypatch.undo()
+        time.tzset()
+
+
 def test_form_fields_follow_the_schema_and_the_rig_file():
     from procedures.capture_survey import CaptureSurveyParams
     from procedures.hand_eye import HandEyeParams
@@ -106,6 +178,11 @@ def test_form_fields_follow_the_schema_and_the_rig_file():
     assert fields["views"]["from_rig_file"] and fields["views"]["max"] == 50
     assert fields["pan_deg"]["kind"] == "array"
     assert fields["view_distance_m"]["min"] == 0.1 and fields["view_distance_m"]["max"] == 1.5
+    # a default factory is missing from the JSON schema: the model's own default is shown
+    fields = {f["name"]: f for f in form_fields(CaptureSurveyParams.model_json_schema(), {},
+                                                CaptureSurveyParams().model_dump(mode="json"))}
+    assert fields["pan_deg"]["value"] == "-10, 0, 10"
+    assert fields["tilt_deg"]["value"] == "-5, 0, 5"
     he = {f["name"]: f for f in form_fields(HandEyeParams.model_json_schema())}
     assert he["intrinsics"]["kind"] == "json" and he["intrinsics"]["nullable"]
     assert he["use_controller_model"]["kind"] == "boolean"

@@ -35,17 +35,19 @@ def _text(value: Any, kind: str) -> str:
     return str(value)
 
 
-def form_fields(schema: dict[str, Any], configured: dict[str, Any] | None = None
-                ) -> list[dict[str, Any]]:
+def form_fields(schema: dict[str, Any], configured: dict[str, Any] | None = None,
+                defaults: dict[str, Any] | None = None) -> list[dict[str, Any]]:
     """One field per property: name, label, kind, nullable, the value to show (the rig
-    file's ``procedures.<name>`` setting, else the schema default), bounds, help text."""
-    configured = configured or {}
+    file's ``procedures.<name>`` setting, else the schema default, else ``defaults``:
+    what the model itself fills in, for fields with a default factory, which the JSON
+    schema leaves out), bounds, help text."""
+    configured, defaults = configured or {}, defaults or {}
     fields = []
     for name, prop in schema.get("properties", {}).items():
         kind, nullable = _kind(prop)
         concrete = next((o for o in prop.get("anyOf") or [prop] if o.get("type") != "null"),
                         {})
-        value = configured.get(name, prop.get("default"))
+        value = configured.get(name, prop.get("default", defaults.get(name)))
         fields.append({
             "name": name, "label": prop.get("title") or name.replace("_", " "),
             "kind": kind, "nullable": nullable, "value": _text(value, kind),

@@ -17,6 +17,7 @@ from fastapi import Path as PathParam
 from fastapi.responses import HTMLResponse, RedirectResponse, Response
 from fastapi.staticfiles import StaticFiles
 from fastapi.templating import Jinja2Templates
+from pydantic import ValidationError
 
 import procedures
 from rigctl import __version__, drift
@@ -28,6 +29,8 @@ from rigctl.records import RunDirectory
 
 HERE = Path(__file__).parent
 NAME = r"^[a-z][a-z0-9-]{0,63}$"
+# a filter left at "any" arrives as an empty string (the form sends every field)
+FILTER = r"^([a-z][a-z0-9-]{0,63})?$"
 RUN_ID = PathParam(min_length=1, max_length=128)
 STATUSES = ("running", "succeeded", "failed", "aborted", "interrupted", "skipped")
 PLOT_NAME = r"^[A-Za-z0-9_.-]{1,100}\.png$"
@@ -58,12 +61,23 @@ class ResultCache:
 
 
 def _when(value: Any) -> str:
+    """A time in UTC. SQLite gives the index's times back without their zone; they were
+    written in UTC, so a naive time is UTC (not the server's local time)."""
+    if isinstance(value, str):  # decisions.jsonl's ISO times
+        try:
+            value = dt.datetime.fromisoformat(value)
+        except ValueError:
+            return value
     if isinstance(value, dt.datetime):
+        if value.tzinfo is None:
+            value = value.replace(tzinfo=dt.UTC)
         return value.astimezone(dt.UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
     return str(value or "")
 
 
 def _fmt(value: Any, digits: int = 4) -> str:
+    if value is None:  # e.g. a z-score where a result reports no sigma
+        return "n/a"
     if isinstance(value, float):
         return f"{value:.{digits}g}" if math.isfinite(value) else str(value)
     return str(value)
@@ -104,11 +118,18 @@ def _html_routes(service, results: ResultCache, page) -> APIRouter:
         """The current run and the queue, as the rig page's live section."""
         return page(request, "now.html", **_now(service))
 
+    @router.get("/console/state", response_class=HTMLResponse)
+    def state_fragment(request: Request) -> HTMLResponse:
+        """Busy or free and the lock holder, refreshed with the live section (a finished
+        run must not leave the page saying the rig is busy)."""
+        return page(request, "state.html", status=service.status())
+
     @router.get("/console/runs", response_class=HTMLResponse)
-    def runs_page(request: Request, procedure: str | None = Query(None, pattern=NAME),
-                  status: str | None = Query(None, pattern=NAME),
+    def runs_page(request: Request, procedure: str | None = Query(None, pattern=FILTER),
+                  status: str | None = Query(None, pattern=FILTER),
                   limit: int = Query(100, ge=1, le=1000)) -> HTMLResponse:
         """Runs of this rig, filtered by procedure and status, newest first."""
+        procedure, status = procedure or None, status or None
         rows = [r for r in service.runs(1000 if status else limit, procedure)
                 if status in (None, r["status"])][:limit]
         return page(request, "runs.html", rows=rows, procedure=procedure, status=status,
@@ -118,13 +139,14 @@ def _html_routes(service, results: ResultCache, page) -> APIRouter:
     def run_page(request: Request, run_id: str = RUN_ID) -> HTMLResponse:
         """One run: parameters, inputs, result with sigma, plots, captures, log, and for
         a calibration its difference from the last accepted one and the decisions."""
-        row = _find_run(service, run_id)
+        row = _waiting_row(service, run_id) or _find_run(service, run_id)
         return page(request, "run.html", **_run_context(service, results, row))
 
     @router.get("/console/history", response_class=HTMLResponse)
     def history_page(request: Request,
-                     procedure: str | None = Query(None, pattern=NAME)) -> HTMLResponse:
+                     procedure: str | None = Query(None, pattern=FILTER)) -> HTMLResponse:
         """Per calibration: the history plot and a table of every run and decision."""
+        procedure = procedure or None
         names = _calibrations(procedure)
         tables = {name: [_history_row(r, results) for r in _finished(service, name)]
                   for name in names}
@@ -134,8 +156,9 @@ def _html_routes(service, results: ResultCache, page) -> APIRouter:
 
     @router.get("/console/start", response_class=HTMLResponse)
     def start_page(request: Request,
-                   procedure: str | None = Query(None, pattern=NAME)) -> HTMLResponse:
+                   procedure: str | None = Query(None, pattern=FILTER)) -> HTMLResponse:
         """A form for each procedure, generated from its parameter schema."""
+        procedure = procedure or None
         names = procedures.procedure_names()
         if procedure is not None and procedure not in names:
             raise HTTPException(404, f"no procedure {procedure!r}; one of {', '.join(names)}")
@@ -143,7 +166,8 @@ def _html_routes(service, results: ResultCache, page) -> APIRouter:
         proc = procedures.get_procedure(chosen)
         configured = service.config.procedures.get(chosen, {})
         return page(request, "start.html", names=names, chosen=chosen, summary=proc.summary,
-                    fields=form_fields(proc.params_model.model_json_schema(), configured))
+                    fields=form_fields(proc.params_model.model_json_schema(), configured,
+                                       _model_defaults(proc.params_model)))
 
     return router
 
@@ -198,6 +222,14 @@ def mount_static(app) -> None:
     app.mount("/console/static", StaticFiles(directory=HERE / "static"), name="console-static")
 
 
+def _model_defaults(model) -> dict[str, Any]:
+    """The parameters a procedure runs with when given none (empty if some are required)."""
+    try:
+        return model().model_dump(mode="json")
+    except ValidationError:
+        return {}
+
+
 def _calibrations(procedure: str | None) -> list[str]:
     if procedure is None:
         return list(drift.CALIBRATIONS)
@@ -221,6 +253,23 @@ def _find_run(service, run_id: str) -> dict:
     return row
 
 
+def _waiting_row(service, run_id: str) -> dict | None:
+    """A run the API has answered with an id but the runner has not recorded yet (queued,
+    or just taken off the queue): the start form links to its page at once."""
+    with service.cond:
+        jobs = [service.current, *service.queue]
+    for job in jobs:
+        if job is not None and job.run_id == run_id:
+            try:
+                return _find_run(service, run_id)
+            except HTTPException:
+                return {"run_id": run_id, "procedure": job.procedure, "status": "queued",
+                        "decision": None, "started_at": None, "ended_at": None,
+                        "operator": job.operator, "reason": None, "run_dir": "",
+                        "rig_name": service.config.name}
+    return None
+
+
 def _now(service) -> dict[str, Any]:
     current = service.current
     return {"current": None if current is None else
@@ -241,7 +290,11 @@ def _run_context(service, results: ResultCache, row: dict) -> dict[str, Any]:
     run = views.run_directory(row)
     result = results.get(row["run_dir"]) if run else None
     current = service.current
-    progress = current.progress if current and current.run_id == row["run_id"] else None
+    # progress while the index says running: the service keeps a finished run as its
+    # current one a moment longer (lock release, decision), and a page loaded then must
+    # not show a bar and an abort button that nothing will update
+    progress = current.progress if current and current.run_id == row["run_id"] \
+        and row["status"] == "running" else {} if row["status"] == "queued" else None
     context = {"row": row, "progress": progress, "result": result,
                "is_calibration": row["procedure"] in drift.CALIBRATIONS,
                "params": views.read_optional(run, "params.json") if run else None,
@@ -275,8 +328,10 @@ def _difference(service, results: ResultCache, row: dict) -> dict[str, Any] | No
         if w > 0 and h > 0:
             pd = compare.projection_difference(new, old, w, h)
             fitted = compare.projection_difference(new, old, w, h, fit_rotation=True)
-            out["summary"] = {**pd.summary(),
-                              "max_px_after_best_rotation": fitted.summary()["max_px"]}
+            out["summary"] = {k: v for k, v in pd.summary().items()
+                              if k != "fitted_rotation_deg"}  # 0: nothing fitted there
+            out["summary"] |= {"max_px_after_best_rotation": fitted.summary()["max_px"],
+                               "best_rotation_deg": fitted.fitted_rotation_deg}
             out["png"] = lambda: plots.projection_difference_png(pd, w, h)
     elif procedure == "robot-kinematics":
         run = views.run_directory(row)

@@ -27,11 +27,17 @@ def _png(fig: Figure) -> bytes:
     return buf.getvalue()
 
 
+SINGLE_POINT_PAD = dt.timedelta(hours=1)
+MIN_PAD = dt.timedelta(seconds=5)
+
+
 def _time_axis(ax, times: list[dt.datetime]) -> None:
-    """Dates that read well at any span: at least an hour either side of the points, so a
-    single point does not get an axis of years around it."""
+    """Dates that read well at any span: an hour either side of a single time (not the
+    years matplotlib picks around one point), else the points' own span with a margin of
+    8 % (at least 5 s), so that runs minutes apart spread over the axis instead of
+    crowding into the middle of an hour-wide one."""
     lo, hi = min(times), max(times)
-    pad = max((hi - lo) * 0.08, dt.timedelta(hours=1))
+    pad = SINGLE_POINT_PAD if hi == lo else max((hi - lo) * 0.08, MIN_PAD)
     ax.set_xlim(lo - pad, hi + pad)
     locator = AutoDateLocator(minticks=3, maxticks=6)
     ax.xaxis.set_major_locator(locator)
@@ -71,6 +77,16 @@ def history_png(title: str, all_series: list[Series]) -> bytes:
     return _png(fig)
 
 
+HEAT_MAP_FLOOR_PX = 0.1
+
+
+def heat_map_max_px(pd: ProjectionDifference) -> float:
+    """The colour scale's top: the largest difference, but never under a tenth of a pixel,
+    so that two equal calibrations (a difference of 1e-7 px) show as one flat colour
+    rather than as a pattern of rounding errors stretched over the whole scale."""
+    return max(float(pd.diff_px.max()), HEAT_MAP_FLOOR_PX)
+
+
 def projection_difference_png(pd: ProjectionDifference, width: int, height: int) -> bytes:
     """Heat maps of the projection difference (px) and of the difference over its
     1-sigma, across the image."""
@@ -78,7 +94,8 @@ def projection_difference_png(pd: ProjectionDifference, width: int, height: int)
     fig = Figure(figsize=(5.2 * panels, 3.4), layout="constrained")
     axes = fig.subplots(1, panels, squeeze=False).ravel()
     extent = (0, width, height, 0)
-    im = axes[0].imshow(pd.diff_px, extent=extent, cmap="viridis", aspect="equal")
+    im = axes[0].imshow(pd.diff_px, extent=extent, cmap="viridis", aspect="equal",
+                        vmin=0, vmax=heat_map_max_px(pd))
     fig.colorbar(im, ax=axes[0], shrink=0.85, label="px")
     axes[0].set_title("projection difference (px)", fontsize=10)
     if panels == 2:

@@ -97,18 +97,56 @@ function subscribe(handlers) {
   return source;
 }
 
+// The runner announces "finished" before it releases the rig's lock and before the
+// service drops the run as current (and, for a calibration, records its decision): a
+// refresh on that event alone can show the finished run still running. So refresh until
+// the run is gone from the live section (a few tries a little apart).
+const SETTLE_TRIES = 40, SETTLE_MS = 250;
+
+async function refreshUntilGone(runId, tries) {
+  await refreshLive();
+  const link = document.querySelector("#current-run a");
+  const still = link && link.getAttribute("href") === "/console/runs/" + runId;
+  const busy = document.querySelector("#rig-state .badge.running");
+  if ((still || (busy && !link)) && tries > 0) {
+    setTimeout(() => refreshUntilGone(runId, tries - 1), SETTLE_MS);
+  }
+}
+
 function setupLive() {
   const live = document.querySelector("[data-live]");
   const runBar = document.querySelector("progress[data-run]");
   if (!live && !runBar) return;
-  subscribe({
+  const mine = e => runBar && runBar.dataset.run === e.run_id;
+  const source = subscribe({
     step: e => { if (live && !document.getElementById("progress")) refreshLive(); onProgress(e); },
-    queued: () => refreshLive(), started: () => refreshLive(),
-    finished: e => {
-      if (live) refreshLive();
-      if (runBar && runBar.dataset.run === e.run_id) location.reload();
+    queued: () => refreshLive(),
+    started: e => {
+      refreshLive();
+      if (mine(e) && "queued" in runBar.dataset) location.reload();  // now it has a record
     },
+    finished: e => {
+      if (live) refreshUntilGone(e.run_id, SETTLE_TRIES);
+      // a calibration that succeeded gets its decision next: reload on that
+      if (mine(e) && !(e.status === "succeeded" && "calibration" in runBar.dataset)) {
+        location.reload();
+      }
+    },
+    decision: e => { if (mine(e)) location.reload(); },
   });
+  // events sent between this page's rendering and the stream's opening are lost: once
+  // the stream is open, compare the run's state with what the page shows
+  if (runBar) source.addEventListener("open", () => checkRun(runBar));
+}
+
+async function checkRun(runBar) {
+  const response = await fetch("/runs/" + encodeURIComponent(runBar.dataset.run));
+  if (!response.ok) return;
+  const run = await response.json();
+  const shown = document.getElementById("run-status").textContent;
+  const waitingForDecision = run.status === "succeeded" && "calibration" in runBar.dataset
+    && !run.decision;
+  if (run.status !== shown && !waitingForDecision) location.reload();
 }
 
 function setupDecision() {
