@@ -418,6 +418,10 @@ class _Problem:
         n_rho = 0 if depths is None else len(depths.mean)
         self.x = np.zeros(n_cam + n_rho)
         self.x[:4] = [initial["fx"], initial["fy"], initial["cx"], initial["cy"]]
+        # a start may carry a distortion (OpenCV's k1, k2, p1, p2, k3) and a mounting
+        for j, slot in enumerate(DIST_SLOTS[n_dist]):
+            self.x[N_BASE + j] = (initial.get("distortion") or [0.0] * 5)[slot]
+        self.x[4:7] = initial.get("mount_rotvec", np.zeros(3))
         self.free = np.ones(len(self.x), bool)
         # the parallax: estimated with depths, else a consider parameter (held at zero)
         self.free[9:12] = depths is not None
@@ -524,7 +528,8 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
     """Joint refinement of fx, fy, cx, cy, the mounting rotation and the roll axis (and
     ``n_dist`` distortion terms, ``DIST_SLOTS``) over all motions with the exact rotation
     model (thesis Lemma 3.1, eq. 3.3), from ``initial`` (fx, fy, cx, cy; e.g. Strategy
-    D), with a soft-L1 robust loss, then 3-sigma outlier rejection.
+    D; optionally ``distortion`` and ``mount_rotvec``), with a soft-L1 robust loss, then
+    3-sigma outlier rejection.
 
     Without ``depths`` the parallax ``s`` (module docstring) is held at zero: estimating
     it trades the focal length and the centre against the scene's unknown depths. It is
