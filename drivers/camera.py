@@ -26,7 +26,7 @@ from typing import Any
 import cv2
 
 from drivers.base import Camera, DeviceError, Frame, load_note
-from drivers.v4l2_controls import V4L2Controls
+from drivers.v4l2_controls import V4L2Controls, device_path
 
 log = logging.getLogger(__name__)
 
@@ -163,10 +163,8 @@ class OpenCVCamera(Camera):
     def _v4l2_controls(self) -> dict[str, int] | None:
         """Automatics off and ``v4l2_controls`` set by name through the kernel, every value
         read back (``drivers.v4l2_controls``); None where the device is no V4L2 node."""
-        device = self.cfg.device
-        path = f"/dev/video{device}" if isinstance(device, int) or str(device).isdigit() \
-            else str(device)
-        if not path.startswith("/dev/"):
+        path = device_path(self.cfg.device)
+        if path is None:
             if self.cfg.v4l2_controls:
                 raise DeviceError(f"{self.name}: v4l2_controls need a /dev/video device")
             return None

@@ -42,12 +42,20 @@ FLAG_READ_ONLY = 0x0004
 FLAG_INACTIVE = 0x0010
 TYPE_CTRL_CLASS = 6
 
-# old name (before Linux 5.16) <-> new name
+# old name (before Linux 5.16) -> new name. Until then uvcvideo named its controls itself;
+# since "media: uvcvideo: Use control names from framework" it reports the names of
+# v4l2_ctrl_get_name(). The renames below are every UVC control whose v4l2-ctl name
+# changed with that ("Focus (absolute)" -> "Focus, Absolute" keeps focus_absolute).
 RENAMED = {
     "focus_auto": "focus_automatic_continuous",
     "exposure_absolute": "exposure_time_absolute",
     "exposure_auto": "auto_exposure",
+    "exposure_auto_priority": "exposure_dynamic_framerate",
     "white_balance_temperature_auto": "white_balance_automatic",
+    "white_balance_component_auto": "white_balance_automatic",
+    "white_balance_red_component": "red_balance",
+    "white_balance_blue_component": "blue_balance",
+    "hue_auto": "hue_automatic",
 }
 # automatic control -> its "off" value (auto_exposure: 1 = manual mode)
 AUTO_OFF = {"focus_automatic_continuous": 0, "auto_exposure": 1,
@@ -57,6 +65,21 @@ AUTO_OFF = {"focus_automatic_continuous": 0, "auto_exposure": 1,
 def v4l2_name(text: str) -> str:
     """v4l2-ctl's name for a control."""
     return re.sub(r"[^a-z0-9]+", "_", text.lower()).strip("_")
+
+
+def canonical(name: str) -> str:
+    """A control's name since Linux 5.16, from either its old or its new name: the one
+    name to compare settings by, whichever kernel reported them."""
+    return RENAMED.get(name, name)
+
+
+def device_path(device: str | int) -> str | None:
+    """The V4L2 device node a rig file's ``devices.camera.device`` opens (an index N is
+    ``/dev/videoN``), or None when it is no device node (a stream URL): only a device
+    node has V4L2 controls."""
+    if isinstance(device, int) or str(device).isdigit():
+        return f"/dev/video{device}"
+    return str(device) if str(device).startswith("/dev/") else None
 
 
 @dataclass(frozen=True)
@@ -110,7 +133,8 @@ class V4L2Controls:
 
     def resolve(self, name: str) -> Control:
         """The device's control for ``name``, under its old or its new (5.16) name."""
-        aliases = {name, RENAMED.get(name, name)} | {o for o, n in RENAMED.items() if n == name}
+        new = canonical(name)
+        aliases = [name, new, *(old for old, renamed in RENAMED.items() if renamed == new)]
         for alias in aliases:
             if alias in self.controls:
                 return self.controls[alias]

@@ -13,10 +13,13 @@ from drivers.v4l2_controls import (
     FLAG_INACTIVE,
     FLAG_NEXT_CTRL,
     QUERYCTRL,
+    RENAMED,
     VIDIOC_G_CTRL,
     VIDIOC_QUERYCTRL,
     VIDIOC_S_CTRL,
     V4L2Controls,
+    canonical,
+    device_path,
     v4l2_name,
 )
 from rigctl.errors import DeviceError
@@ -25,17 +28,23 @@ from rigctl.errors import DeviceError
 NEW_NAMES = [
     (0x00980001, b"Camera Controls", 6, 0, 0, 0),  # a control class: skipped
     (0x00980900, b"Brightness", 1, -64, 64, 0),
-    (0x0098091A, b"White Balance, Automatic", 2, 0, 1, 1),
+    (0x0098090C, b"White Balance, Automatic", 2, 0, 1, 1),
+    (0x00980919, b"Hue, Automatic", 2, 0, 1, 0),
     (0x009A0901, b"Auto Exposure", 3, 0, 3, 3),
     (0x009A0902, b"Exposure Time, Absolute", 1, 1, 5000, 156),
+    (0x009A0903, b"Exposure, Dynamic Framerate", 2, 0, 1, 1),
     (0x009A090A, b"Focus, Absolute", 1, 0, 1023, 68),
     (0x009A090C, b"Focus, Automatic Continuous", 2, 0, 1, 1),
 ]
-OLD_NAMES = [(cid, {b"White Balance, Automatic": b"White Balance Temperature, Auto",
-                    b"Auto Exposure": b"Exposure, Auto",
-                    b"Exposure Time, Absolute": b"Exposure (Absolute)",
-                    b"Focus, Automatic Continuous": b"Focus, Auto"}.get(name, name), *rest)
-             for cid, name, *rest in NEW_NAMES]
+# uvcvideo's own names before it took the framework's (Linux 5.16)
+UVC_OLD = {b"White Balance, Automatic": b"White Balance Temperature, Auto",
+           b"Hue, Automatic": b"Hue, Auto",
+           b"Auto Exposure": b"Exposure, Auto",
+           b"Exposure Time, Absolute": b"Exposure (Absolute)",
+           b"Exposure, Dynamic Framerate": b"Exposure, Auto Priority",
+           b"Focus, Absolute": b"Focus (absolute)",
+           b"Focus, Automatic Continuous": b"Focus, Auto"}
+OLD_NAMES = [(cid, UVC_OLD.get(name, name), *rest) for cid, name, *rest in NEW_NAMES]
 
 
 class FakeCamera:
@@ -85,6 +94,38 @@ def test_names_are_v4l2_ctls():
     assert v4l2_name("Focus, Automatic Continuous") == "focus_automatic_continuous"
     assert v4l2_name("Exposure (Absolute)") == "exposure_absolute"
     assert v4l2_name("White Balance Temperature, Auto") == "white_balance_temperature_auto"
+    assert v4l2_name("Exposure, Auto Priority") == "exposure_auto_priority"
+    assert v4l2_name("Exposure, Dynamic Framerate") == "exposure_dynamic_framerate"
+
+
+def test_every_uvc_rename_in_the_fake_tables_is_known():
+    """Each control the fake device names differently before and after 5.16 has its old
+    name mapped to its new one; a name that did not change is its own canonical name."""
+    for (_, new, *_r), (_, old, *_s) in zip(NEW_NAMES, OLD_NAMES, strict=True):
+        new_name, old_name = v4l2_name(new.decode()), v4l2_name(old.decode())
+        assert canonical(old_name) == new_name and canonical(new_name) == new_name
+    assert RENAMED["exposure_auto_priority"] == "exposure_dynamic_framerate"
+
+
+@pytest.mark.parametrize("table", [NEW_NAMES, OLD_NAMES], ids=["linux>=5.16", "linux<5.16"])
+@pytest.mark.parametrize("name", ["exposure_auto_priority", "exposure_dynamic_framerate"])
+def test_exposure_dynamic_framerate_by_either_name(table, name):
+    """V4L2_CID_EXPOSURE_AUTO_PRIORITY: uvcvideo's "Exposure, Auto Priority" before 5.16,
+    the framework's "Exposure, Dynamic Framerate" since."""
+    cam, fake = controls(table)
+    assert cam.resolve(name).id == 0x009A0903
+    got = cam.apply({name: 0}, auto_off=False)
+    assert fake.values[0x009A0903] == 0 and fake.writes == [(0x009A0903, 0)]
+    device_name = "exposure_dynamic_framerate" if table is NEW_NAMES \
+        else "exposure_auto_priority"
+    assert got == {device_name: 0}
+
+
+def test_device_path_of_the_rig_files_camera():
+    assert device_path(0) == "/dev/video0" and device_path("2") == "/dev/video2"
+    assert device_path("/dev/v4l/by-id/usb-cam-video-index0") == \
+        "/dev/v4l/by-id/usb-cam-video-index0"
+    assert device_path("http://127.0.0.1:8080/stream.mjpg") is None
 
 
 @pytest.mark.parametrize("table", [NEW_NAMES, OLD_NAMES], ids=["linux>=5.16", "linux<5.16"])
@@ -95,7 +136,7 @@ def test_automatics_off_then_values_set_by_either_name_and_read_back(table, focu
     assert "camera_controls" not in cam.controls  # control classes are not controls
     got = cam.apply({focus: 300, exposure: 250, "brightness": -10}, auto_off=True)
     assert fake.values[0x009A090C] == 0 and fake.values[0x009A0901] == 1
-    assert fake.values[0x0098091A] == 0
+    assert fake.values[0x0098090C] == 0
     assert fake.values[0x009A090A] == 300 and fake.values[0x009A0902] == 250
     assert fake.values[0x00980900] == -10
     # automatics first: the manual controls are inactive until they are off
