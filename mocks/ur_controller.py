@@ -51,7 +51,66 @@ RUNTIME_STOPPED, RUNTIME_PLAYING, RUNTIME_PAUSED = 1, 2, 4
 ROBOT_POWER_OFF, ROBOT_IDLE, ROBOT_RUNNING = 3, 5, 7
 SAFETY_NORMAL, SAFETY_PROTECTIVE, SAFETY_ROBOT_ESTOP = 1, 3, 7
 
-REALTIME_CMDS = {24, 11, 9, 10, 6, 25, 26, 27, 38, 58, 66, 67, 68, 69, 70, 71}
+
+class Cmd(IntEnum):
+    """Control-script command numbers (ur_rtde's ``RobotCommand::Type``, as the 1.6.5
+    control script numbers them) that the stand-in serves or tells apart."""
+
+    NO_CMD = 0  # the client's "clear": the previous command is taken
+    MOVEJ = 1
+    MOVEJ_IK = 2
+    MOVEL = 3
+    MOVEL_FK = 4
+    FORCE_MODE = 6
+    SPEEDJ = 9
+    SPEEDL = 10
+    SERVOJ = 11
+    SPEED_STOP = 15
+    SERVO_STOP = 16
+    SET_PAYLOAD = 17
+    SERVOL = 24
+    TOOL_CONTACT = 25
+    GET_STEPTIME = 26
+    GET_ACTUAL_JOINT_POSITIONS_HISTORY = 27
+    SET_TCP = 29
+    GET_INVERSE_KINEMATICS_ARGS = 30
+    PROTECTIVE_STOP = 31
+    STOPL = 33
+    STOPJ = 34
+    SET_WATCHDOG = 35
+    IS_POSE_WITHIN_SAFETY_LIMITS = 36
+    IS_JOINTS_WITHIN_SAFETY_LIMITS = 37
+    GET_JOINT_TORQUES = 38
+    POSE_TRANS = 39
+    GET_TCP_OFFSET = 40
+    GET_FORWARD_KINEMATICS_DEFAULT = 43
+    GET_FORWARD_KINEMATICS_ARGS = 44
+    GET_INVERSE_KINEMATICS_DEFAULT = 46
+    IS_STEADY = 47
+    GET_ACTUAL_TOOL_FLANGE_POSE = 58
+    GET_INVERSE_KINEMATICS_HAS_SOLUTION_DEFAULT = 60
+    GET_INVERSE_KINEMATICS_HAS_SOLUTION_ARGS = 61
+    DIRECT_TORQUE = 66
+    GET_MASS_MATRIX = 67
+    GET_CORIOLIS_AND_CENTRIFUGAL_TORQUES = 68
+    GET_TARGET_JOINT_ACCELERATIONS = 69
+    GET_JACOBIAN = 70
+    GET_JACOBIAN_TIME_DERIVATIVE = 71
+    STOP_SCRIPT = 255
+
+
+# output_int_register_0 of the handshake (ur_rtde's UR_CONTROLLER_RDY_FOR_CMD and
+# UR_CONTROLLER_DONE_WITH_CMD)
+CMD_READY, CMD_DONE = 1, 2
+
+# The script's real-time commands: applied every cycle while the register holds them,
+# then "ready", never "done" (the script's main loop lists these numbers)
+REALTIME_CMDS = frozenset({
+    Cmd.SERVOL, Cmd.SERVOJ, Cmd.SPEEDJ, Cmd.SPEEDL, Cmd.FORCE_MODE, Cmd.TOOL_CONTACT,
+    Cmd.GET_STEPTIME, Cmd.GET_ACTUAL_JOINT_POSITIONS_HISTORY, Cmd.GET_JOINT_TORQUES,
+    Cmd.GET_ACTUAL_TOOL_FLANGE_POSE, Cmd.DIRECT_TORQUE, Cmd.GET_MASS_MATRIX,
+    Cmd.GET_CORIOLIS_AND_CENTRIFUGAL_TORQUES, Cmd.GET_TARGET_JOINT_ACCELERATIONS,
+    Cmd.GET_JACOBIAN, Cmd.GET_JACOBIAN_TIME_DERIVATIVE})
 
 FIELD_SIZES = {"DOUBLE": ">d", "VECTOR6D": ">6d", "VECTOR3D": ">3d", "INT32": ">i",
                "UINT32": ">I", "UINT64": ">Q", "VECTOR6INT32": ">6i", "UINT8": ">B",
@@ -204,7 +263,7 @@ class Controller:
             self.pending_done = False
             self.wint(0, 0)
             self._async_progress(-1)
-            self.wint(0, 1)
+            self.wint(0, CMD_READY)
             self.runtime_state = RUNTIME_PLAYING
             self.messages.append(f"program rtde_control started (register offset {offset})")
 
@@ -406,20 +465,20 @@ class Controller:
         if self.pending_done:
             if self.motion is None or self.motion_kind not in ("sync",):
                 self.pending_done = False
-                self.wint(0, 2)
+                self.wint(0, CMD_DONE)
             return
         cmd = self.rint(0)
         if cmd in REALTIME_CMDS:
             self.process(cmd)
-            self.wint(0, 1)
-        elif cmd == 0:
+            self.wint(0, CMD_READY)
+        elif cmd == Cmd.NO_CMD:
             self.executing = False
-            self.wint(0, 1)
+            self.wint(0, CMD_READY)
         elif not self.executing:
             self.executing = True
             self.process(cmd)
-            if not self.pending_done and cmd != 255:
-                self.wint(0, 2)
+            if not self.pending_done and cmd != Cmd.STOP_SCRIPT:
+                self.wint(0, CMD_DONE)
 
     def _update_snapshot(self) -> None:
         key = (self.q.tobytes(), self.tcp.tobytes())
@@ -823,40 +882,6 @@ def main(argv: list[str] | None = None) -> int:
     done.wait()
     server.close()
     return 0
-
-
-
-class Cmd(IntEnum):
-    """Control-script command numbers (ur_rtde's ``RobotCommand::Type``) the stand-in
-    serves."""
-
-    MOVEJ = 1
-    MOVEJ_IK = 2
-    MOVEL = 3
-    MOVEL_FK = 4
-    SPEEDJ = 9
-    SERVOJ = 11
-    SPEED_STOP = 15
-    SERVO_STOP = 16
-    SET_PAYLOAD = 17
-    SET_TCP = 29
-    GET_INVERSE_KINEMATICS_ARGS = 30
-    PROTECTIVE_STOP = 31
-    STOPL = 33
-    STOPJ = 34
-    SET_WATCHDOG = 35
-    IS_POSE_WITHIN_SAFETY_LIMITS = 36
-    IS_JOINTS_WITHIN_SAFETY_LIMITS = 37
-    POSE_TRANS = 39
-    GET_TCP_OFFSET = 40
-    GET_FORWARD_KINEMATICS_DEFAULT = 43
-    GET_FORWARD_KINEMATICS_ARGS = 44
-    GET_INVERSE_KINEMATICS_DEFAULT = 46
-    IS_STEADY = 47
-    GET_ACTUAL_TOOL_FLANGE_POSE = 58
-    GET_INVERSE_KINEMATICS_HAS_SOLUTION_DEFAULT = 60
-    GET_INVERSE_KINEMATICS_HAS_SOLUTION_ARGS = 61
-    STOP_SCRIPT = 255
 
 
 def _set_payload(c, _a):
