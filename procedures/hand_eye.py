@@ -18,7 +18,7 @@ from .base import Params, Procedure, SolveContext
 from .planning import view_steps
 from .robot_common import (
     board_observations,
-    camera_matrix,
+    camera_model,
     controller_model,
     intrinsics_from,
     planning_K,
@@ -57,7 +57,7 @@ class HandEye(Procedure):
 
     def solve(self, ctx: SolveContext) -> dict[str, Any]:
         intr = ctx.input("intrinsics")
-        K, dist = camera_matrix(intr)
+        K, dist = camera_model(intr)
         found = [o for o in board_observations(ctx, intr) if o["found"]]
         if len(found) < 3:
             raise SolveError(f"hand-eye: the board was found in {len(found)} views (need 3)")

@@ -12,6 +12,7 @@ from rigctl.calib.board import board_points, orient_to_prediction
 from rigctl.calib.extrinsic import estimate_pose
 from rigctl.config import RigConfig
 from rigctl.errors import ConfigError
+from rigctl.geometry.camera import camera_matrix
 from rigctl.geometry.kinematics import KinematicModel, nominal_ur
 from rigctl.geometry.transforms import inv_T
 from rigctl.records import RecordIndex, RunDirectory
@@ -82,16 +83,17 @@ def default_prior_sigma(intr: dict) -> dict[str, float]:
     return {"fx": 0.005 * intr["fx"], "fy": 0.005 * intr["fy"], "cx": 10.0, "cy": 10.0}
 
 
-def camera_matrix(intr: dict) -> tuple[np.ndarray, np.ndarray]:
-    K = np.array([[intr["fx"], 0, intr["cx"]], [0, intr["fy"], intr["cy"]], [0, 0, 1.0]])
-    return K, np.asarray(intr["distortion"], float)
+def camera_model(intr: dict) -> tuple[np.ndarray, np.ndarray]:
+    """K and the distortion coefficients of resolved intrinsics (``intrinsics_from``)."""
+    return (camera_matrix(intr["fx"], intr["fy"], intr["cx"], intr["cy"]),
+            np.asarray(intr["distortion"], float))
 
 
 def board_observations(ctx, intr: dict) -> list[dict]:
     """Per capture with the board found: label, kind, joints, corners and T_cam_target."""
     tg = ctx.config.target
     obj = board_points(tg.rows, tg.cols, tg.square_mm / 1000.0)
-    K, dist = camera_matrix(intr)
+    K, dist = camera_model(intr)
     out = []
     for capture in ctx.captures():
         if capture.image_path is None or "arm" not in capture.meta:
@@ -128,11 +130,11 @@ def planning_K(config: RigConfig, given: dict | None) -> np.ndarray:
     """Intrinsics for planning: given, else the latest active-camera result, else a
     60-degree field of view guess."""
     try:
-        return camera_matrix(intrinsics_from(config, given, allow_settings_change=True))[0]
+        return camera_model(intrinsics_from(config, given, allow_settings_change=True))[0]
     except ConfigError:
         w, h = config.devices.camera.width, config.devices.camera.height
         f = w / (2 * math.tan(math.radians(30)))
-        return np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1.0]])
+        return camera_matrix(f, f, w / 2, h / 2)
 
 
 def visible_range(config: RigConfig, model: KinematicModel, q_base, joint: int,

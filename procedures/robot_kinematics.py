@@ -44,7 +44,7 @@ from .base import (
 from .planning import CLOSER, closest_plan, informative_views, plan_target_views
 from .robot_common import (
     board_observations,
-    camera_matrix,
+    camera_model,
     controller_model,
     default_prior_sigma,
     export_model,
@@ -175,7 +175,7 @@ class RobotKinematics(Procedure):
     def solve(self, ctx: SolveContext) -> dict[str, Any]:
         """Thesis 4.3 on the run's board views (``rigctl.calib.robot_pipeline``)."""
         intr = ctx.input("intrinsics")
-        K, dist = camera_matrix(intr)
+        K, dist = camera_model(intr)
         tg = ctx.config.target
         obj = board_points(tg.rows, tg.cols, tg.square_mm / 1000.0)
         with ctx.stage("board poses"):

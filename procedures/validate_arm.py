@@ -30,7 +30,7 @@ from rigctl.records import RecordIndex, RunDirectory
 
 from .base import Params, Procedure, SolveContext
 from .planning import view_steps
-from .robot_common import board_observations, camera_matrix, intrinsics_from, planning_K
+from .robot_common import board_observations, camera_model, intrinsics_from, planning_K
 
 
 class ValidateArmParams(Params):
@@ -86,7 +86,7 @@ class ValidateArm(Procedure):
         states = {"before": (nominal, np.array(cal["before"]["T_flange_cam"]),
                              np.array(cal["before"]["T_base_target"])),
                   "after": (model, np.array(cal["T_flange_cam"]), np.array(cal["T_base_target"]))}
-        K, dist = camera_matrix(intr)
+        K, dist = camera_model(intr)
         tg = ctx.config.target
         obj = board_points(tg.rows, tg.cols, tg.square_mm / 1000.0)
         out: dict[str, Any] = {"calibration_run": ctx.input("calibration_run"),

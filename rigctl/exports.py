@@ -12,6 +12,7 @@ import numpy as np
 import yaml
 
 from rigctl.errors import ConfigError, RigError
+from rigctl.geometry.camera import camera_matrix
 
 FORMATS = ("json", "opencv", "ros", "ur", "ur-kinematics", "urdf")
 SUFFIXES = {"json": ".json", "opencv": ".opencv.yaml", "ros": ".camera_info.yaml",
@@ -24,8 +25,7 @@ def _intrinsics(result: dict[str, Any], run_id: str) -> tuple[np.ndarray, np.nda
     if missing:
         raise RigError(f"run {run_id}: result has no camera intrinsics to export "
                        f"(missing {', '.join(missing)})")
-    K = np.array([[result["fx"], 0.0, result["cx"]], [0.0, result["fy"], result["cy"]],
-                  [0.0, 0.0, 1.0]])
+    K = camera_matrix(result["fx"], result["fy"], result["cx"], result["cy"])
     dist = np.array(result.get("distortion") or [0.0] * 5, dtype=float)
     return K, dist, int(result["width"]), int(result["height"])
 

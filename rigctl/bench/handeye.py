@@ -82,10 +82,11 @@ def pixel_trial(n: int, seed: int, sigma_px: float = 0.3, arm_sigma: float = 3e-
     from rigctl.calib.board import board_points
     from rigctl.calib.extrinsic import estimate_pose
     from rigctl.calib.handeye import refine_pixels
+    from rigctl.geometry.camera import camera_matrix
     from rigctl.geometry.transforms import look_at
 
     rng = np.random.default_rng(seed)
-    K = np.array([[900.0, 0, 640], [0, 900.0, 360], [0, 0, 1]])
+    K = camera_matrix(900.0, 900.0, 640.0, 360.0)
     obj = board_points(7, 10, 0.03)
     X = make_T(rotvec_to_R(rng.normal(size=3) * 0.1), [0.0, 0.03, 0.05])
     W = make_T(np.diag([1.0, -1.0, -1.0]), [0.5, 0.1, 0.0])

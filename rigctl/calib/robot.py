@@ -35,7 +35,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from rigctl.errors import SolveError
-from rigctl.geometry.camera import invert_batch, project_batch
+from rigctl.geometry.camera import camera_matrix, invert_batch, project_batch
 from rigctl.geometry.kinematics import LINK_KEYS, KinematicModel, link_transform
 from rigctl.geometry.transforms import R_to_rotvec, inv_T, make_T, rotvec_to_R
 
@@ -498,7 +498,7 @@ def refine_with_camera(ref: RefineResult, meas: Measurements, prior_sigma: dict[
 
     def camera(p):
         c = p[n_arm:]
-        return np.array([[c[0], 0, c[2]], [0, c[1], c[3]], [0, 0, 1.0]]), c[4:]
+        return camera_matrix(*c[:4]), c[4:]
 
     def fun(p):
         model, X, W = _unpack(p[:n_arm], ref.model, ref.X, ref.W, mask, True)

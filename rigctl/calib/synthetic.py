@@ -11,6 +11,11 @@ import math
 
 import numpy as np
 
+from rigctl.geometry.camera import camera_matrix
+
+# K of the synthetic cameras: the one builder of the intrinsic matrix (zero skew)
+intrinsics = camera_matrix
+
 
 def rot_x(a: float) -> np.ndarray:
     c, s = math.cos(a), math.sin(a)
@@ -31,10 +36,6 @@ def rot_axis(axis, a: float) -> np.ndarray:
     k = np.asarray(axis, float) / np.linalg.norm(axis)
     K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
     return np.eye(3) + math.sin(a) * K + (1 - math.cos(a)) * K @ K
-
-
-def intrinsics(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
-    return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
 
 
 def make_contours(rng: np.random.Generator, count: int, points: int, K: np.ndarray,
