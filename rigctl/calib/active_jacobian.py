@@ -8,8 +8,8 @@ head motion (thesis eq. 3.3, Lemma 3.1 with the parallax beyond it)::
     m  = R^T ([u, 1] + s) - s          s = rho o (depths) or the held parallax
     xn = m_xy / m_z,  xd = D(xn; k),   pixel = f xd + c
 
-Every step but the motions' rotations ``R(N, a)`` is differentiated in closed form,
-vectorised over all points; the rotations (3x3 per motion) by central differences. One
+Every step is differentiated in closed form, vectorised over all points, given the
+motions' rotations and their derivatives (``active_refine.rotation_derivatives``). One
 call costs about two evaluations of the residuals instead of one per parameter.
 """
 
@@ -20,7 +20,6 @@ import numpy as np
 # the refinement's camera parameters: fx, fy, cx, cy, the mounting rotation (3), the roll
 # axis (2), the parallax (3), then the distortion terms it estimates
 N_BASE = 12
-ROTATION_STEP = 1e-6
 
 
 def distortion_jacobians(xy: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -53,24 +52,6 @@ def _inverse_2x2(J: np.ndarray) -> np.ndarray:
     return inv
 
 
-def rotation_derivatives(rotations_of, x: np.ndarray) -> list[np.ndarray]:
-    """d R_j / d x[4:9] for each motion j (a list of (5, 3, 3)): central differences of
-    ``rotations_of(x)`` (the motions' rotations) in the mounting and roll-axis
-    parameters."""
-    out = None
-    for i, col in enumerate(range(4, 9)):
-        hi, lo = x.copy(), x.copy()
-        hi[col] += ROTATION_STEP
-        lo[col] -= ROTATION_STEP
-        diffs = [(a - b) / (2 * ROTATION_STEP) for a, b in
-                 zip(rotations_of(hi), rotations_of(lo), strict=True)]
-        if out is None:
-            out = [np.empty((5, 3, 3)) for _ in diffs]
-        for j, d in enumerate(diffs):
-            out[j][i] = d
-    return out or []
-
-
 def _mul(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     """Point-wise matrix products of small stacks: (N, i, k) x (N, k, j) -> (N, i, j)."""
     return (A[:, :, :, None] * B[:, None, :, :]).sum(axis=2)
@@ -84,7 +65,7 @@ def pixel_jacobian(x: np.ndarray, n_dist: int, dist_slots: tuple, und: np.ndarra
     point, and with depths ``d pixel / d rho`` of each point's own inverse depth (N, 2).
     ``und``: the points' undistorted normalised coordinates (N, 2); ``rotations``,
     ``d_rotations``, ``counts``: per motion, its rotation, that rotation's derivatives
-    (``rotation_derivatives``) and how many consecutive points it owns; ``s``: the
+    (``active_refine.rotation_derivatives``) and how many consecutive points it owns; ``s``: the
     parallax per point (N, 3) or shared (3,); ``rho``: per point, or None when ``s`` is
     held (then x[9:12] is that ``s``). Rays are rows: a motion maps ``ray`` to
     ``ray @ R - s``."""

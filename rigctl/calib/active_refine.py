@@ -38,7 +38,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
-from rigctl.calib.active_jacobian import N_BASE, distort, pixel_jacobian, rotation_derivatives
+from rigctl.calib.active_jacobian import N_BASE, distort, pixel_jacobian
 from rigctl.calib.synthetic import rot_axis, rot_x, rot_y
 from rigctl.errors import SolveError
 
@@ -56,6 +56,9 @@ UNDISTORT_TOL = 1e-12
 # true -3e-4, cx 1.4 px off); with this prior 0.9 px, within 2 sigma. Random worlds
 # 2000-2011 (p drawn with sigma 5e-4): share of |error/sigma| > 3 went 4 % -> 2 %.
 TANGENTIAL_PRIOR = 5e-4
+# the outlier rejection has settled once a round drops at most this share of the points
+# (a 3-sigma cut on Gaussian residuals always drops ~0.3 %)
+OUTLIERS_SETTLED = 0.005
 
 
 def param_names(n_dist: int) -> list[str]:
@@ -92,8 +95,8 @@ def camera_orientation(angles, N: np.ndarray, a: np.ndarray) -> np.ndarray:
 
 def _unpack(x: np.ndarray, n_dist: int):
     fx, fy, cx, cy = x[:4]
-    N = rot_axis(x[4:7], np.linalg.norm(x[4:7])) if np.linalg.norm(x[4:7]) > 0 else np.eye(3)
-    a = rot_x(x[7]) @ rot_y(x[8]) @ np.array([0.0, 0.0, 1.0])
+    N = _mounting(x[4:7])
+    a = _roll_axis(x[7:9])
     k = np.zeros(5)  # k1, k2, p1, p2, k3 (OpenCV's convention)
     k[list(DIST_SLOTS[n_dist])] = x[N_BASE:N_BASE + n_dist]
     return fx, fy, cx, cy, N, a, x[9:12], k
@@ -166,6 +169,57 @@ def _rotations(motions: list[Motion], N: np.ndarray, a: np.ndarray) -> list[np.n
             for m in motions]
 
 
+def _mounting(rotvec: np.ndarray) -> np.ndarray:
+    angle = np.linalg.norm(rotvec)
+    return rot_axis(rotvec, angle) if angle > 0 else np.eye(3)
+
+
+def _roll_axis(tilts: np.ndarray) -> np.ndarray:
+    return rot_x(tilts[0]) @ rot_y(tilts[1]) @ np.array([0.0, 0.0, 1.0])
+
+
+def rotation_derivatives(motions: list[Motion], x: np.ndarray, step: float = 1e-6
+                         ) -> list[np.ndarray]:
+    """d R / d x[4:9] (the mounting's rotation vector and the roll axis's two tilts) of
+    each motion's rotation ``R = C0^T C1`` (a list of (5, 3, 3)), with
+    ``C = Ry(p) Rx(t) N R_a(r)``: the mounting ``N`` and each capture's roll ``R_a(r)``
+    by central differences (a few 3x3 matrices), the rest by the product rule."""
+    N = _mounting(x[4:7])
+    a = _roll_axis(x[7:9])
+    dN = []
+    for i in range(3):
+        e = np.zeros(3)
+        e[i] = step
+        dN.append((_mounting(x[4:7] + e) - _mounting(x[4:7] - e)) / (2 * step))
+    cache: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+
+    def capture(angles) -> tuple[np.ndarray, np.ndarray]:
+        """C and dC (5, 3, 3) at one capture's head angles."""
+        key = tuple(angles)
+        if key not in cache:
+            p, t, r = angles
+            H = rot_y(p) @ rot_x(t)
+            Ra = rot_axis(a, r)
+            dC = np.empty((5, 3, 3))
+            for i in range(3):
+                dC[i] = H @ dN[i] @ Ra
+            for j in range(2):
+                e = np.zeros(2)
+                e[j] = step
+                dRa = (rot_axis(_roll_axis(x[7:9] + e), r) -
+                       rot_axis(_roll_axis(x[7:9] - e), r)) / (2 * step)
+                dC[3 + j] = H @ N @ dRa
+            cache[key] = (H @ N @ Ra, dC)
+        return cache[key]
+
+    out = []
+    for m in motions:
+        C0, dC0 = capture(m.angles0)
+        C1, dC1 = capture(m.angles1)
+        out.append(np.transpose(dC0, (0, 2, 1)) @ C1 + C0.T @ dC1)
+    return out
+
+
 def predict(motion: Motion, x: np.ndarray, n_dist: int) -> np.ndarray:
     """Where the reference points land in the moved image under parameters ``x``
     (thesis eq. 3.3: back-project through K and the distortion, rotate by the head's
@@ -232,6 +286,9 @@ class RefineResult:
     k3: float = 0.0
     x: np.ndarray | None = field(default=None, repr=False)  # the full parameter vector
     n_dist: int = 0
+    # of the camera parameters (``param_names(n_dist)``): the free ones' covariance, the
+    # held parallax's consider variance on the diagonal
+    covariance: np.ndarray | None = field(default=None, repr=False)
 
     def predictor(self, angles0, angles1):
         """Where reference pixels land after the head moves from ``angles0`` to
@@ -368,10 +425,10 @@ def _larger(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _reject_outliers(r: np.ndarray, motions: list[Motion], masks: list[np.ndarray],
-                     outlier_sigmas: float) -> bool:
-    """Drops points beyond ``outlier_sigmas`` robust sigmas; True if any was dropped."""
+                     outlier_sigmas: float) -> int:
+    """Drops points beyond ``outlier_sigmas`` robust sigmas; returns how many."""
     scale = 1.4826 * np.median(np.abs(r)) + 1e-9
-    changed, offset = False, 0
+    changed, offset = 0, 0
     for m, motion in enumerate(motions):
         count = int(masks[m].sum()) * (1 if motion.curve_mode else 2)
         rm = r[offset:offset + count]
@@ -381,7 +438,7 @@ def _reject_outliers(r: np.ndarray, motions: list[Motion], masks: list[np.ndarra
         if not keep.all():
             idx = np.flatnonzero(masks[m])
             masks[m][idx[~keep]] = False
-            changed = True
+            changed += int((~keep).sum())
     return changed
 
 
@@ -480,8 +537,7 @@ class _Problem:
         rho = self.rho(xv)
         und = self.cache.undistort(self.refs, fx, fy, cx, cy, k)
         rotations = self.cache.rotations(self.motions, N, a)
-        d_rot = rotation_derivatives(
-            lambda xx: _rotations(self.motions, *_unpack(xx, self.n_dist)[4:6]), cam)
+        d_rot = rotation_derivatives(self.motions, cam)
         s = o if rho is None else rho[:, None] * o
         P, d_rho = pixel_jacobian(cam, self.n_dist, DIST_SLOTS[self.n_dist], und, rotations,
                                   d_rot, [len(m.ref_points) for m in self.motions], s, rho)
@@ -551,8 +607,10 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
     for _ in range(outer_iterations):
         assoc = pb.associate(pb.x)
         pb.solve(assoc, "soft_l1", 200)
-        if not _reject_outliers(pb.residuals(pb.x, assoc, cache=False), motions, pb.masks,
-                                outlier_sigmas):
+        kept = sum(int(mk.sum()) for mk in pb.masks)
+        dropped = _reject_outliers(pb.residuals(pb.x, assoc, cache=False), motions, pb.masks,
+                                   outlier_sigmas)
+        if dropped <= OUTLIERS_SETTLED * kept:
             break
     assoc = pb.associate(pb.x)
     final = pb.solve(assoc, "linear", 100)
@@ -573,9 +631,11 @@ def _result(pb: _Problem, final, r: np.ndarray, assoc, parallax_sigma: float) ->
     held = np.flatnonzero(~pb.free)  # the consider parameters (none when depths are known)
     J_s = _jacobian_columns(lambda xv: pb.residuals(xv, assoc, cache=False), x, held, r)
     cov = _consider(J, J_s, cov, A_inv, np.full(len(held), parallax_sigma))
-    sig = np.full(len(x), np.nan)
-    sig[pb.free] = np.sqrt(np.clip(np.diag(cov), 0, None))
-    sig[~pb.free] = parallax_sigma
+    full = np.zeros((len(x), len(x)))  # held inverse depths (measured) stay at zero
+    full[np.ix_(pb.free, pb.free)] = cov
+    held_s = [i for i in held if i < pb.n_cam]  # the parallax, held without depths
+    full[held_s, held_s] = parallax_sigma ** 2
+    sig = np.sqrt(np.clip(np.diag(full), 0, None))
     fx, fy, cx, cy, _, a, parallax, k = _unpack(x, n_dist)
     names = param_names(n_dist) + [f"rho{i}" for i in range(len(x) - pb.n_cam)]
     total = sum(len(m.ref_points) for m in pb.motions)
@@ -585,7 +645,7 @@ def _result(pb: _Problem, final, r: np.ndarray, assoc, parallax_sigma: float) ->
                         a, {name: float(s) for name, s in zip(names, sig, strict=True)},
                         float(np.sqrt(np.mean(r ** 2))), inliers, total - inliers,
                         _rms_by_motion(r, pb.motions, pb.masks), parallax.copy(), float(k[4]),
-                        x[:pb.n_cam].copy(), n_dist)
+                        x[:pb.n_cam].copy(), n_dist, full[:pb.n_cam, :pb.n_cam])
 
 
 def _jacobian_columns(residuals, x: np.ndarray, columns, r0: np.ndarray,

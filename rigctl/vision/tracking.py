@@ -28,9 +28,6 @@ from scipy.ndimage import map_coordinates
 from rigctl.vision.contours import Contour, EdgeMap, subpixel
 
 RADIUS = 2.0
-# the coarse search scores every COARSE_STRIDE-th template point (neighbours along an edge
-# a pixel apart carry nearly the same information); the fine search scores all of them
-COARSE_STRIDE = 3
 
 
 @dataclass
@@ -105,6 +102,37 @@ def _search(dt, base: np.ndarray, xs, ys, cap: float = RADIUS):
     return np.mean(d <= cap, axis=2)
 
 
+def _near(emap: EdgeMap) -> np.ndarray:
+    """1 where an edge is within ``RADIUS`` px, else 0 (float32, for correlation)."""
+    if not hasattr(emap, "_near"):
+        emap._near = (_distance(emap) <= RADIUS).astype(np.float32)
+    return emap._near
+
+
+def _search_shifts(emap: EdgeMap, base: np.ndarray, xs: np.ndarray, ys: np.ndarray):
+    """``_search`` over the integer shifts from xs[0] to xs[-1] and ys[0] to ys[-1], with
+    the template's points rounded to whole pixels: one correlation of the template's
+    raster with the near-edge map (``cv2.matchTemplate``) instead of an interpolation per
+    point and shift. Returns the scores and the shifts they are for."""
+    pts = np.round(base).astype(int)
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    kernel = np.zeros((hi[1] - lo[1] + 1, hi[0] - lo[0] + 1), np.float32)
+    np.add.at(kernel, (pts[:, 1] - lo[1], pts[:, 0] - lo[0]), 1.0)
+    x0, x1 = int(np.floor(xs[0])), int(np.ceil(xs[-1]))
+    y0, y1 = int(np.floor(ys[0])), int(np.ceil(ys[-1]))
+    near = _near(emap)
+    h, w = near.shape
+    top, left = lo[1] + y0, lo[0] + x0
+    bottom, right = hi[1] + y1 + 1, hi[0] + x1 + 1
+    region = np.zeros((bottom - top, right - left), np.float32)  # zero beyond the image
+    sy0, sx0 = max(top, 0), max(left, 0)
+    sy1, sx1 = min(bottom, h), min(right, w)
+    if sy1 > sy0 and sx1 > sx0:
+        region[sy0 - top:sy1 - top, sx0 - left:sx1 - left] = near[sy0:sy1, sx0:sx1]
+    scores = cv2.matchTemplate(region, kernel, cv2.TM_CCORR) / len(pts)
+    return scores, np.arange(x0, x1 + 1, dtype=float), np.arange(y0, y1 + 1, dtype=float)
+
+
 def _best_and_second(scores: np.ndarray, xs, ys, exclusion: float):
     i, j = np.unravel_index(np.argmax(scores), scores.shape)
     best = scores[i, j]
@@ -114,25 +142,32 @@ def _best_and_second(scores: np.ndarray, xs, ys, exclusion: float):
     return (float(xs[j]), float(ys[i])), float(best), second
 
 
+def track_in_range(template: np.ndarray, moved: EdgeMap, x_range, y_range,
+                   min_coverage: float = 0.75, ambiguity: float = 0.85) -> Match:
+    """The shift of ``template`` (points, px) within ``x_range`` x ``y_range`` (min, max)
+    with the best chamfer score: every whole-pixel shift, then half a pixel around the
+    best; the match keeps the moved edge points under the shifted template."""
+    dt = _distance(moved)
+    scores, xs, ys = _search_shifts(moved, template, np.asarray(x_range, float),
+                                    np.asarray(y_range, float))
+    offset, best, second = _best_and_second(scores, xs, ys, exclusion=6.0)
+    fine = np.arange(-1, 1.01, 0.5)
+    fx, fy = offset[0] + fine, offset[1] + fine
+    grid = _search(dt, template, fx, fy)
+    i, j = np.unravel_index(np.argmax(grid), grid.shape)
+    offset = (float(fx[j]), float(fy[i]))
+    return _finish(moved, template + offset, offset, min_coverage, max(best, grid.max()),
+                   second, ambiguity)
+
+
 def track_by_shift(contour: Contour, moved: EdgeMap, direction: str, max_shift: float,
                    cross: float = 4.0, min_coverage: float = 0.75,
                    ambiguity: float = 0.85) -> Match:
     """Thesis tracking: search a shift along ``direction`` ('x' for pan, 'y' for tilt) up
     to ``max_shift`` pixels (either sign), with a little slack across it."""
-    dt = _distance(moved)
-    along = np.arange(-max_shift, max_shift + 1, 2.0)
-    across = np.arange(-cross, cross + 1, 1.0)
-    xs, ys = (along, across) if direction == "x" else (across, along)
-    scores = _search(dt, contour.points[::COARSE_STRIDE], xs, ys)
-    offset, best, second = _best_and_second(scores, xs, ys, exclusion=6.0)
-    # refine to half a pixel around the peak
-    fx = np.arange(offset[0] - 1, offset[0] + 1.01, 0.5)
-    fy = np.arange(offset[1] - 1, offset[1] + 1.01, 0.5)
-    fine = _search(dt, contour.points, fx, fy)
-    i, j = np.unravel_index(np.argmax(fine), fine.shape)
-    offset = (float(fx[j]), float(fy[i]))
-    return _finish(moved, contour.points + offset, offset, min_coverage, best, second,
-                   ambiguity)
+    along, across = (-max_shift, max_shift), (-cross, cross)
+    x_range, y_range = (along, across) if direction == "x" else (across, along)
+    return track_in_range(contour.points, moved, x_range, y_range, min_coverage, ambiguity)
 
 
 def track_by_prediction(contour: Contour, moved: EdgeMap,
@@ -140,15 +175,5 @@ def track_by_prediction(contour: Contour, moved: EdgeMap,
                         min_coverage: float = 0.75, ambiguity: float = 0.85) -> Match:
     """Predict the contour's points in the moved image, then search +-``window`` pixels
     around the prediction for the best chamfer score."""
-    predicted = predict(contour.points)
-    dt = _distance(moved)
-    coarse = np.arange(-window, window + 1, 2.0)
-    scores = _search(dt, predicted[::COARSE_STRIDE], coarse, coarse)
-    offset, best, second = _best_and_second(scores, coarse, coarse, exclusion=6.0)
-    fine = np.arange(-2, 2.01, 0.5)
-    fx, fy = offset[0] + fine, offset[1] + fine
-    grid = _search(dt, predicted, fx, fy)
-    i, j = np.unravel_index(np.argmax(grid), grid.shape)
-    offset = (float(fx[j]), float(fy[i]))
-    return _finish(moved, predicted + offset, offset, min_coverage, max(best, grid.max()),
-                   second, ambiguity)
+    return track_in_range(predict(contour.points), moved, (-window, window),
+                          (-window, window), min_coverage, ambiguity)
