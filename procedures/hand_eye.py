@@ -15,14 +15,9 @@ from rigctl.errors import SolveError
 from rigctl.geometry.kinematics import nominal_ur
 
 from .base import Params, Procedure, SolveContext
-from .planning import view_steps
-from .robot_common import (
-    board_observations,
-    camera_model,
-    controller_model,
-    intrinsics_from,
-    planning_K,
-)
+from .intrinsics import camera_model, intrinsics_from
+from .planning import planning_K, view_steps
+from .robot_common import board_observations, controller_model
 
 
 class HandEyeParams(Params):

@@ -1,8 +1,10 @@
-"""Pose planning with the nominal model: views of the target that keep it in sight."""
+"""Pose planning with the nominal model: views of the target that keep it in sight, the
+single-joint sweeps of robot-kinematics, and the intrinsics planning assumes."""
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
@@ -10,9 +12,13 @@ import numpy as np
 from rigctl.calib import pose_selection
 from rigctl.calib.board import board_points
 from rigctl.config import RigConfig
-from rigctl.errors import SolveError
+from rigctl.errors import ConfigError, SolveError
+from rigctl.geometry.camera import camera_matrix
 from rigctl.geometry.kinematics import KinematicModel, nominal_ur
 from rigctl.geometry.transforms import inv_T, look_at, make_T, xyz_rpy_to_T
+
+from .base import CaptureStep, MoveArmJoints, MoveHead, Note, Settle
+from .intrinsics import camera_model, intrinsics_from
 
 # a coarse guard against driving the arm into the table the target lies on: the elbow,
 # wrists, flange and camera stay this far on the camera's side of the target plane
@@ -255,8 +261,6 @@ def view_steps(config: RigConfig, count: int, distance_m: float, max_tilt_deg: f
     is a head), each settled and captured, then back to the arm's home; skipped views are
     reported as notes. With intrinsics ``K`` every view keeps the whole board in sight
     (``visible_views``), else views are only checked for reach (``reachable_views``)."""
-    from .base import CaptureStep, MoveArmJoints, MoveHead, Note, Settle
-
     steps: list = []
     if config.devices.head is not None:
         steps.append(MoveHead(0.0, 0.0, 0.0, "head home"))
@@ -340,3 +344,99 @@ def board_visible(config: RigConfig, model: KinematicModel, q, K: np.ndarray,
     w, h = config.devices.camera.width, config.devices.camera.height
     return bool(np.all((px[:, 0] > margin * w) & (px[:, 0] < (1 - margin) * w) &
                        (px[:, 1] > margin * h) & (px[:, 1] < (1 - margin) * h)))
+
+
+def planning_K(config: RigConfig, given: dict | None) -> np.ndarray:
+    """Intrinsics for planning: given, else the latest active-camera result, else a
+    60-degree field of view guess."""
+    try:
+        return camera_model(intrinsics_from(config, given, allow_settings_change=True))[0]
+    except ConfigError:
+        w, h = config.devices.camera.width, config.devices.camera.height
+        f = w / (2 * math.tan(math.radians(30)))
+        return camera_matrix(f, f, w / 2, h / 2)
+
+
+def visible_range(config: RigConfig, model: KinematicModel, q_base, joint: int,
+                  K: np.ndarray, max_deg: float = 60.0, resolution_deg: float = 1.0
+                  ) -> tuple[float, float]:
+    """The interval of offsets (deg, lo <= 0 <= hi) of one joint from ``q_base`` over which
+    the nominal camera keeps the whole board in view, the joint stays inside its soft
+    limits and the arm clear of the target plane (``clearance_m``), scanned outwards from 0
+    in ``resolution_deg`` steps up to ``max_deg``."""
+    limits = config.devices.arm.joint_limits_rad()[joint]
+
+    def allowed(q) -> bool:
+        return (limits[0] <= q[joint] <= limits[1] and board_visible(config, model, q, K)
+                and clearance_m(config, model, q) >= MIN_CLEARANCE_M)
+
+    if not allowed(np.asarray(q_base, float)):
+        return 0.0, 0.0
+    ends = []
+    for sign in (-1.0, 1.0):
+        reached = 0.0
+        while reached + resolution_deg <= max_deg + 1e-9:
+            q = np.array(q_base, float)
+            q[joint] += math.radians(sign * (reached + resolution_deg))
+            if not allowed(q):
+                break
+            reached += resolution_deg
+        ends.append(sign * reached)
+    return ends[0], ends[1]
+
+
+def spread_offsets(lo: float, hi: float, steps: int, min_deg: float = 2.0) -> list[float]:
+    """``steps`` offsets (deg) spread over [lo, hi], shared between the two sides in
+    proportion to their length (a side shorter than ``min_deg`` gets none), evenly spaced
+    out to each end, rounded to 0.5 deg; offsets closer to 0 than ``min_deg`` are dropped."""
+    sides = [side for side in (hi, lo) if abs(side) >= min_deg]
+    if not sides:
+        return []
+    total = sum(abs(side) for side in sides)
+    counts = [max(1, round(steps * abs(side) / total)) for side in sides]
+    while sum(counts) > steps and max(counts) > 1:
+        counts[counts.index(max(counts))] -= 1
+    offsets = []
+    for side, count in zip(sides, counts, strict=True):
+        for k in range(1, count + 1):
+            off = round(2 * side * k / count) / 2
+            if abs(off) >= min_deg and off not in offsets:
+                offsets.append(off)
+    return offsets
+
+
+@dataclass
+class SweepPlan:
+    """One joint's sweep: its base configuration, the offsets (deg) and the range (deg) in
+    which the board stays in view."""
+
+    joint: int
+    q_base: np.ndarray
+    offsets: list[float]
+    visible: tuple[float, float]
+
+
+def plan_sweeps(config: RigConfig, bases: list[np.ndarray], K: np.ndarray, steps: int,
+                max_deg: float = 60.0) -> tuple[dict[int, SweepPlan], list[str]]:
+    """Single-joint sweeps, last joint first. Each joint starts from the configuration of
+    ``bases`` in which the board stays in view over the widest range of that joint (the
+    first wins ties), and takes ``steps`` offsets spread over that range (up to
+    +-``max_deg``) out to both ends: the axis is located to sigma / (angle swept), so the
+    widest sweep the view allows is the most informative. Link-by-link and the axis lines
+    need only joint j to move within a sweep, not a base common to all sweeps."""
+    model = nominal_ur(config.devices.arm.model)
+    plan, notes = {}, []
+    for j in range(5, -1, -1):
+        ranges = [visible_range(config, model, q, j, K, max_deg) for q in bases]
+        best = max(range(len(bases)), key=lambda k: ranges[k][1] - ranges[k][0])
+        lo, hi = ranges[best]
+        offsets = spread_offsets(lo, hi, steps)
+        if hi - lo < 5.0 or len(offsets) < 2:
+            notes.append(f"joint {j + 1}: the board stays in view only from {lo:+g} to "
+                         f"{hi:+g} deg; sweep skipped")
+            continue
+        plan[j] = SweepPlan(j, np.asarray(bases[best], float), offsets, (lo, hi))
+        notes.append(f"joint {j + 1}: from base {best + 1} of {len(bases)}, board in view "
+                     f"from {lo:+g} to {hi:+g} deg; sweep "
+                     f"{', '.join(f'{o:+g}' for o in offsets)} deg")
+    return plan, notes

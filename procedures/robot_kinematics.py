@@ -41,17 +41,16 @@ from .base import (
     Settle,
     SolveContext,
 )
-from .planning import CLOSER, closest_plan, informative_views, plan_target_views
-from .robot_common import (
-    board_observations,
-    camera_model,
-    controller_model,
-    default_prior_sigma,
-    export_model,
-    intrinsics_from,
+from .intrinsics import camera_model, default_prior_sigma, intrinsics_from
+from .planning import (
+    CLOSER,
+    closest_plan,
+    informative_views,
     plan_sweeps,
+    plan_target_views,
     planning_K,
 )
+from .robot_common import board_observations, controller_model, export_model
 
 # A refined model that leaves more than this on the board corners (their noise is a few
 # tenths of a pixel) explains the views badly: the run fails rather than export it

@@ -29,8 +29,9 @@ from rigctl.geometry.transforms import R_to_rotvec, inv_T
 from rigctl.records import RecordIndex, RunDirectory
 
 from .base import Params, Procedure, SolveContext
-from .planning import view_steps
-from .robot_common import board_observations, camera_model, intrinsics_from, planning_K
+from .intrinsics import camera_model, intrinsics_from
+from .planning import planning_K, view_steps
+from .robot_common import board_observations
 
 
 class ValidateArmParams(Params):

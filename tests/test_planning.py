@@ -11,8 +11,14 @@ import yaml
 
 from mocks.sim import rig_text
 from mocks.world import WORLDS, load_world
-from procedures.planning import MIN_CLEARANCE_M, board_visible, clearance_m, plan_target_views
-from procedures.robot_common import plan_sweeps, spread_offsets
+from procedures.planning import (
+    MIN_CLEARANCE_M,
+    board_visible,
+    clearance_m,
+    plan_sweeps,
+    plan_target_views,
+    spread_offsets,
+)
 from rigctl.config import load_rig
 from rigctl.geometry.kinematics import nominal_ur
 
