@@ -3,9 +3,12 @@
 Facts this driver is built around (see ``shared/reference/dynamixel-protocol.md``):
 
 - the SDK's ``is_using`` flag is not a lock: every transaction here holds ``self._lock``;
-- sync reads drop the error byte, so an Alert (hardware error) is only visible by reading
-  Hardware Error Status (70); the driver does so whenever a servo stops short of its goal,
-  at the end of every move, and on any reply whose error byte has the Alert bit;
+- the SDK's group reads drop each servo's error byte, so an Alert (hardware error) is
+  found by reading Hardware Error Status (70); the driver does so whenever a servo stops
+  short of its goal, at the end of every move, and on any unicast reply whose error byte
+  has the Alert bit. The driver receives group replies itself (``_sync_rx``,
+  ``_fast_sync_rx``) so that it knows which servo's reply failed and counts every
+  servo's error bytes (``bus_stats``);
 - a vanished port raises ``termios.error``/``OSError`` (EIO) and leaves the port busy: the
   driver closes it, reopens the same path and retries once;
 - CRC errors and timeouts are retried ``retries`` times with a doubling pause
@@ -24,6 +27,7 @@ import math
 import termios
 import threading
 import time
+from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import dynamixel_sdk as sdk
@@ -86,6 +90,20 @@ def _signed32(value: int) -> int:
     return value - (1 << 32) if value & 0x80000000 else value
 
 
+@dataclass
+class _GroupReply:
+    """What a sync read brought back: each servo's data and status error byte, and the
+    servo whose reply was missing or corrupt (None: none, or not a servo's fault)."""
+
+    comm: int
+    data: dict[int, bytes] = field(default_factory=dict)
+    errors: dict[int, int] = field(default_factory=dict)
+    failed: int | None = None
+
+
+FAST_BLOCK_START = 8  # a fast sync read reply: header, ID, length, 0x55, then the blocks
+
+
 class DynamixelHead(Head):
     """Pan (id ``ids.pan``), tilt and roll servos on one Protocol 2.0 bus."""
 
@@ -103,7 +121,12 @@ class DynamixelHead(Head):
         self.info: dict[int, dict[str, Any]] = {}
         self.eeprom_writes: list[str] = []
         self.retries_used = 0
-        # per servo id (or "group" for sync reads and writes): transactions, retries, errors
+        # The bus record (versions.json, doctor). Per servo id: transactions addressed to
+        # it (unicast, and every sync read or write it is part of), retries and errors
+        # its reply caused (a sync read whose reply from servo 2 is missing counts against
+        # servo 2), status packets it sent with an error byte and, among those, with the
+        # Alert bit (hardware error). "group": the sync packets on the wire, each retry and
+        # failure of one whatever its cause. "port": the port lost (EIO) and reopened.
         self.bus_stats: dict[str, dict[str, int]] = {}
         self._stop_event = threading.Event()
         self._motion: threading.Thread | None = None
@@ -145,21 +168,66 @@ class DynamixelHead(Head):
         self.port = None
         self._open_port()
 
-    def _call(self, what: str, dxl_id: int | None, fn, *args):
+    def _stats(self, key: int | str) -> dict[str, int]:
+        if key == "port":
+            return self.bus_stats.setdefault("port", {"lost": 0, "reopened": 0})
+        if key == "group":
+            return self.bus_stats.setdefault(
+                "group", {"transactions": 0, "retries": 0, "errors": 0})
+        return self.bus_stats.setdefault(str(key), {
+            "transactions": 0, "retries": 0, "errors": 0, "error_bytes": 0, "alerts": 0})
+
+    def _count_status(self, dxl_id: int, error: int) -> None:
+        """A status packet from ``dxl_id`` arrived with error byte ``error``."""
+        if error:
+            stats = self._stats(dxl_id)
+            stats["error_bytes"] += 1
+            if error & 0x80:
+                stats["alerts"] += 1
+
+    def _count_try(self, target: int | tuple[int, ...], result) -> int | None:
+        """Count the status packets of one try; the servo a failed try is held against."""
+        if isinstance(target, tuple):
+            reply = result[0]  # _GroupReply of a sync read, None for a sync write
+            if reply is None:
+                return None
+            for dxl_id, error in reply.errors.items():
+                self._count_status(dxl_id, error)
+            return reply.failed
+        if result[1] == sdk.COMM_SUCCESS:
+            self._count_status(target, result[2])
+        return target
+
+    def _count_failed(self, key: str, group: bool, culprit: int | None) -> None:
+        """A try repeated (``key`` "retries") or a transaction failed ("errors")."""
+        if group:
+            self._stats("group")[key] += 1
+        if culprit is not None:
+            self._stats(culprit)[key] += 1
+
+    def _call(self, what: str, target: int | tuple[int, ...], fn, *args):
         """Run one SDK transaction ``fn(port, *args) -> (value, comm, error)`` under the lock,
-        retrying timeouts and corrupt replies; reopen the port once on EIO."""
+        retrying timeouts and corrupt replies; reopen the port once on EIO.
+
+        ``target``: the servo addressed, or a tuple of the servos a group instruction
+        addresses, whose ``fn`` returns a ``_GroupReply`` (sync read) or None (sync
+        write) as its value. Every servo addressed counts the transaction; a failed try
+        counts against the servo whose reply failed (for a sync write, none: it has no
+        reply; for a lost port, none: "port" counts it)."""
+        group = isinstance(target, tuple)
         attempts = self.cfg.retries + 1
         last = ""
         reopened = False
+        culprit: int | None = None
         t0 = time.monotonic()
-        stats = self.bus_stats.setdefault(
-            "group" if dxl_id is None else str(dxl_id),
-            {"transactions": 0, "retries": 0, "errors": 0})
-        stats["transactions"] += 1
         with self._lock:
+            for dxl_id in (target if group else (target,)):
+                self._stats(dxl_id)["transactions"] += 1
+            if group:
+                self._stats("group")["transactions"] += 1
             for attempt in range(attempts):
                 if attempt:
-                    stats["retries"] += 1
+                    self._count_failed("retries", group, culprit)
                 if attempt and self.cfg.retry_backoff_s:
                     time.sleep(self.cfg.retry_backoff_s * 2 ** (attempt - 1))
                 if self.port is None:
@@ -167,11 +235,16 @@ class DynamixelHead(Head):
                 try:
                     result = fn(self.port, *args)
                 except (termios.error, OSError) as exc:
+                    self._stats("port")["lost"] += 1
                     if reopened:
+                        self._count_failed("errors", group, None)
                         raise DeviceError(f"head: {self.cfg.port} lost: {exc}") from None
                     reopened = True
                     self._reopen()
+                    self._stats("port")["reopened"] += 1
+                    culprit = None
                     continue
+                culprit = self._count_try(target, result)
                 comm = result[1]
                 if comm == sdk.COMM_SUCCESS:
                     if attempt:
@@ -181,11 +254,12 @@ class DynamixelHead(Head):
                 if comm not in RETRYABLE:
                     break
                 log.info("head: %s: %s (try %d/%d)", what, last, attempt + 1, attempts)
-        stats["errors"] += 1
-        target = self._name(dxl_id) if dxl_id is not None else f"head bus {self.cfg.port}"
+            self._count_failed("errors", group, culprit)
+        named = target if not group else culprit
+        where = self._name(named) if named is not None else f"head bus {self.cfg.port}"
         spent = time.monotonic() - t0
         note = load_note("devices.head.packet_timeout_ms, retries and retry_backoff_s")
-        raise DeviceError(f"{target}: {what} failed after {attempts} tries in {spent:.2f} s: "
+        raise DeviceError(f"{where}: {what} failed after {attempts} tries in {spent:.2f} s: "
                           f"{last} ({note})")
 
     def _check_error(self, dxl_id: int, error: int, what: str) -> None:
@@ -221,24 +295,75 @@ class DynamixelHead(Head):
                 group.addParam(dxl_id, (value & 0xFFFFFFFF).to_bytes(size, "little"))
             return None, group.txPacket(), 0
 
-        self._call(what, None, send)
+        self._call(what, tuple(values), send)
 
     def _group_read(self, address: int, size: int, what: str, fast: bool = True
                     ) -> dict[int, bytes]:
+        ids = tuple(self.ids.values())
+
         def exchange(port):
             group = sdk.GroupSyncRead(port, self.packet, address, size)
-            for dxl_id in self.ids.values():
+            for dxl_id in ids:
                 group.addParam(dxl_id)
-            return group, (group.fastSyncRead() if fast else group.txRxPacket()), 0
+            comm = group.fastSyncReadTxPacket() if fast else group.txPacket()
+            if comm != sdk.COMM_SUCCESS:
+                return _GroupReply(comm), comm, 0  # not sent: no servo's doing
+            reply = (self._fast_sync_rx(port, ids, size) if fast
+                     else self._sync_rx(port, ids, size))
+            return reply, reply.comm, 0
 
         with self._lock:
-            group, _, _ = self._call(what, None, exchange)
-            out = {}
-            for dxl_id in self.ids.values():
-                if not group.isAvailable(dxl_id, address, size):
+            reply, _, _ = self._call(what, ids, exchange)
+            for dxl_id in ids:
+                if len(reply.data.get(dxl_id, b"")) < size:
                     raise ProtocolError(f"{self._name(dxl_id)}: {what}: no data in the reply")
-                out[dxl_id] = bytes(group.data_dict[dxl_id][:size])
-            return out
+            return reply.data
+
+    def _sync_rx(self, port, ids: tuple[int, ...], size: int) -> _GroupReply:
+        """The replies to a sync read: one status packet per servo, in the order asked
+        (``GroupSyncRead.rxPacket``, keeping each error byte and the servo that failed)."""
+        reply = _GroupReply(sdk.COMM_SUCCESS)
+        for dxl_id in ids:
+            data, comm, error = self.packet.readRx(port, dxl_id, size)
+            if comm != sdk.COMM_SUCCESS:
+                reply.comm, reply.failed = comm, dxl_id
+                return reply
+            reply.data[dxl_id], reply.errors[dxl_id] = bytes(data), error
+        return reply
+
+    def _fast_sync_rx(self, port, ids: tuple[int, ...], size: int) -> _GroupReply:
+        """The reply to a fast sync read: one packet of per-servo blocks (error byte, ID,
+        data, CRC) in the order asked (``GroupSyncRead.fastSyncReadRxPacket``, keeping
+        each error byte). When the packet is missing or corrupt, the servos whose blocks
+        arrived whole (each block's CRC is the running CRC of the packet so far, see the
+        protocol reference) are cleared and the first one without such a block is the one
+        that failed; with nothing received, the first servo asked (its block opens the
+        packet)."""
+        raw, comm = self.packet.rxPacket(port, True)
+        raw = list(raw or [])
+        reply = _GroupReply(comm)
+        width = size + 4
+        complete = comm == sdk.COMM_SUCCESS
+        if len(raw) > FAST_BLOCK_START and raw[:3] == [0xFF, 0xFF, 0xFD] \
+                and raw[4] == sdk.BROADCAST_ID:
+            for k in range(len(ids)):
+                start = FAST_BLOCK_START + k * width
+                end = start + 2 + size  # the block's CRC follows
+                if len(raw) < end + 2:
+                    break
+                if not complete and (self.packet.updateCRC(0, raw, end)
+                                     != raw[end] | raw[end + 1] << 8):
+                    break
+                dxl_id = raw[start + 1]
+                if dxl_id not in ids or dxl_id in reply.data:
+                    break
+                reply.data[dxl_id], reply.errors[dxl_id] = bytes(raw[start + 2:end]), raw[start]
+        missing = [dxl_id for dxl_id in ids if dxl_id not in reply.data]
+        if missing:
+            reply.failed = missing[0]
+            if complete:  # the packet's CRC checked but its blocks are not the servos'
+                reply.comm = sdk.COMM_RX_CORRUPT
+        return reply
 
     # -- life cycle -----------------------------------------------------------------
 

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import time
+from pathlib import Path
 
 import dynamixel_sdk as sdk
 import pytest
@@ -199,8 +201,14 @@ def test_corrupted_and_dropped_replies_are_retried(bus):
         assert abs(head.read_angles().pan - math.radians(5)) < 0.002
         assert head.retries_used >= 2
         stats = head.describe()["bus_stats"]
-        assert sum(v["retries"] for v in stats.values()) == head.retries_used
-        assert all(v["errors"] == 0 for v in stats.values())
+        servos = {k: v for k, v in stats.items() if k.isdigit()}
+        assert sorted(servos) == ["1", "2", "3"]
+        # both faults hit the move's first fast sync read: the corrupt packet fails its
+        # last block (servo 3), the dropped one has no block at all (servo 1 opens it)
+        assert servos["3"]["retries"] >= 1 and servos["1"]["retries"] >= 1
+        assert sum(v["retries"] for v in servos.values()) == head.retries_used
+        assert stats["group"]["retries"] == head.retries_used
+        assert all(v["errors"] == 0 for v in servos.values()) and stats["group"]["errors"] == 0
 
 
 def test_persistent_silence_is_counted_against_the_servo(bus):
@@ -258,13 +266,41 @@ def test_overload_mid_move_ends_in_device_error_with_torque_off(bus):
 
 def test_eeprom_write_with_torque_on_surfaces_access_error(bus):
     head = DynamixelHead(head_config(bus.ready["link"]))
-    with head, pytest.raises(ProtocolError, match=r"servo 3 \(roll\).*error 7"):
-        head._write(3, 9, 1, 5, "write return delay time")
+    with head:
+        with pytest.raises(ProtocolError, match=r"servo 3 \(roll\).*error 7"):
+            head._write(3, 9, 1, 5, "write return delay time")
+        # the status packet's error byte is counted against the servo that sent it
+        stats = head.describe()["bus_stats"]
+        assert (stats["3"]["error_bytes"], stats["3"]["alerts"]) == (1, 0)
+        assert stats["1"]["error_bytes"] == stats["2"]["error_bytes"] == 0
+
+
+def test_a_failed_sync_read_counts_against_the_servo_that_did_not_answer(bus):
+    """A sync read's replies come one per servo in the order asked; servo 2, asked first
+    here (pan), stays silent on every try (the stand-in drops all nine replies of three
+    tries): its retries and its failure, not the others'."""
+    head = DynamixelHead(head_config(bus.ready["link"], retries=2,
+                                     ids="{pan: 2, tilt: 1, roll: 3}"))
+    with head:
+        before = head.describe()["bus_stats"]
+        control(bus.ready["control"], {"cmd": "drop_next", "count": 9})
+        with pytest.raises(DeviceError, match=r"head servo 2 \(pan\).*sync read hardware "
+                                              r"error status failed after 3 tries"):
+            head.hardware_errors()
+        after = head.describe()["bus_stats"]
+        change = {k: {n: after[k][n] - before[k][n] for n in ("transactions", "retries",
+                                                              "errors")}
+                  for k in ("1", "2", "3", "group")}
+        one = {"transactions": 1, "retries": 0, "errors": 0}
+        assert change == {"1": one, "3": one, "2": {"transactions": 1, "retries": 2,
+                                                    "errors": 1},
+                          "group": {"transactions": 1, "retries": 2, "errors": 1}}
+        assert head.hardware_errors() == {}  # the bus is quiet again
 
 
 def test_driver_reconnects_after_port_vanishes(bus, tmp_path):
     link = bus.ready["link"]
-    head = DynamixelHead(head_config(link))
+    head = DynamixelHead(head_config(link, packet_timeout_ms=500))  # no timeouts of load
     head.open()
     try:
         bus.stop()
@@ -272,6 +308,11 @@ def test_driver_reconnects_after_port_vanishes(bus, tmp_path):
         try:
             angles = head.read_angles()  # EIO on the old pty, reopened on the new one
             assert angles.pan == pytest.approx(0.0, abs=1e-9)
+            stats = head.describe()["bus_stats"]
+            assert stats["port"] == {"lost": 1, "reopened": 1}
+            # the retry was the port's doing, not a servo's
+            assert stats["group"]["retries"] == 1
+            assert all(stats[k]["retries"] == stats[k]["errors"] == 0 for k in "123")
         finally:
             head.port.closePort()
             head.port = None
@@ -300,3 +341,52 @@ def test_head_sweep_procedure_runs_through_runner(bus, tmp_path):
     servos = control(bus.ready["control"], {"cmd": "dump"})["servos"]
     assert all(s["goal_position"] == 2048 for s in servos)  # parked home
     assert os.path.exists(bus.ready["link"])
+
+
+def test_head_sweep_records_bus_stats_per_servo(bus, tmp_path):
+    """Faults placed on given transactions of a head-sweep through the runner land on
+    the servo that caused them in the run's versions.json. Servo 2 is addressed last
+    (ids pan 1, tilt 3, roll 2) and has an overload when the run starts: the driver reads
+    the Alert and reboots it on open. Before the first capture's fast sync read the
+    stand-in corrupts the next reply (the CRC of its last block, servo 2's); before the
+    second it drops the next reply (the whole packet: servo 1, whose block opens it)."""
+    rig = tmp_path / "rig.yaml"
+    head = {"port": bus.ready["link"], "speed_cap_dps": 180, "accel_cap_dps2": 1000,
+            "ids": {"pan": 1, "tilt": 3, "roll": 2},
+            **STAND_IN_TIMING["head"], "packet_timeout_ms": 500}  # no timeouts of load
+    rig.write_text(yaml.safe_dump({"name": "dxl-rig", "records": {"directory": "rec"},
+                                   "devices": {"head": head}}))
+    sock = bus.ready["control"]
+    control(sock, {"cmd": "hw_error", "id": 2, "error": "overload"})
+    faults = ["corrupt_next", "drop_next"]
+    placed = []
+
+    def on_event(event):
+        # a capture step's first transaction is read_angles' fast sync read; the move
+        # before it has finished, so nothing else is on the bus
+        if event["type"] == "step" and event["step"].startswith("capture") and faults:
+            placed.append(faults.pop(0))
+            control(sock, {"cmd": placed[-1]})
+
+    outcome = Runner(load_rig(rig), show_progress=False, on_event=on_event).run(
+        "head-sweep", {"pan_deg": [-6, 6], "tilt_deg": [0], "settle_s": 0.0})
+    assert outcome.status == "succeeded", outcome.reason
+    assert placed == ["corrupt_next", "drop_next"]
+    stats = json.loads((Path(outcome.run_dir) / "versions.json").read_text()
+                       )["devices"]["head"]["bus_stats"]
+    assert sorted(stats) == ["1", "2", "3", "group"]  # no "port": it was never lost
+    s1, s2, s3, group = stats["1"], stats["2"], stats["3"], stats["group"]
+    # retries against the servo whose reply failed, none of them a failure
+    assert (s1["retries"], s2["retries"], s3["retries"], group["retries"]) == (1, 1, 0, 2)
+    assert s1["errors"] == s2["errors"] == s3["errors"] == group["errors"] == 0
+    # servo 2's Alert on ping, firmware read, hardware error read and reboot; then none
+    assert (s2["error_bytes"], s2["alerts"]) == (4, 4)
+    assert (s1["error_bytes"], s1["alerts"], s3["error_bytes"], s3["alerts"]) == (0, 0, 0, 0)
+    # every sync packet counts for each servo it addressed; the unicast ones are the same
+    # for all three, but for servo 2's two (hardware error read, reboot)
+    assert group["transactions"] >= 10
+    assert s1["transactions"] - group["transactions"] == s3["transactions"] - group[
+        "transactions"] > 0
+    assert s2["transactions"] == s1["transactions"] + 2
+    servos = {s["id"]: s for s in control(sock, {"cmd": "dump"})["servos"]}
+    assert servos[2]["hardware_error_status"] == 0  # rebooted
