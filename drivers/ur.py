@@ -116,8 +116,7 @@ class URArm(Arm):
             return
         try:
             if self.cfg.park.policy == "home" and self._alive():
-                home = [math.radians(v) for v in (self.cfg.park.joints_deg or self.cfg.home_deg)]
-                self.move_joints(home).wait(self.cfg.move_timeout_s)
+                self.move_joints(self.cfg.park_rad()).wait(self.cfg.move_timeout_s)
         finally:
             t0 = time.perf_counter()
             alive = self._alive()

@@ -29,7 +29,7 @@ class ArmSweep(Procedure):
     optional_devices = ("camera",)
 
     def plan(self, params: ArmSweepParams, config) -> list:
-        home = tuple(math.radians(v) for v in config.devices.arm.home_deg)
+        home = config.devices.arm.home_rad()
         steps: list = [MoveArmJoints(home, "home")]
         for joint in params.joints:
             if not 1 <= joint <= 6:

@@ -44,7 +44,7 @@ class CaptureSurvey(Procedure):
     def plan(self, params: CaptureSurveyParams, config) -> list:
         steps: list = []
         arm = config.devices.arm
-        home = tuple(math.radians(v) for v in arm.home_deg) if arm else None
+        home = arm.home_rad() if arm else None
         if home is not None:
             steps.append(MoveArmJoints(home, "arm home"))
         for tilt in params.tilt_deg:

@@ -10,7 +10,7 @@ from typing import Any
 from pydantic import Field
 
 from rigctl.calib import handeye
-from rigctl.calib.board import board_points
+from rigctl.calib.board import target_points
 from rigctl.errors import SolveError
 from rigctl.geometry.kinematics import nominal_ur
 
@@ -62,7 +62,7 @@ class HandEye(Procedure):
         F = [arm.fk(o["q"]) for o in found]
         C = [o["C"] for o in found]
         tg = ctx.config.target
-        obj = board_points(tg.rows, tg.cols, tg.square_mm / 1000.0)
+        obj = target_points(tg)
         closed = handeye.closed_form(F, C)
         refined = handeye.refine_pixels(F, [o["corners"] for o in found], obj, K, dist,
                                         handeye.best_closed_form(closed), C=C)

@@ -10,7 +10,7 @@ from functools import lru_cache
 import numpy as np
 
 from rigctl.calib import pose_selection
-from rigctl.calib.board import board_points
+from rigctl.calib.board import target_points
 from rigctl.config import RigConfig
 from rigctl.errors import ConfigError, SolveError
 from rigctl.geometry.camera import camera_matrix
@@ -273,8 +273,7 @@ def view_steps(config: RigConfig, count: int, distance_m: float, max_tilt_deg: f
         name = f"{label} {k + 1}"
         steps += [MoveArmJoints(tuple(float(v) for v in q), name), Settle(settle_s),
                   CaptureStep(name, extra={"kind": kind})]
-    steps.append(MoveArmJoints(tuple(math.radians(v) for v in config.devices.arm.home_deg),
-                               "arm home"))
+    steps.append(MoveArmJoints(config.devices.arm.home_rad(), "arm home"))
     return steps
 
 
@@ -306,7 +305,7 @@ def informative_views(config: RigConfig, params, K: np.ndarray, planned_q: list,
         poses, more = plan_target_views(config, n, base, params.max_tilt_deg, seed)
         return poses, notes + more
     tg = config.target
-    obj = board_points(tg.rows, tg.cols, tg.square_mm / 1000.0)
+    obj = target_points(tg)
 
     def jacobians(qs):
         return pose_selection.view_jacobians(model, X, W, qs, obj=obj, K=K)
@@ -335,7 +334,7 @@ def board_visible(config: RigConfig, model: KinematicModel, q, K: np.ndarray,
     tg = config.target
     T_base_target, _ = target_centre(config)
     T_cam_target = inv_T(model.fk(q) @ nominal_flange_cam(config)) @ T_base_target
-    pts = board_points(tg.rows, tg.cols, tg.square_mm / 1000.0)
+    pts = target_points(tg)
     cam = (T_cam_target[:3, :3] @ pts.T).T + T_cam_target[:3, 3]
     if np.any(cam[:, 2] < 0.1):
         return False

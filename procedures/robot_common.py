@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from rigctl.calib.board import board_points, orient_to_prediction
+from rigctl.calib.board import orient_to_prediction, target_points
 from rigctl.calib.extrinsic import estimate_pose
 from rigctl.config import RigConfig
 from rigctl.geometry.kinematics import KinematicModel, nominal_ur
@@ -31,7 +31,7 @@ def controller_model(ctx) -> tuple[KinematicModel | None, str | None]:
 def board_observations(ctx, intr: dict) -> list[dict]:
     """Per capture with the board found: label, kind, joints, corners and T_cam_target."""
     tg = ctx.config.target
-    obj = board_points(tg.rows, tg.cols, tg.square_mm / 1000.0)
+    obj = target_points(tg)
     K, dist = camera_model(intr)
     out = []
     for capture in ctx.captures():

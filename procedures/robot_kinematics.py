@@ -24,7 +24,7 @@ import numpy as np
 from pydantic import Field
 
 from rigctl.calib import robot
-from rigctl.calib.board import board_points
+from rigctl.calib.board import target_points
 from rigctl.calib.intrinsics_check import board_intrinsics
 from rigctl.calib.robot_pipeline import BoardView, RobotSolution, solve_robot
 from rigctl.errors import SolveError
@@ -163,8 +163,7 @@ class RobotKinematics(Procedure):
             for k, q in enumerate(poses):
                 steps.append(MoveArmJoints(tuple(float(v) for v in q), f"{kind} {k + 1}"))
                 steps += capture(f"{kind} {k + 1}", kind=kind)
-        steps.append(MoveArmJoints(tuple(math.radians(v) for v in config.devices.arm.home_deg),
-                                   "arm home"))
+        steps.append(MoveArmJoints(config.devices.arm.home_rad(), "arm home"))
         return steps
 
     def resolve_inputs(self, params: RobotKinematicsParams, config) -> dict[str, Any]:
@@ -176,7 +175,7 @@ class RobotKinematics(Procedure):
         intr = ctx.input("intrinsics")
         K, dist = camera_model(intr)
         tg = ctx.config.target
-        obj = board_points(tg.rows, tg.cols, tg.square_mm / 1000.0)
+        obj = target_points(tg)
         with ctx.stage("board poses"):
             obs = board_observations(ctx, intr)
         views = [BoardView(o["label"], o["kind"], o["joint"], o["q"], o["corners"], o["C"])

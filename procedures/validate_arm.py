@@ -22,7 +22,7 @@ import numpy as np
 from pydantic import Field
 
 from rigctl.calib import robot
-from rigctl.calib.board import board_points
+from rigctl.calib.board import target_points
 from rigctl.errors import ConfigError, SolveError
 from rigctl.geometry.kinematics import KinematicModel, nominal_ur
 from rigctl.geometry.transforms import R_to_rotvec, inv_T
@@ -89,7 +89,7 @@ class ValidateArm(Procedure):
                   "after": (model, np.array(cal["T_flange_cam"]), np.array(cal["T_base_target"]))}
         K, dist = camera_model(intr)
         tg = ctx.config.target
-        obj = board_points(tg.rows, tg.cols, tg.square_mm / 1000.0)
+        obj = target_points(tg)
         out: dict[str, Any] = {"calibration_run": ctx.input("calibration_run"),
                                "views": len(found)}
 

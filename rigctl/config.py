@@ -203,6 +203,17 @@ class ArmConfig(_Strict):
     def joint_limits_rad(self) -> list[tuple[float, float]]:
         return [(math.radians(lo), math.radians(hi)) for lo, hi in self.joint_limits_deg]
 
+    def home_rad(self) -> tuple[float, ...]:
+        """The home joints (``home_deg``) in radians."""
+        return tuple(math.radians(v) for v in self.home_deg)
+
+    def park_rad(self) -> tuple[float, ...]:
+        """Where the ``home`` park policy moves the arm: ``park.joints_deg`` in radians,
+        else home."""
+        if self.park.joints_deg:
+            return tuple(math.radians(v) for v in self.park.joints_deg)
+        return self.home_rad()
+
 
 class CameraConfig(_Strict):
     device: str | int  # /dev/videoN, an index, or a stream URL (http://, rtsp://)

@@ -168,7 +168,7 @@ def check_plan(config: RigConfig, steps: list[Step], needs: tuple[str, ...]) -> 
         if getattr(config.devices, kind) is None:
             problems.append(f"devices.{kind}: the procedure needs it but the rig file has none")
     head, arm = config.devices.head, config.devices.arm
-    arm_q: list[float] | None = [math.radians(v) for v in arm.home_deg] if arm else None
+    arm_q: list[float] | None = list(arm.home_rad()) if arm else None
     for n, step in enumerate(steps, start=1):
         try:
             if isinstance(step, MoveHead) and head is not None:

@@ -22,6 +22,16 @@ def test_example_rig_file_loads_with_units_converted():
     assert len(config.config_hash()) == 16
 
 
+def test_arm_home_and_park_in_radians():
+    arm = parse_rig("devices:\n  arm: {home_deg: [0, -90, 90, -90, -90, 180]}\n").devices.arm
+    assert arm.home_rad() == pytest.approx((0, -math.pi / 2, math.pi / 2, -math.pi / 2,
+                                            -math.pi / 2, math.pi))
+    assert arm.park_rad() == arm.home_rad()  # no park joints: home
+    parked = parse_rig("devices:\n  arm: {park: {policy: home, joints_deg: [10, -80, 80, "
+                       "-90, -90, 0]}}\n").devices.arm
+    assert parked.park_rad()[0] == pytest.approx(math.radians(10))
+
+
 def test_servo_range_error_names_file_key_and_reason():
     text = "devices:\n  head:\n    port: /dev/ttyUSB0\n    limits:\n      pan: [-90, 200]\n"
     with pytest.raises(ConfigError) as info:

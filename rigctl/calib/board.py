@@ -13,6 +13,11 @@ def board_points(rows: int, cols: int, square_m: float) -> np.ndarray:
                      for i in range(rows - 1) for j in range(cols - 1)])
 
 
+def target_points(target) -> np.ndarray:
+    """``board_points`` of a rig file's target (``TargetConfig``: rows, cols, square_mm)."""
+    return board_points(target.rows, target.cols, target.square_mm / 1000.0)
+
+
 def detect_board(image: np.ndarray, rows: int, cols: int) -> np.ndarray | None:
     """Inner corners (N x 2 pixels, row-major like ``board_points``) or None.
 
