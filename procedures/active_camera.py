@@ -2,14 +2,14 @@
 
 Sequence: home; reference capture; with an arm, the camera moved ``shift_mm`` sideways
 and captured (scene depths, for the parallax), then home again; pan +-theta_p, tilt
-+-theta_t; rolls (90, -180, -90 deg); each captured after settling, with the encoder angles
-actually reached.
++-theta_t; the wide pans and tilts (``wide_deg``); rolls (90, -180, -90 deg); each
+captured after settling, with the encoder angles actually reached.
 
-Solve: extract contours in the reference image; track them through pan+ and tilt+ with
-the thesis's shift search; estimate K by Strategy B; track every motion again by
-prediction from that K (rolls with the centre refined from the 90-degree roll); then
-Strategies A-D and the nonlinear refinement (started from D). Writes ``result.json``,
-plots, and OpenCV / ROS exports.
+Solve (``rigctl.calib.active_pipeline``): extract contours in the reference image; track
+them through pan+ and tilt+ with the thesis's shift search; estimate K by Strategy B;
+track the small, then the wide motions, then the rolls, each tier by prediction from a
+refinement on the ones before; then Strategies A-D and the nonlinear refinement. Writes
+``result.json``, plots, and OpenCV / ROS exports.
 """
 
 from __future__ import annotations

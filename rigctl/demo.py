@@ -79,8 +79,9 @@ def main() -> int:
     with SimulatedRig(world_path, records=records) as sim:
         rig_path = sim.rig_path
         runner = Runner(load_rig(rig_path))
-        console.rule("1. active-camera on the simulated rig (pan/tilt 10 deg, rolls)")
-        outcome = runner.run("active-camera", {"pan_deg": 10, "tilt_deg": 10})
+        console.rule("1. active-camera on the simulated rig (default plan: pan/tilt 3, 15 and "
+                     "25 deg, rolls)")
+        outcome = runner.run("active-camera", {})
         console.print(f"run {outcome.run_id}: {outcome.status}"
                       + (f" ({outcome.reason})" if outcome.reason else ""))
         if outcome.result:
