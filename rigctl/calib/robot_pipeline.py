@@ -1,19 +1,22 @@
 """The robot-kinematics solve as a pure pipeline: board views in, arm model out.
 
 The procedure (``procedures/robot_kinematics.py``) reads the run's captures into
-``BoardView``s and calls ``solve_robot``; benchmarks can call it on views of their own.
-Stages (thesis 4.3, generalised; ``rigctl.calib.robot``):
+``BoardView``s and calls ``solve_robot``; benchmarks can call it on views of their own,
+or call one stage's function to measure that stage alone. Stages (thesis 4.3,
+generalised; ``rigctl.calib.robot``):
 
-1. hand-eye with the nominal arm model (the "before calibration" state);
-2. link-by-link from the single-joint sweeps (4.11)-(4.35), X from step 1;
-3. axis-based: each swept joint's axis line in the target frame, no X;
-4. the joint refinement (4.11) of the minimal parameter set over every training view,
+1. ``hand_eye`` with the nominal arm model (the "before calibration" state);
+2. link-by-link from the single-joint sweeps (4.11)-(4.35), X from step 1, and
+3. axis-based: each swept joint's axis line in the target frame, no X
+   (``single_methods``);
+4. ``joint_refinement`` (4.11) of the minimal parameter set over every training view,
    from the best of those starts, and plain D-H's Jacobian there (its rank deficiency);
    a training view that the refined model misses by far more than the others (a board
    found one square off, a wrong correspondence) is left out and stages 1-4 run again
    without it (``outlier_views``);
-5. the camera free as well (``refine_with_camera``), the intrinsics in use as a prior;
-6. held-out errors of every model.
+5. ``free_camera``: the camera free as well (``refine_with_camera``), the intrinsics in
+   use as a prior;
+6. held-out errors of every model (``heldout_table``, ``moved_from_controller``).
 """
 
 from __future__ import annotations
@@ -107,22 +110,56 @@ def heldout_errors(model: KinematicModel, X, W, held: list[BoardView]) -> dict |
             "rotation_rms_rad": float(np.sqrt(np.mean(rot ** 2))), "views": len(held)}
 
 
-def _single_methods(sweeps, he, nominal, meas):
-    """Link-by-link (X from the hand-eye) and axis-based (no X): each alone, and as
-    starts of the joint refinement. A method that cannot run says why."""
+def split_views(views: list[BoardView]) -> tuple[list[BoardView], list[BoardView]]:
+    """The training views (sweeps and training views) and the held-out ones; too few
+    training views is a ``SolveError``."""
+    train = [v for v in views if v.kind in ("sweep", "train")]
+    held = [v for v in views if v.kind == "heldout"]
+    if len(train) < MIN_TRAINING_VIEWS:
+        raise SolveError(f"robot-kinematics: only {len(train)} training views with the "
+                         f"board found (need {MIN_TRAINING_VIEWS})")
+    return train, held
+
+
+def hand_eye(model: KinematicModel, meas: robot.Measurements):
+    """Stage 1 with the arm model ``model``: OpenCV's closed forms on the training views'
+    board poses, the best of them refined on pixels. Returns the closed forms and the
+    refined hand-eye (X, W)."""
+    F = [model.fk(q) for q in meas.q]
+    closed = handeye.closed_form(F, meas.C)
+    refined = handeye.refine_pixels(F, meas.corners, meas.obj, meas.K, meas.dist,
+                                    handeye.best_closed_form(closed), C=meas.C)
+    return closed, refined
+
+
+def single_methods(sweeps: dict[int, robot.Sweep], X, W, nominal: KinematicModel,
+                   meas: robot.Measurements):
+    """Stages 2 and 3: link-by-link (with the hand-eye ``X``) and axis-based (no X; ``W``
+    only starts the axis lines' frame, then X and W are fitted with the links held),
+    each alone, and as starts of the joint refinement. A method that cannot run says
+    why: (link-by-link, its error, axis-based, its error)."""
     lbl, lbl_error = None, None
     try:
-        lbl = robot.link_by_link(sweeps, he.X, nominal)
+        lbl = robot.link_by_link(sweeps, X, nominal)
     except SolveError as exc:
         lbl_error = str(exc)
     axis, axis_error = None, None
     try:
-        axis_model, W_axis = robot.axis_based(sweeps, nominal, he.W)
-        axis = robot.refine(axis_model, he.X, W_axis, meas,
-                            mask=robot.frames_only_mask(nominal))
+        axis_model, W_axis = robot.axis_based(sweeps, nominal, W)
+        axis = robot.refine(axis_model, X, W_axis, meas, mask=robot.frames_only_mask(nominal))
     except SolveError as exc:
         axis_error = str(exc)
     return lbl, lbl_error, axis, axis_error
+
+
+def joint_refinement(meas: robot.Measurements, start: KinematicModel, X,
+                     other_starts: list[tuple[KinematicModel, np.ndarray, np.ndarray]]
+                     ) -> robot.RefineResult:
+    """Stage 4: the joint refinement (4.11) of the minimal parameter set over every
+    training view, from ``start`` (the link-by-link model, when it ran) with X and W
+    averaged over the views, and from each of ``other_starts``; the lowest cost wins."""
+    W = handeye.average_W([start.fk(q) for q in meas.q], meas.C, X)
+    return robot.refine(start, X, W, meas, extra_starts=other_starts)
 
 
 def outlier_views(ref: robot.RefineResult, meas: robot.Measurements) -> dict[int, float]:
@@ -133,6 +170,68 @@ def outlier_views(ref: robot.RefineResult, meas: robot.Measurements) -> dict[int
     per_view = np.sqrt(np.mean(np.sum(r ** 2, axis=2), axis=1))
     limit = max(OUTLIER_FACTOR * float(np.median(per_view)), OUTLIER_MIN_PX)
     return {k: float(e) for k, e in enumerate(per_view) if e > limit}
+
+
+def free_camera(ref: robot.RefineResult, meas: robot.Measurements,
+                prior_sigma: dict[str, float] | None, held: list[BoardView]):
+    """Stage 5: the refinement with the camera free as well, the intrinsics in use as a
+    prior. Returns the refinement, the camera model (None when it stays held), a note
+    saying why it stayed held, and the held-out views, measured again with the camera
+    model the arm model now uses."""
+    free, cam = robot.refine_with_camera(ref, meas, prior_sigma or {})
+    if free.rms > 1.05 * ref.rms + 0.01:  # a superset of ref's model cannot fit worse
+        note = (f"the refinement with the camera free ended worse ({free.rms:.3f} px RMS) "
+                f"than with it held ({ref.rms:.3f} px); the camera is held as given")
+        return ref, None, note, held
+    held = [BoardView(v.label, v.kind, v.joint, v.q, v.corners,
+                      estimate_pose(meas.obj, v.corners, cam.K, cam.dist).T_cam_target)
+            for v in held]
+    return free, cam, None, held
+
+
+def heldout_table(nominal: KinematicModel, he, ref: robot.RefineResult, lbl,
+                  axis: robot.RefineResult | None, meas: robot.Measurements,
+                  held: list[BoardView]) -> dict[str, dict | None]:
+    """Stage 6: the held-out errors before calibration (nominal model with its hand-eye),
+    after, and of link-by-link and axis-based alone (None when they did not run)."""
+    heldout = {"before": heldout_errors(nominal, he.X, he.W, held),
+               "after": heldout_errors(ref.model, ref.X, ref.W, held),
+               "link_by_link": None, "axis_based": None}
+    if lbl is not None:
+        W_lbl = handeye.average_W([lbl.model.fk(q) for q in meas.q], meas.C, he.X)
+        heldout["link_by_link"] = heldout_errors(lbl.model, he.X, W_lbl, held)
+    if axis is not None:
+        heldout["axis_based"] = heldout_errors(axis.model, axis.X, axis.W, held)
+    return heldout
+
+
+def moved_from_controller(controller: KinematicModel, he_controller, ref: robot.RefineResult,
+                          qs: list[np.ndarray]) -> dict[str, float]:
+    """How far the calibrated model puts the camera from where the controller's own model
+    (with its hand-eye) does, over the configurations ``qs``: the camera in the target
+    frame under each, free of the base frame's gauge."""
+    W_inv, Wc_inv = np.linalg.inv(ref.W), np.linalg.inv(he_controller.W)
+    gap = [np.linalg.norm((W_inv @ ref.model.fk(q) @ ref.X)[:3, 3]
+                          - (Wc_inv @ controller.fk(q) @ he_controller.X)[:3, 3]) for q in qs]
+    return {"position_rms_m": float(np.sqrt(np.mean(np.square(gap)))),
+            "position_max_m": float(np.max(gap)), "configurations": len(qs)}
+
+
+def _sweep_spans(sweeps: dict[int, robot.Sweep]) -> dict[str, float]:
+    return {f"joint{j + 1}": float(np.degrees(np.ptp([q[j] for q in sw.q])))
+            for j, sw in sweeps.items()}
+
+
+def _again_without(views: list[BoardView], train: list[BoardView], rejected: dict[int, float],
+                   timings: dict[str, float], **solve_args) -> RobotSolution:
+    """The whole solve again without the training views ``rejected`` (``outlier_views``),
+    once; the solution names them, and its timings keep the first pass's."""
+    dropped = {id(train[k]) for k in rejected}
+    again = solve_robot([v for v in views if id(v) not in dropped], reject_outliers=False,
+                        **solve_args)
+    again.rejected_views = {train[k].label: e for k, e in rejected.items()}
+    again.timings_s = {f"{k} (with outliers)": t for k, t in timings.items()} | again.timings_s
+    return again
 
 
 @with_one_blas_thread
@@ -148,86 +247,44 @@ def solve_robot(views: list[BoardView], nominal: KinematicModel, obj: np.ndarray
     held out like the nominal model."""
     timings: dict[str, float] = {}
     stage = stage_timer(timings)
-    train = [v for v in views if v.kind in ("sweep", "train")]
-    held = [v for v in views if v.kind == "heldout"]
-    if len(train) < MIN_TRAINING_VIEWS:
-        raise SolveError(f"robot-kinematics: only {len(train)} training views with the "
-                         f"board found (need {MIN_TRAINING_VIEWS})")
+    train, held = split_views(views)
     meas = robot.Measurements([v.q for v in train], C=[v.C for v in train],
                               corners=[v.corners for v in train], obj=obj, K=K, dist=dist)
     with stage("hand-eye (nominal arm)"):
-        F = [nominal.fk(v.q) for v in train]
-        closed = handeye.closed_form(F, meas.C)
-        he = handeye.refine_pixels(F, meas.corners, obj, K, dist,
-                                   handeye.best_closed_form(closed), C=meas.C)
+        closed, he = hand_eye(nominal, meas)
+    starts = [(nominal, he.X, he.W)]
     he_controller = None
     if controller is not None:
         with stage("hand-eye (controller's arm model)"):
-            Fc = [controller.fk(v.q) for v in train]
-            he_controller = handeye.refine_pixels(
-                Fc, meas.corners, obj, K, dist,
-                handeye.best_closed_form(handeye.closed_form(Fc, meas.C)), C=meas.C)
+            he_controller = hand_eye(controller, meas)[1]
     sweeps = _sweeps(train)
     with stage("link-by-link and axis-based"):
-        lbl, lbl_error, axis, axis_error = _single_methods(sweeps, he, nominal, meas)
+        lbl, lbl_error, axis, axis_error = single_methods(sweeps, he.X, he.W, nominal, meas)
     with stage("joint refinement"):
-        start = lbl.model if lbl is not None else nominal
-        W_start = handeye.average_W([start.fk(v.q) for v in train], meas.C, he.X)
-        starts = [(nominal, he.X, he.W)] + ([(axis.model, axis.X, axis.W)] if axis else []) \
-            + ([(controller, he_controller.X, he_controller.W)] if controller else [])
-        ref = robot.refine(start, he.X, W_start, meas, extra_starts=starts)
-    if reject_outliers:
-        rejected = outlier_views(ref, meas)
-        if rejected and len(train) - len(rejected) >= MIN_TRAINING_VIEWS:
-            dropped = {id(train[k]) for k in rejected}
-            again = solve_robot([v for v in views if id(v) not in dropped], nominal, obj,
-                                K, dist, prior_sigma, refine_camera, reject_outliers=False,
-                                controller=controller)
-            again.rejected_views = {train[k].label: e for k, e in rejected.items()}
-            again.timings_s = {f"{k} (with outliers)": t for k, t in timings.items()} | \
-                again.timings_s
-            return again
+        starts += [(axis.model, axis.X, axis.W)] if axis else []
+        starts += [(controller, he_controller.X, he_controller.W)] if controller else []
+        ref = joint_refinement(meas, lbl.model if lbl is not None else nominal, he.X, starts)
+    rejected = outlier_views(ref, meas) if reject_outliers else {}
+    if rejected and len(train) - len(rejected) >= MIN_TRAINING_VIEWS:
+        return _again_without(views, train, rejected, timings, nominal=nominal, obj=obj, K=K,
+                              dist=dist, prior_sigma=prior_sigma,
+                              refine_camera=refine_camera, controller=controller)
     with stage("plain D-H"):  # its rank deficiency, at the refined solution
         dh_sv = robot.jacobian_singular_values(ref.model, ref.X, ref.W, meas,
                                                robot.dh_mask(nominal))
     cam, camera_note = None, None
     if refine_camera:
         with stage("camera free"):
-            free, cam = robot.refine_with_camera(ref, meas, prior_sigma or {})
-        if free.rms > 1.05 * ref.rms + 0.01:  # a superset of ref's model cannot fit worse
-            camera_note = (f"the refinement with the camera free ended worse ({free.rms:.3f} "
-                           f"px RMS) than with it held ({ref.rms:.3f} px); the camera is "
-                           "held as given")
-            cam = None
-        else:
-            ref = free
-            # held-out poses measured with the camera model the arm model now uses
-            held = [BoardView(v.label, v.kind, v.joint, v.q, v.corners,
-                              estimate_pose(obj, v.corners, cam.K, cam.dist).T_cam_target)
-                    for v in held]
+            ref, cam, camera_note, held = free_camera(ref, meas, prior_sigma, held)
     with stage("held-out"):
-        heldout = {"before": heldout_errors(nominal, he.X, he.W, held),
-                   "after": heldout_errors(ref.model, ref.X, ref.W, held),
-                   "link_by_link": None, "axis_based": None}
-        if lbl is not None:
-            W_lbl = handeye.average_W([lbl.model.fk(v.q) for v in train], meas.C, he.X)
-            heldout["link_by_link"] = heldout_errors(lbl.model, he.X, W_lbl, held)
-        if axis is not None:
-            heldout["axis_based"] = heldout_errors(axis.model, axis.X, axis.W, held)
+        heldout = heldout_table(nominal, he, ref, lbl, axis, meas, held)
         moved = None
         if controller is not None:
             heldout["factory"] = heldout_errors(controller, he_controller.X, he_controller.W,
                                                 held)
-            # camera in the target frame under each model (free of the base frame's gauge)
-            qs = [v.q for v in (held or train)]
-            W_inv, Wc_inv = np.linalg.inv(ref.W), np.linalg.inv(he_controller.W)
-            gap = [np.linalg.norm((W_inv @ ref.model.fk(q) @ ref.X)[:3, 3]
-                                  - (Wc_inv @ controller.fk(q) @ he_controller.X)[:3, 3])
-                   for q in qs]
-            moved = {"position_rms_m": float(np.sqrt(np.mean(np.square(gap)))),
-                     "position_max_m": float(np.max(gap)), "configurations": len(qs)}
-    spans = {f"joint{j + 1}": float(np.degrees(np.ptp([q[j] for q in sw.q])))
-             for j, sw in sweeps.items()}
+            moved = moved_from_controller(controller, he_controller, ref,
+                                          [v.q for v in (held or train)])
     return RobotSolution(ref, cam, he, closed, heldout, lbl, lbl_error, axis, axis_error, dh_sv,
-                         spans, meas, len(train), len(held), timings, camera_note, views,
-                         controller_hand_eye=he_controller, moved_from_controller=moved)
+                         _sweep_spans(sweeps), meas, len(train), len(held), timings,
+                         camera_note, views, controller_hand_eye=he_controller,
+                         moved_from_controller=moved)
