@@ -6,8 +6,12 @@ import fcntl
 import json
 import os
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from rigctl.errors import BusyError
+
+if TYPE_CHECKING:
+    from rigctl.config import RigConfig
 
 
 class RigLock:
@@ -57,3 +61,9 @@ class RigLock:
 
     def __exit__(self, *exc) -> None:
         self.release()
+
+
+def rig_lock(config: RigConfig) -> RigLock:
+    """The lock of ``config``'s rig (``<records>/locks/<rig>.lock``): the one the CLI's
+    runs and the service both take."""
+    return RigLock(config.records_dir() / "locks", config.name)

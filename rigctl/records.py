@@ -27,7 +27,7 @@ import secrets
 import socket
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from sqlalchemy import (
@@ -45,6 +45,9 @@ from sqlalchemy import (
 )
 
 from rigctl.errors import ConfigError, RigError
+
+if TYPE_CHECKING:
+    from rigctl.config import RigConfig
 
 metadata = MetaData()
 
@@ -74,6 +77,16 @@ def utcnow() -> dt.datetime:
 def new_run_id(procedure: str) -> str:
     stamp = utcnow().strftime("%Y%m%dT%H%M%S")
     return f"{stamp}-{procedure}-{secrets.token_hex(3)}"
+
+
+def run_row(config: RigConfig, run_id: str, procedure: str, status: str, operator: str,
+            run_dir: str = "", **values: Any) -> dict[str, Any]:
+    """The index row of a run of ``config``'s rig started now by this process on this
+    host; ``values`` adds or overrides columns (``reason``, ``ended_at``, ...)."""
+    return {"run_id": run_id, "procedure": procedure, "status": status, "reason": None,
+            "started_at": utcnow(), "operator": operator, "rig_name": config.name,
+            "config_hash": config.config_hash(), "run_dir": run_dir,
+            "host": socket.gethostname(), "pid": os.getpid(), **values}
 
 
 def to_jsonable(value: Any) -> Any:

@@ -19,10 +19,8 @@ from __future__ import annotations
 import getpass
 import logging
 import math
-import os
 import platform
 import signal
-import socket
 import threading
 import time
 from collections.abc import Callable
@@ -60,8 +58,16 @@ from rigctl import __version__
 from rigctl.calib.blas_threads import one_blas_thread
 from rigctl.config import HEAD_AXES, RigConfig, parse_rig
 from rigctl.errors import AbortedError, ConfigError, RigError, SafetyError
-from rigctl.locks import RigLock
-from rigctl.records import RecordIndex, RunDirectory, new_run_id, summarize, utcnow, write_json
+from rigctl.locks import rig_lock
+from rigctl.records import (
+    RecordIndex,
+    RunDirectory,
+    new_run_id,
+    run_row,
+    summarize,
+    utcnow,
+    write_json,
+)
 from rigctl.rig import Rig
 
 log = logging.getLogger("rigctl.run")
@@ -261,7 +267,7 @@ class Runner:
         # SIGTERM aborts from here on: a signal between the run's record and its first
         # step must still end in an "aborted" record, not kill the process (seen in CI)
         restore = self._install_sigterm()
-        lock = RigLock(self.config.records_dir() / "locks", self.config.name)
+        lock = rig_lock(self.config)
         try:
             lock.acquire(run_id)
             try:
@@ -278,12 +284,8 @@ class Runner:
         write_json(run.path / "params.json", {"procedure": procedure.name,
                                               "params": plan.params, "operator": self.operator})
         write_json(run.path / "inputs.json", inputs)
-        self.index.insert({
-            "run_id": run_id, "procedure": procedure.name, "status": "running", "reason": None,
-            "started_at": utcnow(), "operator": self.operator, "rig_name": self.config.name,
-            "config_hash": self.config.config_hash(), "run_dir": str(run.path.resolve()),
-            "host": socket.gethostname(), "pid": os.getpid(),
-        })
+        self.index.insert(run_row(self.config, run_id, procedure.name, "running", self.operator,
+                                  str(run.path.resolve())))
         handler = logging.FileHandler(run.path / "run.log")
         handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
         root = logging.getLogger()

@@ -18,7 +18,6 @@ import datetime as dt
 import json
 import logging
 import os
-import socket
 import threading
 import urllib.request
 from collections import deque
@@ -37,8 +36,8 @@ from rigctl import __version__, drift
 from rigctl.config import RigConfig, parse_duration
 from rigctl.console.pages import console_routes, mount_static
 from rigctl.errors import BusyError, ConfigError, RigError, SafetyError
-from rigctl.locks import RigLock
-from rigctl.records import RecordIndex, RunDirectory, new_run_id, utcnow
+from rigctl.locks import rig_lock
+from rigctl.records import RecordIndex, RunDirectory, new_run_id, run_row, utcnow
 from rigctl.runner import Runner, prepare_run, refuse_violations
 
 log = logging.getLogger("rigctl.service")
@@ -137,7 +136,7 @@ class RigService:
                 return f"rig busy: run {self.current.run_id} is running"
             if self.queue:
                 return f"rig busy: {len(self.queue)} run(s) queued"
-        lock = RigLock(self.config.records_dir() / "locks", self.config.name)
+        lock = rig_lock(self.config)
         try:
             lock.acquire("probe")
         except BusyError as exc:
@@ -150,12 +149,9 @@ class RigService:
         """Index a run that never started (refused, skipped, aborted in the queue); a
         queued job keeps the id the API returned for it."""
         run_id = run_id or new_run_id(procedure)
-        self.index.insert({"run_id": run_id, "procedure": procedure, "status": status,
-                           "reason": reason, "started_at": utcnow(), "ended_at": utcnow(),
-                           "operator": "scheduler", "rig_name": self.config.name,
-                           "config_hash": self.config.config_hash(), "run_dir": "",
-                           "host": socket.gethostname(), "pid": os.getpid(),
-                           "result_summary": {"params": params or {}}})
+        self.index.insert(run_row(self.config, run_id, procedure, status, "scheduler",
+                                  reason=reason, ended_at=utcnow(),
+                                  result_summary={"params": params or {}}))
         self.events.publish({"type": "finished", "run_id": run_id, "status": status,
                              "reason": reason})
         return run_id
@@ -234,7 +230,7 @@ class RigService:
         """The rig without moving anything: its devices from the rig file, the lock
         holder, the last recorded readings (the newest capture's sidecar)."""
         config = self.config
-        lock = RigLock(config.records_dir() / "locks", config.name)
+        lock = rig_lock(config)
         last = {}
         for row in self.runs(20):
             sidecars = sorted(Path(row["run_dir"], "captures").glob("[0-9][0-9][0-9].json")) \
