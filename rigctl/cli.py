@@ -203,12 +203,12 @@ def runs_list(rig: Path = typer.Option(..., "--rig"), limit: int = typer.Option(
 @runs_app.command("show")
 def runs_show(run_id: str, rig: Path = typer.Option(..., "--rig"),
               as_json: bool = typer.Option(False, "--json")) -> None:
-    """One run: its index row and its result."""
+    """One run of this rig: its index row and its result."""
     from rigctl.records import RecordIndex, RunDirectory
 
     try:
         config = load_rig(rig)
-        row = RecordIndex(config.database_url()).get(run_id)
+        row = RecordIndex(config.database_url()).get(run_id, rig_name=config.name)
         run_dir = RunDirectory(row["run_dir"])
         row["captures"] = len(run_dir.captures()) if run_dir.path.exists() else 0
         result_path = run_dir.path / "result.json"
@@ -269,7 +269,8 @@ def export(run: str = typer.Argument(..., help="Run directory, or run id with --
             if rig is None:
                 raise ConfigError(f"{run}: not a run directory (give --rig to look up a run id)")
             config = load_rig(rig)
-            run_path = Path(RecordIndex(config.database_url()).get(run)["run_dir"])
+            row = RecordIndex(config.database_url()).get(run, rig_name=config.name)
+            run_path = Path(row["run_dir"])
         run_dir = RunDirectory(run_path)
         target = output or run_dir.path / f"export{SUFFIXES.get(fmt, '.out')}"
         path = export_result(run_dir.result(), fmt, target, run_dir.run_id,

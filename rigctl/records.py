@@ -179,15 +179,20 @@ class RecordIndex:
         usable = [r for r in rows if r["decision"] not in ("rejected", "drift")]
         return usable[0] if usable else None
 
-    def get(self, run_id: str) -> dict[str, Any]:
+    def get(self, run_id: str, rig_name: str | None = None) -> dict[str, Any]:
+        """The run with this id, or with this unique id prefix; with ``rig_name``, only
+        that rig's runs are looked at (an index may be shared by several rigs)."""
+        query = select(runs_table).where(runs_table.c.run_id.startswith(run_id,
+                                                                        autoescape=True))
+        if rig_name:
+            query = query.where(runs_table.c.rig_name == rig_name)
         with self.engine.connect() as conn:
-            rows = [dict(r._mapping) for r in conn.execute(
-                select(runs_table).where(runs_table.c.run_id.startswith(run_id,
-                                                                        autoescape=True)))]
+            rows = [dict(r._mapping) for r in conn.execute(query)]
         exact = [r for r in rows if r["run_id"] == run_id]
         rows = exact or rows  # a whole id wins over the longer ids it is a prefix of
         if not rows:
-            raise RigError(f"no run with id {run_id!r} in the index")
+            of_rig = f" of rig {rig_name!r}" if rig_name else ""
+            raise RigError(f"no run with id {run_id!r}{of_rig} in the index")
         if len(rows) > 1:
             raise RigError(f"run id prefix {run_id!r} is ambiguous ({len(rows)} runs)")
         return self._refresh_interrupted(rows)[0]

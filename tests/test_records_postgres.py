@@ -18,7 +18,7 @@ import pytest
 
 from rigctl.config import load_rig
 from rigctl.errors import ConfigError
-from rigctl.records import RecordIndex, RunDirectory
+from rigctl.records import RecordIndex, RunDirectory, run_row, utcnow
 from rigctl.runner import solve_recorded
 from tests.mockproc import ROOT
 from tests.test_runner import SMALL, make_runner
@@ -106,6 +106,94 @@ def test_two_rigs_share_one_postgres_index(tmp_path, postgres_url):
                              str(tmp_path / "rig-b.yaml"), "--json"], capture_output=True,
                             text=True, timeout=60, cwd=ROOT)
     assert {r["run_id"] for r in json.loads(listed.stdout)} == {first_b.run_id}
+
+
+def _rigctl(*args):
+    return subprocess.run([sys.executable, "-m", "rigctl.cli", *args], capture_output=True,
+                          text=True, timeout=60, cwd=ROOT)
+
+
+def _record(config, run_id: str, procedure: str, result: dict, decision: str | None = None):
+    """A finished calibration of ``config``'s rig in the shared index (its run directory
+    with the result, its row, its decision), as a run would leave it."""
+    run = RunDirectory.create(config.records_dir(), run_id)
+    run.write_result(result)
+    RecordIndex(config.database_url()).insert(run_row(
+        config, run_id, procedure, "succeeded", "test", str(run.path.resolve()),
+        ended_at=utcnow(), decision=decision))
+    return run_id
+
+
+def _hand_eye(x_mm: float) -> dict:
+    T = [[1.0, 0, 0, x_mm / 1000], [0, 1.0, 0, 0], [0, 0, 1.0, 0.05], [0, 0, 0, 1.0]]
+    return {"T_flange_cam": T, "T_base_target": T}
+
+
+CAMERA = {"fy": 905.0, "cx": 640.0, "cy": 360.0, "width": 1280, "height": 720}
+
+
+@pytest.mark.timeout(120)
+def test_each_rig_sees_only_its_own_calibrations_in_a_shared_index(tmp_path, postgres_url):
+    """Two rigs with accepted calibrations of their own, far apart, in one PostgreSQL
+    index. The records are interleaved so that, for each rig, another rig's accepted
+    calibration is the newest in the index: a check that read the index unscoped would
+    compare with it (and call a new calibration drift), list it, or show it."""
+    from fastapi.testclient import TestClient
+
+    from rigctl.service import RigService, create_app
+
+    rig_a, rig_b = rig(tmp_path, "rig-a", postgres_url), rig(tmp_path, "rig-b", postgres_url)
+    own = {"rig-a": set(), "rig-b": set()}
+
+    def record(config, run_id, procedure, result, decision=None):
+        own[config.name].add(_record(config, run_id, procedure, result, decision))
+        return run_id
+
+    # active-camera: rig-b's accepted one is older than rig-a's; hand-eye: the reverse
+    record(rig_b, "b-cam-1", "active-camera", {**CAMERA, "fx": 1200.0}, "accepted")
+    record(rig_a, "a-cam-1", "active-camera", {**CAMERA, "fx": 900.0}, "accepted")
+    record(rig_a, "a-he-1", "hand-eye", _hand_eye(0.0), "accepted")
+    record(rig_b, "b-he-1", "hand-eye", _hand_eye(50.0), "accepted")
+    service = {"rig-a": RigService(rig_a), "rig-b": RigService(rig_b)}
+    # drift: each new calibration is compared with its own rig's accepted one
+    b_new = record(rig_b, "b-cam-2", "active-camera", {**CAMERA, "fx": 1200.1})
+    assert service["rig-b"].decide(b_new, "active-camera", {**CAMERA, "fx": 1200.1}) \
+        == "pending"
+    a_new = record(rig_a, "a-he-2", "hand-eye", _hand_eye(0.5))
+    assert service["rig-a"].decide(a_new, "hand-eye", _hand_eye(0.5)) == "pending"
+    for config, run_id, against in ((rig_b, b_new, "b-cam-1"), (rig_a, a_new, "a-he-1")):
+        decision = RunDirectory(config.records_dir() / run_id).decisions()[-1]
+        assert decision["compared_with"] == against and decision["drift"] == []
+    # the API of each rig's service: latest, history, runs
+    for name, other in (("rig-a", "rig-b"), ("rig-b", "rig-a")):
+        with TestClient(create_app(service[name])) as api:
+            latest = api.get("/calibrations/latest").json()
+            assert {p: r["run_id"] for p, r in latest.items()} == {
+                "active-camera": f"{name[-1]}-cam-1", "hand-eye": f"{name[-1]}-he-1"}
+            history = api.get("/calibrations/history").json()
+            assert {r["run_id"] for r in history} == own[name]
+            assert {r["run_id"] for r in api.get("/runs").json()} == own[name]
+            for run_id in own[other]:
+                assert api.get(f"/runs/{run_id}").status_code == 404
+                assert api.post(f"/calibrations/{run_id}/accept").status_code == 404
+    # the CLI, given one rig's file: its list, show and export
+    rig_file = str(tmp_path / "rig-a.yaml")
+    listed = _rigctl("runs", "list", "--rig", rig_file, "--json")
+    assert {r["run_id"] for r in json.loads(listed.stdout)} == own["rig-a"]
+    shown = _rigctl("runs", "show", "a-cam-1", "--rig", rig_file, "--json")
+    assert json.loads(shown.stdout)["result"]["fx"] == 900.0
+    refused = _rigctl("runs", "show", "b-cam-1", "--rig", rig_file, "--json")
+    assert refused.returncode == 2
+    assert json.loads(refused.stdout)["error"] == \
+        "no run with id 'b-cam-1' of rig 'rig-a' in the index"
+    # a prefix both rigs' ids share is this rig's run alone
+    out = tmp_path / "a-cam.json"
+    exported = _rigctl("export", "a-cam", "--rig", rig_file, "--out", str(out))
+    assert exported.returncode == 0, exported.stderr
+    assert json.loads(out.read_text())["fx"] == 900.0
+    other = _rigctl("export", "b-cam-1", "--rig", rig_file, "--out", str(tmp_path / "b.json"))
+    assert other.returncode == 1 and "of rig 'rig-a'" in other.stderr
+    assert not (tmp_path / "b.json").exists()
 
 
 def test_unreachable_postgres_names_the_key_and_url(tmp_path):
