@@ -229,14 +229,13 @@ def runs_show(run_id: str, rig: Path = typer.Option(..., "--rig"),
 def solve(run_dir: Path = typer.Argument(..., help="A run directory."),
           as_json: bool = typer.Option(False, "--json")) -> None:
     """Solve a recorded run again, offline; the old result is kept as result.N.json."""
-    from rigctl.records import RecordIndex
-    from rigctl.runner import solve_recorded
+    from rigctl.records import RecordIndex, RunDirectory
+    from rigctl.runner import recorded_config, solve_recorded
 
     try:
         index = None
         try:
-            config = load_rig(run_dir / "rig.yaml")
-            config.source_path = None
+            config = recorded_config(RunDirectory(run_dir))
             index = RecordIndex(config.database_url()) if config.records.database_url else None
         except RigError:
             pass

@@ -4,7 +4,8 @@ Layout of a run directory::
 
     <records>/<run_id>/
         rig.yaml           copy of the rig file as used
-        params.json        procedure and parameters
+        params.json        procedure, parameters, operator, and where the rig file was
+                           (its relative paths resolve against that folder on a re-solve)
         versions.json      software and device versions (``describe()`` of each device)
         run.log            the log
         captures/NNN.png   images, written the moment they are taken

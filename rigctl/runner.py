@@ -26,6 +26,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from importlib import metadata as importlib_metadata
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -281,8 +282,10 @@ class Runner:
                     run_id: str, inputs: dict[str, Any]) -> RunOutcome:
         run = RunDirectory.create(self.config.records_dir(), run_id)
         (run.path / "rig.yaml").write_text(self.config.source_text)
-        write_json(run.path / "params.json", {"procedure": procedure.name,
-                                              "params": plan.params, "operator": self.operator})
+        source = self.config.source_path
+        write_json(run.path / "params.json", {
+            "procedure": procedure.name, "params": plan.params, "operator": self.operator,
+            "rig_file": str(source.resolve()) if source is not None else None})
         write_json(run.path / "inputs.json", inputs)
         self.index.insert(run_row(self.config, run_id, procedure.name, "running", self.operator,
                                   str(run.path.resolve())))
@@ -531,6 +534,21 @@ def _run_deferred(ctx: SolveContext) -> float:
     return time.monotonic() - started
 
 
+def recorded_config(run: RunDirectory) -> RigConfig:
+    """The rig file a run used (its copy, ``rig.yaml``), with its relative paths resolved
+    as they were when the run was planned: against the folder of the rig file that
+    ``params.json`` records, else (runs recorded without it) against the run directory,
+    never against the current directory."""
+    copy = run.path / "rig.yaml"
+    try:
+        text = copy.read_text()
+    except FileNotFoundError:
+        raise ConfigError(f"{copy}: missing from the run directory") from None
+    params = run.params() if (run.path / "params.json").exists() else {}
+    source = params.get("rig_file")
+    return parse_rig(text, name=str(copy), path=Path(source) if source else copy)
+
+
 def solve_recorded(run_path, index: RecordIndex | None = None,
                    timings_s: dict[str, float] | None = None) -> dict[str, Any]:
     """Solve a recorded run again, offline, from its run directory alone.
@@ -542,11 +560,7 @@ def solve_recorded(run_path, index: RecordIndex | None = None,
     if not run.path.is_dir():
         raise ConfigError(f"{run.path}: not a run directory")
     params_doc = run.params()
-    try:
-        rig_text = (run.path / "rig.yaml").read_text()
-    except FileNotFoundError:
-        raise ConfigError(f"{run.path / 'rig.yaml'}: missing from the run directory") from None
-    config = parse_rig(rig_text, name=str(run.path / "rig.yaml"))
+    config = recorded_config(run)
     procedure = procedures.get_procedure(params_doc["procedure"])
     params = procedure.params_model.model_validate(params_doc["params"])
     inputs = run.read_json("inputs.json") if (run.path / "inputs.json").exists() else {}

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 import subprocess
 import sys
 import threading
@@ -104,6 +105,37 @@ def test_resolve_offline_keeps_previous_result(rig_config):
     run_dir = RunDirectory(outcome.run_dir)
     assert (run_dir.path / "result.1.json").exists()
     assert json.loads((run_dir.path / "result.1.json").read_text()) == outcome.result
+
+
+def test_resolve_reads_relative_paths_against_the_recorded_rig_file(rig_config, tmp_path,
+                                                                    monkeypatch):
+    """The rig file's relative records directory resolves as it did when the run was
+    planned, whatever the current directory, for the run directory and a copy of it;
+    a run recorded without its rig file's place resolves against its own directory."""
+    from procedures import head_sweep
+
+    outcome = make_runner(rig_config)[0].run("head-sweep", SMALL)
+    params = json.loads((RunDirectory(outcome.run_dir).path / "params.json").read_text())
+    assert params["rig_file"] == str(rig_config.source_path)
+    seen = []
+    solve = head_sweep.PROCEDURE.solve
+
+    def solve_noting_the_records(ctx):
+        seen.append(ctx.config.records_dir())
+        return solve(ctx)
+
+    monkeypatch.setattr(head_sweep.PROCEDURE, "solve", solve_noting_the_records)
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    copy = shutil.copytree(outcome.run_dir, tmp_path / "copies" / outcome.run_id)
+    assert solve_recorded(outcome.run_dir) == solve_recorded(copy) == outcome.result
+    assert seen == [tmp_path / "records"] * 2
+    assert rig_config.records_dir() == tmp_path / "records"
+    del params["rig_file"]
+    (copy / "params.json").write_text(json.dumps(params))
+    assert solve_recorded(copy) == outcome.result
+    assert seen[-1] == copy / "records"
 
 
 def test_limit_violation_refused_before_any_device_is_touched(rig_config):
