@@ -6,7 +6,8 @@ Layout of a run directory::
         rig.yaml           copy of the rig file as used
         params.json        procedure, parameters, operator, and where the rig file was
                            (its relative paths resolve against that folder on a re-solve)
-        versions.json      software and device versions (``describe()`` of each device)
+        versions.json      software and device versions (``describe()`` of each device),
+                           for failed and aborted runs too
         run.log            the log
         captures/NNN.png   images, written the moment they are taken
         captures/NNN.json  sidecar: head angles, joint angles, timestamps, camera settings

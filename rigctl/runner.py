@@ -11,7 +11,8 @@ Only the runner touches devices. A run:
 
 Ctrl-C, an abort request, SIGTERM, a device fault or a safety stop stop every
 device the run touched, park them per policy, and record the run as
-``aborted`` or ``failed`` with the reason; the captures stay on disk.
+``aborted`` or ``failed`` with the reason; the captures stay on disk, and
+``versions.json`` records the devices (their bus transaction counts) as for any run.
 """
 
 from __future__ import annotations
@@ -200,6 +201,24 @@ def check_plan(config: RigConfig, steps: list[Step], needs: tuple[str, ...]) -> 
     return problems
 
 
+def _write_versions(run: RunDirectory, devices: dict) -> None:
+    """``versions.json``: the software's versions and each device's ``describe()``
+    (model, firmware, settings, bus transaction counts). A device that cannot describe
+    itself is recorded with its error; a write that fails is logged: neither may end a
+    run or hide its real outcome."""
+    described = {}
+    for kind, device in devices.items():
+        try:
+            described[kind] = device.describe()
+        except Exception as exc:
+            described[kind] = {"error": f"describe() failed: {type(exc).__name__}: {exc}"}
+            log.error("%s: describe() failed: %s", kind, exc)
+    try:
+        write_json(run.path / "versions.json", {"software": _versions(), "devices": described})
+    except OSError as exc:
+        log.error("cannot write versions.json: %s", exc)
+
+
 def _versions() -> dict[str, str]:
     out = {"rigctl": __version__, "python": platform.python_version(),
            "platform": platform.platform()}
@@ -307,9 +326,7 @@ class Runner:
         try:
             self._execute(rig, procedure, plan.steps, run, run_id)
             timings["motion_s"] = time.monotonic() - started
-            versions = {"software": _versions(),
-                        "devices": {k: d.describe() for k, d in rig.devices.items()}}
-            write_json(run.path / "versions.json", versions)
+            _write_versions(run, rig.devices)
             problems = rig.close_all()
             if problems:
                 log.warning("after the run: %s", "; ".join(problems))
@@ -336,7 +353,7 @@ class Runner:
             log.exception("internal error")
         finally:
             if status != "succeeded":
-                self._safe_stop(rig, reason)
+                self._stop_and_record(rig, run, reason)
             if self._board is not None:
                 self._board.finish()
             self.index.update(run_id, status=status, reason=reason, ended_at=utcnow(),
@@ -356,6 +373,15 @@ class Runner:
         log.warning("stopping devices: %s", reason)
         for problem in rig.stop_all() + rig.close_all():
             log.error("cleanup: %s", problem)
+
+    def _stop_and_record(self, rig: Rig, run: RunDirectory, reason: str | None) -> None:
+        """A failed or aborted run: stop and close its devices (``_safe_stop``), then
+        record what they were in ``versions.json`` (unless the motion got as far as
+        writing it): a failed run's bus transactions and retries are its evidence."""
+        opened = dict(rig.devices)  # closing forgets them; describe() needs no link
+        self._safe_stop(rig, reason)
+        if not (run.path / "versions.json").exists():
+            _write_versions(run, opened)
 
     def _install_sigterm(self) -> Callable[[], None]:
         if threading.current_thread() is not threading.main_thread():

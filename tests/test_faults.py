@@ -1,5 +1,5 @@
 """Faults the stand-ins inject, through the real clients and drivers: a late reply, an
-input voltage out of range, dropped RTDE connections."""
+input voltage out of range, dropped RTDE connections; and what a run they end records."""
 
 from __future__ import annotations
 
@@ -8,11 +8,16 @@ import math
 import signal
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
+import yaml
 
 from drivers.dynamixel import DynamixelHead
+from mocks.sim import STAND_IN_TIMING
+from rigctl.config import load_rig
 from rigctl.errors import DeviceError
+from rigctl.runner import Runner
 from tests.mockproc import ROOT, control
 from tests.test_dynamixel import bus, head_config  # noqa: F401 (the bus fixture)
 from tests.test_ur import arm_proc  # noqa: F401 (the arm fixture)
@@ -84,3 +89,41 @@ def test_dropped_rtde_connections_are_reported_as_a_lost_link(arm_proc):  # noqa
     assert lines and "RTDE connection lost (closed by the controller" in lines[0]["error"], (
         done.stdout, done.stderr[-2000:])
     assert done.returncode in (0, -signal.SIGSEGV), done.stderr[-2000:]
+
+
+@pytest.mark.parametrize("end", ["failed", "aborted"])
+def test_a_run_that_fails_or_is_aborted_still_records_its_devices(bus, tmp_path, end):  # noqa: F811
+    """versions.json (each device's describe(): model, firmware, bus transaction counts)
+    is written for a run that a device fault fails (servo 2's input voltage out of range
+    once the first capture is taken) or that the operator aborts at the same point: its
+    bus record is the evidence of what went wrong."""
+    rig = tmp_path / "rig.yaml"
+    head = {"port": bus.ready["link"], "speed_cap_dps": 180, "accel_cap_dps2": 1000,
+            **STAND_IN_TIMING["head"]}
+    rig.write_text(yaml.safe_dump({"name": "dxl-rig", "records": {"directory": "rec"},
+                                   "devices": {"head": head}}))
+    runner = None
+
+    def on_event(event):
+        if event["type"] == "step" and event["step"].startswith("capture"):
+            if end == "failed":
+                control(bus.ready["control"], {"cmd": "set", "id": 2, "voltage": 9.0})
+            else:
+                runner.abort("operator pressed abort")
+
+    runner = Runner(load_rig(rig), show_progress=False, on_event=on_event)
+    outcome = runner.run("head-sweep", {"pan_deg": [-6, 6], "tilt_deg": [0, 3],
+                                        "settle_s": 0.0})
+    assert outcome.status == end, outcome.reason
+    if end == "failed":
+        assert "servo 2" in outcome.reason and "input voltage" in outcome.reason
+    else:
+        assert outcome.reason == "operator pressed abort"
+    versions = json.loads((Path(outcome.run_dir) / "versions.json").read_text())
+    assert versions["software"]["rigctl"]
+    described = versions["devices"]["head"]
+    assert described["model"] == "xm430-w350" and described["eeprom_writes"] is not None
+    stats = described["bus_stats"]
+    assert all(stats[str(i)]["transactions"] > 0 for i in (1, 2, 3))
+    assert stats["group"]["transactions"] > 0
+
