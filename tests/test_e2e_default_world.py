@@ -10,6 +10,7 @@ chain costs one active-camera run instead of two."""
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
 from dataclasses import dataclass
@@ -44,13 +45,12 @@ class CameraRun:
 
 @pytest.fixture(scope="module")
 def camera_run(tmp_path_factory):
-    """The default world's simulated rig with one active-camera run (pan/tilt 10 deg) on
+    """The default world's simulated rig with one active-camera run (its default plan) on
     it; stopped with its stand-ins, by PID, after the module's last test."""
     base = tmp_path_factory.mktemp("default-rig")
     rig = SimulatedRig("default", records=base / "records", rig_out=base / "sim-rig.yaml")
     try:
-        result = rigctl("run", "active-camera", "--rig", str(rig.rig_path), "--json",
-                        "--param", "pan_deg=10", "--param", "tilt_deg=10")
+        result = rigctl("run", "active-camera", "--rig", str(rig.rig_path), "--json")
         yield CameraRun(rig, base / "records", result)
     finally:
         orphans = rig.stop()
@@ -63,9 +63,9 @@ def test_active_camera_on_default_world(camera_run):
     assert result.returncode == 0, result.stderr[-3000:]
     out = json.loads(result.stdout)  # stdout is JSON and nothing else
     truth = load_world(ROOT / "mocks/worlds/default.yaml").truth()
-    assert abs(out["fx"] / truth["fx"] - 1) < 0.002
-    assert abs(out["fy"] / truth["fy"] - 1) < 0.002
-    assert abs(out["cx"] - truth["cx"]) < 1.5 and abs(out["cy"] - truth["cy"]) < 1.5
+    assert abs(out["fx"] / truth["fx"] - 1) < 0.0005
+    assert abs(out["fy"] / truth["fy"] - 1) < 0.0005
+    assert abs(out["cx"] - truth["cx"]) < 1.2 and abs(out["cy"] - truth["cy"]) < 1.2
     assert set(out["strategies"]) >= {"A", "B", "C", "D", "refined"}
     assert "fx" in out["strategies"]["D"] and out["sigma"]["fx"] > 0
     # the 0.3 deg roll-axis tilt shows in the recovered roll axis (about -sin(0.3 deg) in y)
@@ -75,8 +75,9 @@ def test_active_camera_on_default_world(camera_run):
     for name in ("camera.opencv.yaml", "camera_info.yaml", "plots/contours.png",
                  "plots/residuals.png", "result.json"):
         assert (run_dirs[0] / name).exists(), name
-    # eight head poses and one after the arm moved the camera 10 mm sideways
-    assert len(list(Path(run_dirs[0], "captures").glob("*.png"))) == 9
+    # the reference, pan/tilt +-3, +-15 and +-25 deg, three rolls, and one capture after
+    # the arm moved the camera 10 mm sideways
+    assert len(list(Path(run_dirs[0], "captures").glob("*.png"))) == 17
     depths = out["tracking"]["scene_depth"]
     assert depths["contours_measured"] >= 6
     assert np.linalg.norm(depths["move_in_camera_mm"]) == pytest.approx(10.0, rel=0.01)
@@ -89,6 +90,13 @@ def test_active_camera_on_default_world(camera_run):
         assert abs(got) < max(3 * sigma, 0.3)
     for key in ("fx", "fy", "cx", "cy"):
         assert abs(out[key] - truth[key]) < max(3 * out["sigma"][key], 0.2), key
+    # the full covariance is kept, and the reported sigma is its diagonal
+    cov = out["covariance"]
+    matrix = np.array(cov["matrix"])
+    assert matrix.shape == (len(cov["names"]),) * 2 and np.allclose(matrix, matrix.T)
+    for key in ("fx", "fy", "cx", "cy"):
+        i = cov["names"].index(key)
+        assert math.sqrt(matrix[i, i]) == pytest.approx(out["sigma"][key], rel=1e-9)
 
 
 @pytest.mark.timeout(2400)  # five runs on the simulated rig: ~2.5 min idle, 15 on a crowded host
