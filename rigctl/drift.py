@@ -92,8 +92,10 @@ def compare(procedure: str, new: dict[str, Any], old: dict[str, Any],
 def _link_drift(new: dict, old: dict, limits: DriftThresholds, metrics: dict) -> list[str]:
     """Link lengths and angles over their thresholds; with both models' sigma
     (``uncertainty.parameters``), only the changes beyond 3 sigma of the difference
-    count. ``metrics`` gets the largest change of each kind (and of those, the
-    significant ones' largest z)."""
+    count. One message per kind names the largest such change's link (1-based) and
+    parameter, with its sigma of the difference when known, and how many more of that
+    kind are over the limit. ``metrics`` gets the largest change of each kind (and of
+    those, the significant ones' largest z)."""
     sig_new = new.get("uncertainty", {}).get("parameters") or {}
     sig_old = old.get("uncertainty", {}).get("parameters") or {}
     changes = {"length": [], "angle": []}
@@ -105,7 +107,7 @@ def _link_drift(new: dict, old: dict, limits: DriftThresholds, metrics: dict) ->
             kind = "length" if k in LENGTH_KEYS else "angle"
             value = 1000 * abs(n[k] - o[k]) if kind == "length" else \
                 math.degrees(abs(n[k] - o[k]))
-            changes[kind].append((value, z, name))
+            changes[kind].append((value, z, i + 1, k))
     mm, deg = (max(changes[k], key=lambda c: c[0]) for k in ("length", "angle"))
     metrics |= {"link_mm": mm[0], "link_deg": deg[0]}
     out = []
@@ -113,8 +115,10 @@ def _link_drift(new: dict, old: dict, limits: DriftThresholds, metrics: dict) ->
                                    ("angle", limits.link_deg, "deg", ".4f")):
         over = [c for c in changes[kind] if c[0] > limit and _significant(c[1])]
         if over:
-            value, z, name = max(over, key=lambda c: c[0])
+            value, z, link, key = max(over, key=lambda c: c[0])
             metrics[f"link_{kind}_z"] = z
-            out.append(f"a link {kind} changed {value:{fmt}} {unit} (limit {limit} {unit})"
-                       + (f": {name}, {z:.1f} sigma of the difference" if z else ""))
+            others = (f"; {len(over) - 1} other link {kind}{'s' if len(over) > 2 else ''} "
+                      "over the limit too" if len(over) > 1 else "")
+            out.append(f"link {link} {key} changed {value:{fmt}} {unit} (limit {limit} {unit}"
+                       + (f", {z:.1f} sigma of the difference" if z else "") + others + ")")
     return out

@@ -121,8 +121,8 @@ def test_robot_kinematics_links_and_hand_eye():
     assert metrics["link_deg"] == pytest.approx(0.07, abs=1e-9)
     assert metrics["hand_eye_mm"] == pytest.approx(2.5, abs=1e-9)
     assert breaches == ["hand-eye moved 2.50 mm (limit 2.0 mm)",
-                        "a link length changed 0.800 mm (limit 0.5 mm)",
-                        "a link angle changed 0.0700 deg (limit 0.05 deg)"]
+                        "link 3 d changed 0.800 mm (limit 0.5 mm)",
+                        "link 3 alpha changed 0.0700 deg (limit 0.05 deg)"]
 
 
 def test_robot_kinematics_small_link_changes_pass():
@@ -172,8 +172,8 @@ def test_a_link_change_within_its_uncertainty_is_not_drift():
     new = {"links": links(d_mm=0.8), "uncertainty": {"parameters": sure}}
     old = {"links": links(), "uncertainty": {"parameters": sure}}
     breaches, metrics = compare("robot-kinematics", new, old, LIMITS)
-    assert breaches == ["a link length changed 0.800 mm (limit 0.5 mm): link3.d, "
-                        f"{0.8 / math.hypot(0.1, 0.1):.1f} sigma of the difference"]
+    assert breaches == ["link 3 d changed 0.800 mm (limit 0.5 mm, "
+                        f"{0.8 / math.hypot(0.1, 0.1):.1f} sigma of the difference)"]
     assert metrics["link_mm"] == pytest.approx(0.8)
     new["uncertainty"]["parameters"] = old["uncertainty"]["parameters"] = unsure
     breaches, metrics = compare("robot-kinematics", new, old, LIMITS)
@@ -188,7 +188,7 @@ def test_unchanged_links_with_and_without_sigma_compare_without_a_crash():
     new = {"links": links(d_mm=0.8), "uncertainty": {"parameters": identified}}
     old = {"links": links(), "uncertainty": {"parameters": identified}}
     breaches, metrics = compare("robot-kinematics", new, old, LIMITS)
-    assert breaches == ["a link length changed 0.800 mm (limit 0.5 mm)"]
+    assert breaches == ["link 3 d changed 0.800 mm (limit 0.5 mm)"]
     assert metrics["link_mm"] == pytest.approx(0.8) and metrics["link_deg"] == 0.0
 
 
@@ -203,3 +203,39 @@ def test_a_different_robot_hash_is_flagged_even_when_nothing_moved(procedure):
     assert compare(procedure, {**same, "robot_hash": "calib_1"},
                    {**same, "robot_hash": "calib_1"}, LIMITS)[0] == []
     assert compare(procedure, {**same, "robot_hash": "calib_2"}, same, LIMITS)[0] == []
+
+
+def test_link_breaches_name_the_link_the_parameter_and_the_sigma_of_the_difference():
+    """Each kind's message names the largest significant change's link (counted from 1)
+    and parameter, with the difference's sigma when both models give one, and how many
+    more of that kind are over the limit; a larger change within its noise is not the one
+    named."""
+    sigma = {f"link{i + 1}.{k}": (1e-4 if k in ("d", "a") else 1e-5) for i in range(6)
+             for k in ("d", "a", "theta_offset", "alpha", "beta")}
+    old, new = links(), links()
+    new[3]["a"] += 1.094e-3             # link 4 a: 1.094 mm, 7.7 sigma
+    new[0]["d"] += 0.7e-3               # link 1 d: 0.7 mm, over the limit too
+    new[5]["d"] += 1.5e-3               # link 6 d: 1.5 mm but within its noise
+    new[1]["beta"] += math.radians(0.08)  # link 2 beta: 0.08 deg, 79 sigma
+    noisy = {**sigma, "link6.d": 1e-3}
+    breaches, metrics = compare("robot-kinematics",
+                                {"links": new, "uncertainty": {"parameters": noisy}},
+                                {"links": old, "uncertainty": {"parameters": noisy}}, LIMITS)
+    z_len = 1.094 / math.hypot(0.1, 0.1)
+    z_ang = math.radians(0.08) / math.hypot(1e-5, 1e-5)
+    assert breaches == [
+        f"link 4 a changed 1.094 mm (limit 0.5 mm, {z_len:.1f} sigma of the difference; "
+        "1 other link length over the limit too)",
+        f"link 2 beta changed 0.0800 deg (limit 0.05 deg, {z_ang:.1f} sigma of the "
+        "difference)"]
+    assert metrics["link_mm"] == pytest.approx(1.5)  # the largest change, significant or not
+    assert metrics["link_length_z"] == pytest.approx(z_len)
+    # without sigma, the threshold alone decides and the message says no sigma
+    breaches, _ = compare("robot-kinematics", {"links": new}, {"links": old}, LIMITS)
+    assert breaches == ["link 6 d changed 1.500 mm (limit 0.5 mm; 2 other link lengths "
+                        "over the limit too)",
+                        "link 2 beta changed 0.0800 deg (limit 0.05 deg)"]
+    new = links()
+    new[4]["theta_offset"] += math.radians(0.06)
+    breaches, _ = compare("robot-kinematics", {"links": new}, {"links": old}, LIMITS)
+    assert breaches == ["link 5 theta_offset changed 0.0600 deg (limit 0.05 deg)"]

@@ -49,7 +49,7 @@ def test_drift_compare_measures_each_calibration_against_its_limits():
     breaches, metrics = drift.compare("robot-kinematics", new, old, limits)
     assert metrics["link_mm"] == pytest.approx(0.8) and metrics["link_deg"] == \
         pytest.approx(0.01)
-    assert breaches == ["a link length changed 0.800 mm (limit 0.5 mm)"]
+    assert breaches == ["link 6 a changed 0.800 mm (limit 0.5 mm)"]
 
 
 def test_durations_and_schedules_are_read_or_refused_at_load():
