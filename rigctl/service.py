@@ -145,18 +145,23 @@ class RigService:
         return None
 
     def record_without_run(self, procedure: str, status: str, reason: str,
-                           params: dict | None = None, run_id: str | None = None) -> str:
+                           params: dict | None = None, run_id: str | None = None,
+                           operator: str = "scheduler") -> str:
         """Index a run that never started (refused, skipped, aborted in the queue); a
-        queued job keeps the id the API returned for it."""
+        queued job keeps the id the API returned for it. ``operator``: who ended it (the
+        scheduler, the operator who aborted it) or who asked for it (a refused run)."""
         run_id = run_id or new_run_id(procedure)
-        self.index.insert(run_row(self.config, run_id, procedure, status, "scheduler",
+        self.index.insert(run_row(self.config, run_id, procedure, status, operator,
                                   reason=reason, ended_at=utcnow(),
                                   result_summary={"params": params or {}}))
         self.events.publish({"type": "finished", "run_id": run_id, "status": status,
                              "reason": reason})
         return run_id
 
-    def abort(self, run_id: str) -> str:
+    def abort(self, run_id: str, operator: str = "operator") -> str:
+        """Abort the current run (its record keeps the operator who started it), or take
+        a queued one off the queue and record it as aborted, with ``operator`` as its
+        operator."""
         with self.cond:
             if self.current is not None and self.current.run_id == run_id:
                 self.runner.abort("aborted via the API")
@@ -166,7 +171,7 @@ class RigService:
                     self.queue.remove(job)
                     self.record_without_run(job.procedure, "aborted",
                                             "aborted via the API before it started",
-                                            job.params, job.run_id)
+                                            job.params, job.run_id, operator)
                     return "removed from the queue"
         raise HTTPException(404, f"run {run_id} is neither running nor queued")
 
@@ -189,7 +194,7 @@ class RigService:
             except RigError as exc:  # refused before anything moved (busy, limits, params)
                 status = "skipped" if job.source == "schedule" else "failed"
                 self.record_without_run(job.procedure, status, f"{type(exc).__name__}: {exc}",
-                                        job.params, job.run_id)
+                                        job.params, job.run_id, job.operator)
             except Exception:
                 log.exception("worker: run %s crashed", job.run_id)
             finally:
@@ -326,6 +331,10 @@ class RunRequest(BaseModel):
     procedure: str = Field(pattern=NAME, description="see GET /procedures")
     params: dict[str, Any] = Field(default_factory=dict, max_length=64)
     operator: str | None = Field(None, max_length=100)
+
+
+class AbortRequest(BaseModel):
+    operator: str | None = Field(None, max_length=100, description="who aborts; recorded")
 
 
 def _row(row: dict) -> dict:
@@ -476,8 +485,11 @@ def _run_routes(service: RigService, guarded: list) -> APIRouter:
         return row
 
     @router.post("/runs/{run_id}/abort", dependencies=guarded)
-    def abort_run(run_id: str = RUN_ID) -> dict:
-        return {"run_id": run_id, "status": service.abort(run_id)}
+    def abort_run(run_id: str = RUN_ID, request: AbortRequest | None = None) -> dict:
+        """Abort a run, running or queued; a queued one is recorded as aborted by the
+        request's ``operator`` (default "operator", as for accept and reject)."""
+        operator = (request.operator if request else None) or "operator"
+        return {"run_id": run_id, "status": service.abort(run_id, operator)}
 
     @router.get("/runs/{run_id}/captures/{n}")
     def capture_image(run_id: str = RUN_ID, n: int = PathParam(ge=0, le=99_999)

@@ -1,5 +1,6 @@
 """The service's decisions and bookkeeping without hardware: drift comparison, automatic
-and operator decisions (accept, reject, 404, 409), schedule parsing."""
+and operator decisions (accept, reject, 404, 409), who aborted or asked for a run that
+never started, schedule parsing."""
 
 from __future__ import annotations
 
@@ -14,8 +15,10 @@ from fastapi.testclient import TestClient
 from rigctl import drift
 from rigctl.config import DriftThresholds, parse_duration, parse_rig
 from rigctl.errors import ConfigError
+from rigctl.locks import rig_lock
 from rigctl.records import RecordIndex, RunDirectory, utcnow
 from rigctl.service import RigService, create_app
+from tests.waiting import wait_until
 
 CAMERA = {"fx": 900.0, "fy": 902.0, "cx": 640.0, "cy": 360.0}
 
@@ -198,3 +201,61 @@ def test_decisions_keep_their_comments_and_the_console_shows_them(tmp_path):
         assert api.get("/console/start?procedure=nope").status_code == 404
         assert api.post("/calibrations/d1-active-camera/accept",
                         json={"comment": "x" * 3000}).status_code == 422
+
+
+def _head_service(tmp_path, token="units-token"):
+    """A service on a rig with a head (never opened: the worker is not started unless a
+    test starts it, and then the rig's lock is held)."""
+    rig = tmp_path / "head-rig.yaml"
+    rig.write_text("name: head-rig\nrecords: {directory: records}\n"
+                   "devices:\n  head: {port: /dev/null/not-a-port}\n"
+                   f"service: {{token: {token}}}\n")
+    from rigctl.config import load_rig
+
+    return RigService(load_rig(rig)), {"Authorization": f"Bearer {token}"}
+
+
+SWEEP = {"procedure": "head-sweep", "params": {"pan_deg": [0], "tilt_deg": [0]}}
+
+
+def test_a_run_aborted_in_the_queue_is_recorded_as_aborted_by_its_caller(tmp_path):
+    """The operator who aborts a queued run through the API is its record's operator (as
+    for accept and reject: the body's ``operator``, "operator" without one), not the
+    scheduler."""
+    service, auth = _head_service(tmp_path)
+    with TestClient(create_app(service)) as api:
+        ids = [api.post("/runs", json={**SWEEP, "operator": "bob"}, headers=auth).json()
+               ["run_id"] for _ in range(3)]
+        assert api.post(f"/runs/{ids[0]}/abort", json={"operator": "ada"}).status_code == 401
+        r = api.post(f"/runs/{ids[0]}/abort", json={"operator": "ada"}, headers=auth)
+        assert r.json() == {"run_id": ids[0], "status": "removed from the queue"}
+        assert api.post(f"/runs/{ids[1]}/abort", headers=auth).status_code == 200
+        assert api.post(f"/runs/{ids[2]}/abort", json={}, headers=auth).status_code == 200
+        assert api.post(f"/runs/{ids[0]}/abort", headers=auth).status_code == 404  # gone
+        rows = [api.get(f"/runs/{run_id}").json() for run_id in ids]
+        assert [(r["status"], r["operator"]) for r in rows] == [
+            ("aborted", "ada"), ("aborted", "operator"), ("aborted", "operator")]
+        assert rows[0]["reason"] == "aborted via the API before it started"
+        assert not service.queue
+        assert api.post(f"/runs/{ids[0]}/abort", json={"operator": "x" * 101},
+                        headers=auth).status_code == 422
+
+
+def test_a_queued_run_refused_when_it_starts_keeps_the_operator_who_asked(tmp_path):
+    """A run the worker cannot start (the rig held elsewhere) is recorded as failed with
+    the operator who queued it, not the scheduler's name."""
+    service, auth = _head_service(tmp_path)
+    lock = rig_lock(service.config)
+    lock.acquire("held-by-test")
+    try:
+        service.start()
+        with TestClient(create_app(service)) as api:
+            run_id = api.post("/runs", json={**SWEEP, "operator": "bob"},
+                              headers=auth).json()["run_id"]
+            row = wait_until(lambda: (r := api.get(f"/runs/{run_id}").json())["status"]
+                             not in ("queued", "running") and r, what="the refused run")
+    finally:
+        service.stop()
+        lock.release()
+    assert row["status"] == "failed" and "busy, held by run held-by-test" in row["reason"]
+    assert row["operator"] == "bob"

@@ -68,7 +68,8 @@ document.addEventListener("click", async ev => {
   if (!button) return;
   const runId = button.dataset.abort;
   if (!confirm("Abort run " + runId + "?")) return;
-  const r = await post("/runs/" + encodeURIComponent(runId) + "/abort");
+  const r = await post("/runs/" + encodeURIComponent(runId) + "/abort",
+                       { operator: sessionStorage.getItem("rigctl-operator") || null });
   if (r.ok) showMessage("run " + runId + ": " + r.data.status, "info");
 });
 
