@@ -1,7 +1,8 @@
 """``hand-eye``: T_flange_cam and T_base_target from N diverse views of the target (head
 held at home): OpenCV ``calibrateHandEye`` (every method), then a joint refinement of both
 transforms on pixel reprojection error, with the arm's own model as its controller reports
-it (the nominal model when the run recorded none)."""
+it (the nominal model when the run recorded none). The views are planned with that model
+too, read from the controller when the run is planned (``inputs.json``: ``arm_model``)."""
 
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ from rigctl.geometry.kinematics import nominal_ur
 
 from .base import Params, Procedure, SolveContext
 from .intrinsics import camera_model, intrinsics_from
-from .planning import planning_K, view_steps
+from .planning import planning_arm, planning_K, view_steps
 from .robot_common import board_observations, controller_model
 
 
@@ -24,7 +25,8 @@ class HandEyeParams(Params):
     intrinsics: dict[str, Any] | None = None
     # use intrinsics calibrated at another camera size or focus (recorded in the inputs)
     allow_settings_change: bool = False
-    # the controller's own (factory) arm model, as the run recorded it; off: nominal
+    # the controller's own (factory) arm model: planned with, and solved with as the run
+    # recorded it; off: nominal
     use_controller_model: bool = True
     poses: int = Field(12, ge=3, le=100)
     view_distance_m: float = Field(0.45, gt=0.2, le=1.0)
@@ -44,11 +46,15 @@ class HandEye(Procedure):
     def plan(self, params: HandEyeParams, config) -> list:
         return view_steps(config, params.poses, params.view_distance_m, params.max_tilt_deg,
                           params.seed, "view", "view", params.settle_s,
-                          K=planning_K(config, params.intrinsics))
+                          K=planning_K(config, params.intrinsics),
+                          arm=planning_arm(config, params.use_controller_model))
 
     def resolve_inputs(self, params: HandEyeParams, config) -> dict[str, Any]:
+        """The intrinsics, and the arm model the plan used (``planning_arm``)."""
         return {"intrinsics": intrinsics_from(config, params.intrinsics,
-                                              params.allow_settings_change)}
+                                              params.allow_settings_change),
+                "arm_model": planning_arm(config, params.use_controller_model,
+                                          fresh=False).record()}
 
     def solve(self, ctx: SolveContext) -> dict[str, Any]:
         intr = ctx.input("intrinsics")

@@ -1,18 +1,27 @@
-"""Pose planning with the nominal model: views of the target that keep it in sight, the
-single-joint sweeps of robot-kinematics, and the intrinsics planning assumes."""
+"""Pose planning: views of the target that keep it in sight, the single-joint sweeps of
+robot-kinematics, and the intrinsics planning assumes.
+
+The arm model the planner predicts the camera with (``planning_arm``) is the controller's
+own, factory-calibrated DH table when the controller reports one on its primary interface
+(read-only, port 30001), else the nominal table of the rig file's arm model. The arm
+procedures read it when the run is planned and record it in ``inputs.json``."""
 
 from __future__ import annotations
 
 import math
+import threading
+import time
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import Any
 
 import numpy as np
 
+from drivers.ur_primary import PrimaryInfo, read_primary_info
 from rigctl.calib import pose_selection
 from rigctl.calib.board import target_points
 from rigctl.config import RigConfig
-from rigctl.errors import ConfigError, SolveError
+from rigctl.errors import ConfigError, DeviceError, SolveError
 from rigctl.geometry.camera import camera_matrix
 from rigctl.geometry.kinematics import KinematicModel, nominal_ur
 from rigctl.geometry.transforms import inv_T, look_at, make_T, xyz_rpy_to_T
@@ -25,6 +34,96 @@ from .intrinsics import camera_model, intrinsics_from
 MIN_CLEARANCE_M = 0.05
 VIEW_SEEDS_DEG = ([0, -100, -100, -70, 90, 0], [0, -80, -110, -80, 90, 0],
                   [30, -100, -100, -70, 90, 0], [-30, -100, -100, -70, 90, 0])
+
+
+# How long the controller's answer read by a plan serves the ``resolve_inputs`` that follows
+# it (the runner plans, then resolves the inputs): what the plan used is what is recorded.
+PRIMARY_REUSE_S = 600.0
+_primary_reads: dict[str, tuple[float, PrimaryInfo | Exception]] = {}
+_primary_lock = threading.Lock()
+
+
+def controller_dh_model(kinematics: dict) -> KinematicModel:
+    """The arm model of a controller's DH table (``KinematicsInfo.as_dict()``: theta, a,
+    d, alpha in radians and metres; plain DH, no beta)."""
+    return KinematicModel(np.array(kinematics["d"], float), np.array(kinematics["a"], float),
+                          np.array(kinematics["alpha"], float),
+                          theta_offset=np.array(kinematics["theta"], float))
+
+
+@dataclass(frozen=True)
+class PlanningArm:
+    """The arm model a plan predicts the camera with: the controller's own (``source``
+    "controller", its hash and version) or the nominal table ("nominal", ``note`` says
+    why)."""
+
+    model: KinematicModel
+    source: str
+    robot_hash: str | None = None
+    controller_version: str | None = None
+    kinematics: dict | None = None  # the controller's DH table as it reported it
+    note: str = ""
+
+    def record(self) -> dict[str, Any]:
+        """What ``inputs.json`` keeps of it."""
+        return {"source": self.source, "robot_hash": self.robot_hash,
+                "controller_version": self.controller_version,
+                "controller_kinematics": self.kinematics, "note": self.note}
+
+
+def _primary_info(host: str, timeout_s: float, fresh: bool) -> PrimaryInfo | Exception:
+    """The controller's primary-interface answer (or the error reading it), read now, or
+    with ``fresh=False`` the one the last plan read within ``PRIMARY_REUSE_S``."""
+    with _primary_lock:
+        cached = _primary_reads.get(host)
+    if not fresh and cached is not None and time.monotonic() - cached[0] < PRIMARY_REUSE_S:
+        return cached[1]
+    try:
+        info: PrimaryInfo | Exception = read_primary_info(host, timeout_s=timeout_s)
+    except DeviceError as exc:  # ProtocolError too
+        info = exc
+    with _primary_lock:
+        _primary_reads[host] = (time.monotonic(), info)
+    return info
+
+
+def planning_arm(config: RigConfig, use_controller: bool = True, fresh: bool = True
+                 ) -> PlanningArm:
+    """The controller's own DH table when it reports one (``use_controller``), else the
+    nominal table of ``devices.arm.model``. Reads the controller's primary interface (a
+    read-only connection; nothing moves); ``fresh=False`` reuses what the last plan read
+    (``resolve_inputs`` records the model the plan used)."""
+    arm = config.devices.arm
+    if arm is None:
+        raise SolveError("planning needs devices.arm in the rig file")
+    nominal = nominal_ur(arm.model)
+    if not use_controller:
+        return PlanningArm(nominal, "nominal", note="the controller's model is not used "
+                           "(use_controller_model=false); planned with the nominal "
+                           f"{arm.model} table")
+    info = _primary_info(arm.host, arm.primary_timeout_s, fresh)
+    if isinstance(info, Exception):
+        return PlanningArm(nominal, "nominal", note=f"no controller model ({info}); planned "
+                           f"with the nominal {arm.model} table")
+    version = info.version.text if info.version else None
+    if info.kinematics is None:
+        return PlanningArm(nominal, "nominal", controller_version=version,
+                           note="the controller reports no KINEMATICS_INFO; planned with "
+                                f"the nominal {arm.model} table")
+    kinematics = info.kinematics.as_dict()
+    model = controller_dh_model(kinematics)
+    mm = 1000 * float(np.max(np.abs(np.r_[model.d - nominal.d, model.a - nominal.a])))
+    deg = math.degrees(float(np.max(np.abs(np.r_[model.theta_offset - nominal.theta_offset,
+                                                   model.alpha - nominal.alpha]))))
+    return PlanningArm(model, "controller", kinematics["hash"], version, kinematics,
+                       note=f"planned with the controller's own kinematics ({kinematics['hash']}"
+                            f", controller {version}): up to {mm:.2f} mm and {deg:.3f} deg "
+                            f"from the nominal {arm.model} table")
+
+
+def arm_model(config: RigConfig, model: KinematicModel | None) -> KinematicModel:
+    """``model``, or the nominal table of the rig file's arm when None."""
+    return model if model is not None else nominal_ur(config.devices.arm.model)
 
 
 @lru_cache(maxsize=32)
@@ -46,7 +145,7 @@ def target_centre(config: RigConfig) -> tuple[np.ndarray, np.ndarray]:
 
 
 def clearance_m(config: RigConfig, model, q) -> float:
-    """The smallest height of the elbow, wrist, flange and camera frames (nominal model)
+    """The smallest height of the elbow, wrist, flange and camera frames (arm ``model``)
     above the target plane, on the side the camera looks from. Frame origins only, and
     only at the planned configurations, not along the moves between them."""
     T_base_target, _ = target_centre(config)
@@ -80,16 +179,17 @@ def reach_sphere(model: KinematicModel, T_flange_cam: np.ndarray) -> tuple[np.nd
 def plan_target_views(config: RigConfig, n: int, distance_m: float = 0.45,
                       max_tilt_deg: float = 25.0, seed: int = 0,
                       up_axis: np.ndarray | None = None, max_spin_deg: float = 60.0,
+                      model: KinematicModel | None = None,
                       ) -> tuple[list[np.ndarray], list[str]]:
-    """Joint configurations whose (nominal) camera looks at the board centre from
-    ``distance_m``, tilted up to ``max_tilt_deg`` off the board normal, with varied roll
-    about the viewing axis (up to ``max_spin_deg`` either way from ``up_axis``, a
-    direction in the board's plane, when given). Returns the reachable ones and notes for
-    the skipped."""
+    """Joint configurations whose camera (arm ``model``, the nominal one when None)
+    looks at the board centre from ``distance_m``, tilted up to ``max_tilt_deg`` off the
+    board normal, with varied roll about the viewing axis (up to ``max_spin_deg`` either
+    way from ``up_axis``, a direction in the board's plane, when given). Returns the
+    reachable ones and notes for the skipped."""
     arm = config.devices.arm
     if arm is None:
         raise SolveError("planning target views needs devices.arm in the rig file")
-    model = nominal_ur(arm.model)
+    model = arm_model(config, model)
     T_base_target, centre = target_centre(config)
     normal = -T_base_target[:3, 2]  # board z points into the board; the camera is outside
     T_cam_flange = inv_T(nominal_flange_cam(config))
@@ -166,12 +266,14 @@ def closest_plan(plan_at, distance_m: float, want: int):
 
 
 def reachable_views(config: RigConfig, count: int, distance_m: float, max_tilt_deg: float,
-                    seed: int, label: str) -> tuple[list[np.ndarray], list[str]]:
+                    seed: int, label: str, model: KinematicModel | None = None
+                    ) -> tuple[list[np.ndarray], list[str]]:
     """``plan_target_views`` at ``distance_m`` or closer (``closest_plan``), keeping the
     plan with the most views. Fewer than ``MIN_VIEWS`` is refused here, before any
     motion."""
     (poses, notes), used, first = closest_plan(
-        lambda d: plan_target_views(config, count, d, max_tilt_deg, seed), distance_m, count)
+        lambda d: plan_target_views(config, count, d, max_tilt_deg, seed, model=model),
+        distance_m, count)
     if used != distance_m:
         notes = [f"{label}s: only {first} "
                  f"of {count} views reachable at {distance_m:.2f} m; planned at {used:.2f} m "
@@ -207,13 +309,15 @@ def aligned_spin(config: RigConfig) -> dict:
 
 
 def visible_views(config: RigConfig, count: int, distance_m: float, max_tilt_deg: float,
-                  seed: int, label: str, K: np.ndarray) -> tuple[list[np.ndarray], list[str]]:
-    """Up to ``count`` reachable views in which the nominal camera (``K``) sees the whole
-    board: planned at ``distance_m`` unless the board cannot fit in the image from there
-    (a large board, a long lens), then further out; when too few are reachable, at the
-    other distances of ``FARTHER`` and ``CLOSER`` (never nearer than the board fits),
-    keeping the plan with the most views. Fewer than ``MIN_VIEWS`` is refused here."""
-    model = nominal_ur(config.devices.arm.model)
+                  seed: int, label: str, K: np.ndarray, model: KinematicModel | None = None
+                  ) -> tuple[list[np.ndarray], list[str]]:
+    """Up to ``count`` reachable views in which the camera (``K``, arm ``model``, the
+    nominal one when None) sees the whole board: planned at ``distance_m`` unless the
+    board cannot fit in the image from there (a large board, a long lens), then further
+    out; when too few are reachable, at the other distances of ``FARTHER`` and ``CLOSER``
+    (never nearer than the board fits), keeping the plan with the most views. Fewer than
+    ``MIN_VIEWS`` is refused here."""
+    model = arm_model(config, model)
     nearest = fit_distance(config, K)
     start = max(distance_m, nearest)
     ladder = [start] + [d for d in sorted({start * f for f in (*FARTHER, *CLOSER)},
@@ -223,7 +327,8 @@ def visible_views(config: RigConfig, count: int, distance_m: float, max_tilt_deg
     reached = 0
     for d in ladder:
         for spin in ({}, aligned):  # free spin first; aligned when that loses the board
-            poses, _ = plan_target_views(config, 2 * count, d, max_tilt_deg, seed, **spin)
+            poses, _ = plan_target_views(config, 2 * count, d, max_tilt_deg, seed,
+                                         model=model, **spin)
             reached = max(reached, len(poses))
             seen = [q for q in poses if board_visible(config, model, q, K)][:count]
             if len(seen) > len(best[0]):
@@ -256,18 +361,24 @@ def visible_views(config: RigConfig, count: int, distance_m: float, max_tilt_deg
 
 def view_steps(config: RigConfig, count: int, distance_m: float, max_tilt_deg: float,
                seed: int, label: str, kind: str, settle_s: float,
-               K: np.ndarray | None = None) -> list:
+               K: np.ndarray | None = None, arm: PlanningArm | None = None) -> list:
     """Steps visiting ``count`` planned views of the target (head at home first when there
     is a head), each settled and captured, then back to the arm's home; skipped views are
     reported as notes. With intrinsics ``K`` every view keeps the whole board in sight
-    (``visible_views``), else views are only checked for reach (``reachable_views``)."""
+    (``visible_views``), else views are only checked for reach (``reachable_views``).
+    ``arm``: the model planned with (``planning_arm``; nominal when None), noted."""
     steps: list = []
     if config.devices.head is not None:
         steps.append(MoveHead(0.0, 0.0, 0.0, "head home"))
+    model = arm.model if arm is not None else None
     if K is not None:
-        poses, notes = visible_views(config, count, distance_m, max_tilt_deg, seed, label, K)
+        poses, notes = visible_views(config, count, distance_m, max_tilt_deg, seed, label, K,
+                                     model)
     else:
-        poses, notes = reachable_views(config, count, distance_m, max_tilt_deg, seed, label)
+        poses, notes = reachable_views(config, count, distance_m, max_tilt_deg, seed, label,
+                                       model)
+    if arm is not None:
+        notes = [arm.note, *notes]
     steps += [Note(n) for n in notes]
     for k, q in enumerate(poses):
         name = f"{label} {k + 1}"
@@ -278,15 +389,17 @@ def view_steps(config: RigConfig, count: int, distance_m: float, max_tilt_deg: f
 
 
 def informative_views(config: RigConfig, params, K: np.ndarray, planned_q: list, n: int,
-                      seed: int) -> tuple[list[np.ndarray], list[str]]:
+                      seed: int, model: KinematicModel | None = None
+                      ) -> tuple[list[np.ndarray], list[str]]:
     """``n`` training views chosen for observability (``rigctl.calib.pose_selection``):
     candidates at 0.8, 1 and 1.25 times ``params.view_distance_m``, tilted up to
     ``params.max_tilt_deg``, every one reachable, inside the soft limits and with the whole
     board in view; the D-optimal subset together with the views already planned
-    (``planned_q``), ordered for short travel. Notes report the predicted condition
-    number against that of plain random views."""
+    (``planned_q``), ordered for short travel, all predicted with the arm ``model`` (the
+    nominal one when None). Notes report the predicted condition number against that of
+    plain random views."""
 
-    model = nominal_ur(config.devices.arm.model)
+    model = arm_model(config, model)
     X = nominal_flange_cam(config)
     W, _ = target_centre(config)
     candidates, notes = [], []
@@ -297,12 +410,13 @@ def informative_views(config: RigConfig, params, K: np.ndarray, planned_q: list,
             continue
         for spin in ({}, aligned_spin(config)):
             qs, _ = plan_target_views(config, 3 * n, base * factor, params.max_tilt_deg,
-                                      seed + 17 * k, **spin)
+                                      seed + 17 * k, model=model, **spin)
             candidates += [q for q in qs if board_visible(config, model, q, K)]
     if len(candidates) < n:
         notes.append(f"pose selection: only {len(candidates)} candidate views; using "
                      "random views")
-        poses, more = plan_target_views(config, n, base, params.max_tilt_deg, seed)
+        poses, more = plan_target_views(config, n, base, params.max_tilt_deg, seed,
+                                        model=model)
         return poses, notes + more
     tg = config.target
     obj = target_points(tg)
@@ -315,7 +429,7 @@ def informative_views(config: RigConfig, params, K: np.ndarray, planned_q: list,
     J_cand = jacobians(candidates)
     chosen = pose_selection.select_informative(J_cand, n, J_fixed)
     random_q, _ = plan_target_views(config, n, params.view_distance_m, params.max_tilt_deg,
-                                    seed)
+                                    seed, model=model)
     p = J_fixed.shape[1]
     cond_chosen = pose_selection.scaled_condition(np.r_[J_fixed, J_cand[chosen].reshape(-1, p)])
     cond_random = pose_selection.scaled_condition(np.r_[J_fixed,
@@ -330,7 +444,8 @@ def informative_views(config: RigConfig, params, K: np.ndarray, planned_q: list,
 
 def board_visible(config: RigConfig, model: KinematicModel, q, K: np.ndarray,
                   margin: float = 0.03) -> bool:
-    """Does the nominal camera at joints q see every board corner, inside a margin?"""
+    """Does the camera at joints q (arm ``model``) see every board corner, inside a
+    margin?"""
     tg = config.target
     T_base_target, _ = target_centre(config)
     T_cam_target = inv_T(model.fk(q) @ nominal_flange_cam(config)) @ T_base_target
@@ -360,7 +475,7 @@ def visible_range(config: RigConfig, model: KinematicModel, q_base, joint: int,
                   K: np.ndarray, max_deg: float = 60.0, resolution_deg: float = 1.0
                   ) -> tuple[float, float]:
     """The interval of offsets (deg, lo <= 0 <= hi) of one joint from ``q_base`` over which
-    the nominal camera keeps the whole board in view, the joint stays inside its soft
+    the camera (arm ``model``) keeps the whole board in view, the joint stays inside its soft
     limits and the arm clear of the target plane (``clearance_m``), scanned outwards from 0
     in ``resolution_deg`` steps up to ``max_deg``."""
     limits = config.devices.arm.joint_limits_rad()[joint]
@@ -416,14 +531,16 @@ class SweepPlan:
 
 
 def plan_sweeps(config: RigConfig, bases: list[np.ndarray], K: np.ndarray, steps: int,
-                max_deg: float = 60.0) -> tuple[dict[int, SweepPlan], list[str]]:
+                max_deg: float = 60.0, model: KinematicModel | None = None
+                ) -> tuple[dict[int, SweepPlan], list[str]]:
     """Single-joint sweeps, last joint first. Each joint starts from the configuration of
     ``bases`` in which the board stays in view over the widest range of that joint (the
     first wins ties), and takes ``steps`` offsets spread over that range (up to
     +-``max_deg``) out to both ends: the axis is located to sigma / (angle swept), so the
     widest sweep the view allows is the most informative. Link-by-link and the axis lines
-    need only joint j to move within a sweep, not a base common to all sweeps."""
-    model = nominal_ur(config.devices.arm.model)
+    need only joint j to move within a sweep, not a base common to all sweeps. Predicted
+    with the arm ``model`` (the nominal one when None)."""
+    model = arm_model(config, model)
     plan, notes = {}, []
     for j in range(5, -1, -1):
         ranges = [visible_range(config, model, q, j, K, max_deg) for q in bases]

@@ -12,20 +12,24 @@ from rigctl.geometry.kinematics import KinematicModel, nominal_ur
 from rigctl.geometry.transforms import inv_T
 
 from .intrinsics import camera_model
-from .planning import nominal_flange_cam, target_centre
+from .planning import controller_dh_model, nominal_flange_cam, target_centre
 
 
 def controller_model(ctx) -> tuple[KinematicModel | None, str | None]:
-    """The controller's own DH table and hash, as the run recorded them (``versions.json``
-    of the run directory, so a re-solve reads the same), or (None, None)."""
+    """The controller's own DH table and hash, as the run recorded them, or (None, None):
+    ``versions.json`` (read when the arm was opened for the run), else the model the run
+    was planned with when that was the controller's (``inputs.json``: ``arm_model``).
+    Both are in the run directory, so a re-solve reads the same."""
     versions = ctx.run.versions() or {}
     arm = (versions.get("devices") or {}).get("arm") or {}
     k = arm.get("controller_kinematics")
     if not k:
+        planned = ctx.inputs.get("arm_model") or {}
+        k = planned.get("controller_kinematics") if planned.get("source") == "controller" \
+            else None
+    if not k:
         return None, None
-    model = KinematicModel(np.array(k["d"]), np.array(k["a"]), np.array(k["alpha"]),
-                           theta_offset=np.array(k["theta"]))
-    return model, k.get("hash")
+    return controller_dh_model(k), k.get("hash")
 
 
 def board_observations(ctx, intr: dict) -> list[dict]:

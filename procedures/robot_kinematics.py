@@ -6,7 +6,9 @@ view of the target that keeps the board in sight over the widest range of that j
 (``sweep_bases=widest``; ``common`` sweeps every joint from one base view, as the thesis
 does), with offsets spread over that range up to +-60 degrees; D-optimal (or random)
 views for the refinement; held-out views for validation. Poses are planned with the
-nominal model.
+controller's own (factory) model when it reports one on its primary interface
+(``use_controller_model``), else with the nominal model; ``inputs.json`` records which
+(``arm_model``).
 
 Solve: board poses (Tsai + LM) with the intrinsics of the latest accepted active-camera
 run (or a parameter); hand-eye (OpenCV closed forms, then a joint refinement of X and W
@@ -48,6 +50,7 @@ from .planning import (
     informative_views,
     plan_sweeps,
     plan_target_views,
+    planning_arm,
     planning_K,
 )
 from .robot_common import board_observations, controller_model, export_model
@@ -75,18 +78,21 @@ class RobotKinematicsParams(Params):
     # the final bundle adjustment frees intrinsics and distortion, with the intrinsics in
     # use (and their sigma) as a prior; off: they are held as given
     refine_camera: bool = True
-    # the arm's own (factory) model from its controller, recorded in versions.json: a
-    # start of the joint refinement and a held-out baseline beside nominal
+    # the arm's own (factory) model from its controller: the model the views are planned
+    # with (read when the run is planned, in inputs.json), and as recorded in
+    # versions.json a start of the joint refinement and a held-out baseline beside
+    # nominal; off: nominal throughout
     use_controller_model: bool = True
     seed: int = 0
 
 
-def _scaled_to_reach(config, params: RobotKinematicsParams):
+def _scaled_to_reach(config, params: RobotKinematicsParams, model=None):
     """The parameters with the sweep and view distances brought closer (``CLOSER``)
-    when the arm cannot reach a straight view of the target from the asked ones (a small
-    arm such as a UR3e), the first sweep base, and a note saying so."""
+    when the arm (``model``, nominal when None) cannot reach a straight view of the
+    target from the asked ones (a small arm such as a UR3e), the first sweep base, and a
+    note saying so."""
     (base, notes), used, _ = closest_plan(
-        lambda d: plan_target_views(config, 1, d, 0.0, params.seed),
+        lambda d: plan_target_views(config, 1, d, 0.0, params.seed, model=model),
         params.sweep_distance_m, 1)
     if not base:
         raise SolveError("robot-kinematics: no reachable view of the target from "
@@ -116,18 +122,20 @@ class RobotKinematics(Procedure):
         steps: list = []
         if config.devices.head is not None:
             steps.append(MoveHead(0.0, 0.0, 0.0, "head home"))
+        arm = planning_arm(config, params.use_controller_model)
+        model = arm.model
         # the sweeps start from a farther view, so the board stays in sight longer
-        params, base, notes = _scaled_to_reach(config, params)
+        params, base, notes = _scaled_to_reach(config, params, model)
         q_base = base[0]
         K = planning_K(config, params.intrinsics)
         bases = [q_base]
         if params.sweep_bases == "widest":
             more, _ = plan_target_views(config, params.sweep_base_candidates,
                                         params.sweep_distance_m, params.max_tilt_deg,
-                                        params.seed + 7)
+                                        params.seed + 7, model=model)
             bases += more
-        sweeps, sweep_notes = plan_sweeps(config, bases, K, params.sweep_steps)
-        steps += [Note(n) for n in notes + sweep_notes]
+        sweeps, sweep_notes = plan_sweeps(config, bases, K, params.sweep_steps, model=model)
+        steps += [Note(n) for n in [arm.note, *notes, *sweep_notes]]
 
         def capture(label, **extra):
             return [Settle(params.settle_s), CaptureStep(label, extra=extra)]
@@ -155,10 +163,10 @@ class RobotKinematics(Procedure):
             if n == 0:
                 continue
             if kind == "train" and params.pose_selection == "d-optimal":
-                poses, more = informative_views(config, params, K, sweep_q, n, seed)
+                poses, more = informative_views(config, params, K, sweep_q, n, seed, model)
             else:
                 poses, more = plan_target_views(config, n, params.view_distance_m,
-                                                params.max_tilt_deg, seed)
+                                                params.max_tilt_deg, seed, model=model)
             steps += [Note(m) for m in more]
             for k, q in enumerate(poses):
                 steps.append(MoveArmJoints(tuple(float(v) for v in q), f"{kind} {k + 1}"))
@@ -167,8 +175,11 @@ class RobotKinematics(Procedure):
         return steps
 
     def resolve_inputs(self, params: RobotKinematicsParams, config) -> dict[str, Any]:
+        """The intrinsics, and the arm model the plan used (``planning_arm``)."""
         return {"intrinsics": intrinsics_from(config, params.intrinsics,
-                                              params.allow_settings_change)}
+                                              params.allow_settings_change),
+                "arm_model": planning_arm(config, params.use_controller_model,
+                                          fresh=False).record()}
 
     def solve(self, ctx: SolveContext) -> dict[str, Any]:
         """Thesis 4.3 on the run's board views (``rigctl.calib.robot_pipeline``)."""
@@ -206,11 +217,18 @@ class RobotKinematics(Procedure):
         if exported["factory"] is not None:
             exported["factory"]["links"] = controller.links()
         return {**exported, "arm_model": ctx.config.devices.arm.model,
-                "robot_hash": robot_hash,
+                "robot_hash": robot_hash, "planned_with": _planned_with(ctx),
                 "intrinsics_check": check, "summary": _summary(sol),
                 "lost_views": [o["label"] for o in obs if not o["found"]],
                 # training views the refined model missed by far, left out (label: RMS px)
                 "rejected_views": sol.rejected_views}
+
+
+def _planned_with(ctx: SolveContext) -> dict[str, Any] | None:
+    """Which arm model the views were planned with (``inputs.json``; None for a run
+    recorded before it was)."""
+    arm = ctx.inputs.get("arm_model")
+    return None if arm is None else {k: arm.get(k) for k in ("source", "robot_hash", "note")}
 
 
 def _mm(errors: dict | None) -> float | None:

@@ -10,6 +10,9 @@ Three measures per state, RMS over the views:
 - the target's position in the camera frame (no lever arm on PnP's rotation);
 - the predicted board corners reprojected against the detected ones (px), which needs
   no PnP at all.
+
+The views are planned with the controller's own (factory) arm model when it reports one,
+else with the nominal model (``inputs.json``: ``arm_model``).
 """
 
 from __future__ import annotations
@@ -30,7 +33,7 @@ from rigctl.records import RecordIndex, RunDirectory
 
 from .base import Params, Procedure, SolveContext
 from .intrinsics import camera_model, intrinsics_from
-from .planning import planning_K, view_steps
+from .planning import planning_arm, planning_K, view_steps
 from .robot_common import board_observations
 
 
@@ -57,7 +60,7 @@ class ValidateArm(Procedure):
     def plan(self, params: ValidateArmParams, config) -> list:
         return view_steps(config, params.poses, params.view_distance_m, params.max_tilt_deg,
                           params.seed, "check", "heldout", params.settle_s,
-                          K=planning_K(config, params.intrinsics))
+                          K=planning_K(config, params.intrinsics), arm=planning_arm(config))
 
     def resolve_inputs(self, params: ValidateArmParams, config) -> dict[str, Any]:
         """The calibration to check (given run, else this rig's latest robot-kinematics)
@@ -74,7 +77,8 @@ class ValidateArm(Procedure):
         cal = RunDirectory(row["run_dir"]).result()
         return {"calibration_run": row["run_id"], "calibration": cal,
                 "intrinsics": intrinsics_from(config, params.intrinsics or cal.get("intrinsics"),
-                                              params.allow_settings_change)}
+                                              params.allow_settings_change),
+                "arm_model": planning_arm(config, fresh=False).record()}
 
     def solve(self, ctx: SolveContext) -> dict[str, Any]:
         cal = ctx.input("calibration")

@@ -23,6 +23,8 @@ from drivers.ur_primary import (
     split_packages,
     sub_packages,
 )
+from procedures.planning import planning_arm
+from rigctl.config import load_rig
 from rigctl.errors import ProtocolError
 
 # ur5e factory-style DH (radians, metres), written out for these tests
@@ -218,5 +220,11 @@ def test_stand_in_reports_its_factory_kinematics_and_moves_by_them(tmp_path):
         assert arm["describe"]["kinematics_hash"] == k.ur_hash()
         assert arm["describe"]["controller_kinematics"]["d"] == list(k.d)
         assert f"kinematics_hash={k.ur_hash()}" in arm["message"]
+        # the planner reads the same table when a run is planned, and plans with it
+        planned = planning_arm(load_rig(rig))
+        assert planned.source == "controller" and planned.robot_hash == k.ur_hash()
+        assert planned.controller_version == "5.11.1.108318"
+        assert np.array_equal(planned.model.d, k.d)
+        assert np.array_equal(planned.model.theta_offset, k.theta)
     finally:
         proc.stop()
