@@ -12,8 +12,11 @@ controller's own (factory) model when it reports one on its primary interface
 
 Solve: board poses (Tsai + LM) with the intrinsics of the latest accepted active-camera
 run (or a parameter); hand-eye (OpenCV closed forms, then a joint refinement of X and W
-on pixels) with the nominal model; link-by-link from the sweeps; the joint refinement
-over all training captures on pixels; errors on the held-out views before and after.
+on pixels) with the nominal model and with the controller's; link-by-link from the
+sweeps; the joint refinement over all training captures on pixels from each start
+(link-by-link, nominal, axis-based, the controller's model), the lowest cost winning
+(``summary.refinement_start``); errors on the held-out views for nominal, factory and
+calibrated, and how far the calibration moved the camera from the controller's model.
 """
 
 from __future__ import annotations
@@ -243,6 +246,9 @@ def _summary(sol: RobotSolution) -> dict[str, Any]:
             "heldout_mm_axis_based": _mm(held["axis_based"]),
             "heldout_mm_factory": _mm(held.get("factory")),
             "moved_from_controller_mm": _mm(sol.moved_from_controller),
+            # the joint refinement's start that ended lowest, and where each ended (px)
+            "refinement_start": sol.refinement_start,
+            "refinement_starts_rms_px": sol.refinement_starts_rms_px,
             "condition_number": ref.condition,
             "condition_number_kinematic": ref.condition_kinematic,
             "residual_rms_px": ref.rms, "sweep_span_deg": sol.sweep_span_deg}

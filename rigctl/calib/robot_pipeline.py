@@ -10,7 +10,9 @@ generalised; ``rigctl.calib.robot``):
 3. axis-based: each swept joint's axis line in the target frame, no X
    (``single_methods``);
 4. ``joint_refinement`` (4.11) of the minimal parameter set over every training view,
-   from the best of those starts, and plain D-H's Jacobian there (its rank deficiency);
+   from each of those starts, the nominal model's and the controller's own model's
+   (when it reports one), the lowest cost winning (``joint_refinement_from`` names the
+   start that won), and plain D-H's Jacobian there (its rank deficiency);
    a training view that the refined model misses by far more than the others (a board
    found one square off, a wrong correspondence) is left out and stages 1-4 run again
    without it (``outlier_views``);
@@ -82,6 +84,9 @@ class RobotSolution:
     # configurations
     controller_hand_eye: Any = None
     moved_from_controller: dict[str, float] | None = None
+    # the joint refinement's starts (name: RMS px where each ended) and the one that won
+    refinement_start: str | None = None
+    refinement_starts_rms_px: dict[str, float] = field(default_factory=dict)
 
 
 def _sweeps(train: list[BoardView]) -> dict[int, robot.Sweep]:
@@ -160,6 +165,21 @@ def joint_refinement(meas: robot.Measurements, start: KinematicModel, X,
     averaged over the views, and from each of ``other_starts``; the lowest cost wins."""
     W = handeye.average_W([start.fk(q) for q in meas.q], meas.C, X)
     return robot.refine(start, X, W, meas, extra_starts=other_starts)
+
+
+def joint_refinement_from(meas: robot.Measurements,
+                          starts: dict[str, tuple[KinematicModel, np.ndarray, np.ndarray]]
+                          ) -> tuple[robot.RefineResult, str, dict[str, float]]:
+    """Stage 4 from named starts (model, X, W), each refined with the first start's
+    parameter set, as ``joint_refinement`` does; the lowest cost wins (the first of
+    equals). Returns the refinement, the name of the start it came from, and the RMS
+    residual (px) each start ended at."""
+    first = next(iter(starts.values()))[0]
+    mask = robot.identifiable_mask(first)
+    results = {name: robot.refine(model, X, W, meas, mask=mask)
+               for name, (model, X, W) in starts.items()}
+    won = min(results, key=lambda name: results[name].rms)
+    return results[won], won, {name: r.rms for name, r in results.items()}
 
 
 def outlier_views(ref: robot.RefineResult, meas: robot.Measurements) -> dict[int, float]:
@@ -252,7 +272,6 @@ def solve_robot(views: list[BoardView], nominal: KinematicModel, obj: np.ndarray
                               corners=[v.corners for v in train], obj=obj, K=K, dist=dist)
     with stage("hand-eye (nominal arm)"):
         closed, he = hand_eye(nominal, meas)
-    starts = [(nominal, he.X, he.W)]
     he_controller = None
     if controller is not None:
         with stage("hand-eye (controller's arm model)"):
@@ -261,9 +280,16 @@ def solve_robot(views: list[BoardView], nominal: KinematicModel, obj: np.ndarray
     with stage("link-by-link and axis-based"):
         lbl, lbl_error, axis, axis_error = single_methods(sweeps, he.X, he.W, nominal, meas)
     with stage("joint refinement"):
-        starts += [(axis.model, axis.X, axis.W)] if axis else []
-        starts += [(controller, he_controller.X, he_controller.W)] if controller else []
-        ref = joint_refinement(meas, lbl.model if lbl is not None else nominal, he.X, starts)
+        # the starts of ``joint_refinement``, in its order, named
+        first = lbl.model if lbl is not None else nominal
+        named = {"link-by-link" if lbl is not None else "nominal (W averaged)": (
+            first, he.X, handeye.average_W([first.fk(q) for q in meas.q], meas.C, he.X))}
+        named["nominal"] = (nominal, he.X, he.W)
+        if axis is not None:
+            named["axis-based"] = (axis.model, axis.X, axis.W)
+        if controller is not None:
+            named["controller"] = (controller, he_controller.X, he_controller.W)
+        ref, won, start_rms = joint_refinement_from(meas, named)
     rejected = outlier_views(ref, meas) if reject_outliers else {}
     if rejected and len(train) - len(rejected) >= MIN_TRAINING_VIEWS:
         return _again_without(views, train, rejected, timings, nominal=nominal, obj=obj, K=K,
@@ -287,4 +313,5 @@ def solve_robot(views: list[BoardView], nominal: KinematicModel, obj: np.ndarray
     return RobotSolution(ref, cam, he, closed, heldout, lbl, lbl_error, axis, axis_error, dh_sv,
                          _sweep_spans(sweeps), meas, len(train), len(held), timings,
                          camera_note, views, controller_hand_eye=he_controller,
-                         moved_from_controller=moved)
+                         moved_from_controller=moved, refinement_start=won,
+                         refinement_starts_rms_px=start_rms)
