@@ -26,7 +26,7 @@ class HandEyeParams(Params):
     # use intrinsics calibrated at another camera size or focus (recorded in the inputs)
     allow_settings_change: bool = False
     # the controller's own (factory) arm model: planned with, and solved with as the run
-    # recorded it; off: nominal
+    # recorded it; off: nominal (the robot's hash is recorded either way)
     use_controller_model: bool = True
     poses: int = Field(12, ge=3, le=100)
     view_distance_m: float = Field(0.45, gt=0.2, le=1.0)
@@ -62,8 +62,9 @@ class HandEye(Procedure):
         found = [o for o in board_observations(ctx, intr) if o["found"]]
         if len(found) < 3:
             raise SolveError(f"hand-eye: the board was found in {len(found)} views (need 3)")
-        controller, robot_hash = controller_model(ctx) if ctx.params.use_controller_model \
-            else (None, None)
+        controller, robot_hash = controller_model(ctx)
+        if not ctx.params.use_controller_model:
+            controller = None  # its hash is still recorded: the drift check compares it
         arm = controller or nominal_ur(ctx.config.devices.arm.model)
         F = [arm.fk(o["q"]) for o in found]
         C = [o["C"] for o in found]

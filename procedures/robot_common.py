@@ -19,7 +19,8 @@ def controller_model(ctx) -> tuple[KinematicModel | None, str | None]:
     """The controller's own DH table and hash, as the run recorded them, or (None, None):
     ``versions.json`` (read when the arm was opened for the run), else the model the run
     was planned with when that was the controller's (``inputs.json``: ``arm_model``).
-    Both are in the run directory, so a re-solve reads the same."""
+    Both are in the run directory, so a re-solve reads the same. A controller that
+    reported a hash without its table gives (None, hash)."""
     versions = ctx.run.versions() or {}
     arm = (versions.get("devices") or {}).get("arm") or {}
     k = arm.get("controller_kinematics")
@@ -28,8 +29,8 @@ def controller_model(ctx) -> tuple[KinematicModel | None, str | None]:
         k = planned.get("controller_kinematics") if planned.get("source") == "controller" \
             else None
     if not k:
-        return None, None
-    return controller_dh_model(k), k.get("hash")
+        return None, arm.get("kinematics_hash")
+    return controller_dh_model(k), k.get("hash") or arm.get("kinematics_hash")
 
 
 def board_observations(ctx, intr: dict) -> list[dict]:

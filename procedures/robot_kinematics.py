@@ -84,7 +84,7 @@ class RobotKinematicsParams(Params):
     # the arm's own (factory) model from its controller: the model the views are planned
     # with (read when the run is planned, in inputs.json), and as recorded in
     # versions.json a start of the joint refinement and a held-out baseline beside
-    # nominal; off: nominal throughout
+    # nominal; off: nominal throughout (the robot's hash is recorded either way)
     use_controller_model: bool = True
     seed: int = 0
 
@@ -194,8 +194,9 @@ class RobotKinematics(Procedure):
             obs = board_observations(ctx, intr)
         views = [BoardView(o["label"], o["kind"], o["joint"], o["q"], o["corners"], o["C"])
                  for o in obs if o["found"]]
-        controller, robot_hash = controller_model(ctx) if ctx.params.use_controller_model \
-            else (None, None)
+        controller, robot_hash = controller_model(ctx)
+        if not ctx.params.use_controller_model:
+            controller = None  # its hash is still recorded: the drift check compares it
         sol = solve_robot(views, nominal_ur(ctx.config.devices.arm.model), obj, K, dist,
                           intr.get("sigma") or default_prior_sigma(intr),
                           ctx.params.refine_camera, controller=controller)

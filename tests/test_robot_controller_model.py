@@ -1,11 +1,21 @@
 """The controller's own model in the robot solves (simulated board views; no stand-ins):
-the joint refinement starts from it among the other starts and names the start that won."""
+the joint refinement starts from it among the other starts and names the start that won,
+and hand-eye and robot-kinematics record the robot's kinematics hash whenever the
+controller reported one, also with use_controller_model=false (the drift check's "robot
+recalibrated or replaced" compares it)."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+from pathlib import Path
+
 import numpy as np
 import pytest
+import yaml
 
+from mocks.world import WORLDS
+from procedures import get_procedure, hand_eye, robot_kinematics
+from procedures.base import SolveContext
 from rigctl.calib import handeye, robot
 from rigctl.calib.extrinsic import estimate_pose
 from rigctl.calib.robot_pipeline import (
@@ -15,7 +25,10 @@ from rigctl.calib.robot_pipeline import (
     solve_robot,
 )
 from rigctl.geometry.kinematics import KinematicModel
+from tests.test_planning_controller import rig_for
 from tests.test_robot_math import DIST, OBJ, K, T_cam_target, board_views, ur_truth, view
+
+HASH = "calib_1234567890"
 
 
 def factory_of(world, seed=5) -> KinematicModel:
@@ -25,6 +38,11 @@ def factory_of(world, seed=5) -> KinematicModel:
     return KinematicModel(t.d + rng.normal(0, 2e-4, 6), t.a + rng.normal(0, 2e-4, 6),
                           t.alpha + rng.normal(0, 2e-4, 6),
                           theta_offset=t.theta_offset + rng.normal(0, 2e-4, 6))
+
+
+def kinematics_dict(model: KinematicModel) -> dict:
+    return {"theta": model.theta_offset.tolist(), "a": model.a.tolist(),
+            "d": model.d.tolist(), "alpha": model.alpha.tolist(), "hash": HASH}
 
 
 @pytest.fixture(scope="module")
@@ -79,3 +97,89 @@ def test_named_starts_refine_as_joint_refinement_does(simulated):
         meas, {"first": (nominal, he.X, W0), "nominal": others[0], "controller": others[1]})
     assert np.array_equal(old.values, new.values) and old.rms == new.rms
     assert rms[won] == min(rms.values())
+
+
+@dataclass
+class FakeRun:
+    """What the solves read of a run directory here: its versions.json."""
+
+    versions_json: dict | None
+    path: Path = field(default_factory=lambda: Path("/nonexistent"))
+
+    def versions(self):
+        return self.versions_json
+
+
+def observations(views) -> list[dict]:
+    return [{"label": v.label, "kind": v.kind, "joint": v.joint, "found": True, "q": v.q,
+             "corners": v.corners, "C": v.C} for v in views]
+
+
+def versions_with(kinematics: dict | None, hash_only: str | None = None) -> dict:
+    return {"devices": {"arm": {"controller": "5.11.1.108318",
+                                "kinematics_hash": kinematics["hash"] if kinematics
+                                else hash_only,
+                                "controller_kinematics": kinematics}}}
+
+
+INTR = {"fx": float(K[0, 0]), "fy": float(K[1, 1]), "cx": float(K[0, 2]),
+        "cy": float(K[1, 2]), "distortion": list(DIST), "source": "parameter"}
+
+
+@pytest.fixture
+def config(tmp_path):
+    return rig_for(tmp_path, yaml.safe_load((WORLDS / "default.yaml").read_text()))
+
+
+@pytest.mark.parametrize("use", [True, False])
+def test_hand_eye_records_the_robot_hash_either_way(simulated, config, monkeypatch, use):
+    _, world, views = simulated
+    monkeypatch.setattr(hand_eye, "board_observations",
+                        lambda ctx, intr: observations(views[:10]))
+    proc = get_procedure("hand-eye")
+    ctx = SolveContext(FakeRun(versions_with(kinematics_dict(factory_of(world)))), config,
+                       proc.params_model(use_controller_model=use), {"intrinsics": INTR})
+    result = proc.solve(ctx)
+    assert result["robot_hash"] == HASH
+    assert result["arm_model_used"] == ("controller" if use else "nominal")
+
+
+def test_a_hash_without_a_table_is_recorded(simulated, config, monkeypatch):
+    """A controller that reported its hash but no table (as versions.json has it)."""
+    _, _, views = simulated
+    monkeypatch.setattr(hand_eye, "board_observations",
+                        lambda ctx, intr: observations(views[:10]))
+    proc = get_procedure("hand-eye")
+    ctx = SolveContext(FakeRun(versions_with(None, hash_only=HASH)), config,
+                       proc.params_model(), {"intrinsics": INTR})
+    result = proc.solve(ctx)
+    assert result["robot_hash"] == HASH and result["arm_model_used"] == "nominal"
+    ctx = SolveContext(FakeRun(None), config, proc.params_model(), {"intrinsics": INTR})
+    assert proc.solve(ctx)["robot_hash"] is None
+
+
+@pytest.mark.parametrize("use", [True, False])
+def test_robot_kinematics_records_the_hash_and_the_winning_start(simulated, config,
+                                                                 monkeypatch, use):
+    """The hash whatever use_controller_model says; the controller's model a start (and
+    the factory baseline) only when used; the summary names the start that won and the
+    result says which model the views were planned with."""
+    _, world, views = simulated
+    monkeypatch.setattr(robot_kinematics, "board_observations",
+                        lambda ctx, intr: observations(views))
+    proc = get_procedure("robot-kinematics")
+    planned = {"source": "controller", "robot_hash": HASH, "note": "planned with it",
+               "controller_version": "5.11.1.108318", "controller_kinematics": None}
+    ctx = SolveContext(FakeRun(versions_with(kinematics_dict(factory_of(world)))), config,
+                       proc.params_model(use_controller_model=use, refine_camera=False),
+                       {"intrinsics": INTR, "arm_model": planned})
+    result = proc.solve(ctx)
+    summary = result["summary"]
+    assert result["robot_hash"] == HASH
+    assert result["planned_with"] == {"source": "controller", "robot_hash": HASH,
+                                      "note": "planned with it"}
+    starts = summary["refinement_starts_rms_px"]
+    assert summary["refinement_start"] == min(starts, key=starts.get)
+    assert ("controller" in starts) == use
+    assert (result["factory"] is not None) == use
+    assert (summary["heldout_mm_factory"] is not None) == use
