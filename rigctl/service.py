@@ -42,6 +42,7 @@ from rigctl.runner import Runner, prepare_run, refuse_violations
 
 log = logging.getLogger("rigctl.service")
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
+DECISION_WAIT_S = 30.0  # how long an operator's decision waits for the service's drift check
 
 
 def service_token(config: RigConfig) -> str | None:
@@ -109,6 +110,10 @@ class RigService:
         self.current: Job | None = None
         self.runner: Runner | None = None
         self.stopping = False
+        # decisions on calibrations, in order: the service's automatic one (drift check)
+        # first, then the operators'; runs whose automatic decision is still to come
+        self.decisions = threading.Condition()
+        self._deciding: set[str] = set()
         self.worker = threading.Thread(target=self._work, daemon=True, name="rig-worker")
         self.scheduler = None
 
@@ -187,6 +192,9 @@ class RigService:
                 self.runner = Runner(self.config, factories=self.factories,
                                      show_progress=False, operator=job.operator,
                                      on_event=lambda e, j=job: self._on_event(j, e))
+            if job.procedure in drift.CALIBRATIONS:
+                with self.decisions:  # before the run can be recorded as succeeded
+                    self._deciding.add(job.run_id)
             try:
                 outcome = self.runner.run(job.procedure, job.params, run_id=job.run_id)
                 if outcome.status == "succeeded" and job.procedure in drift.CALIBRATIONS:
@@ -198,6 +206,7 @@ class RigService:
             except Exception:
                 log.exception("worker: run %s crashed", job.run_id)
             finally:
+                self._decided(job.run_id)
                 with self.cond:
                     self.current = None
                     self.runner = None
@@ -211,7 +220,10 @@ class RigService:
     # -- drift ---------------------------------------------------------------------
 
     def decide(self, run_id: str, procedure: str, result: dict[str, Any]) -> str:
-        """Compare with the last accepted calibration; mark drift, accept or leave pending."""
+        """Compare with the last accepted calibration; mark drift, accept or leave pending.
+        Applied only if the run has no decision yet: an operator's is never overwritten
+        (the operators' wait for this one, ``decide_as_operator``). Returns the decision
+        in force."""
         previous = self._last_accepted(procedure, exclude=run_id)
         breaches, metrics = [], {}
         if previous is not None:
@@ -226,10 +238,48 @@ class RigService:
             decision = "accepted"
         else:
             decision = "pending"
-        self.set_decision(self.index.get(run_id), decision, "service",
-                          "; ".join(breaches), drift=breaches, metrics=metrics,
-                          compared_with=previous["run_id"] if previous else None)
+        with self.decisions:
+            try:
+                row = self.index.get(run_id)
+                if row["decision"] is not None:
+                    log.warning("run %s: already %s; the service's %s is not applied",
+                                run_id, row["decision"], decision)
+                    return row["decision"]
+                self.set_decision(row, decision, "service", "; ".join(breaches),
+                                  drift=breaches, metrics=metrics,
+                                  compared_with=previous["run_id"] if previous else None)
+            finally:
+                self._decided(run_id)
         return decision
+
+    def _decided(self, run_id: str) -> None:
+        """The service will make no automatic decision on ``run_id`` (made, or the run
+        ended without one): the operators' decisions waiting for it go ahead."""
+        with self.decisions:
+            self._deciding.discard(run_id)
+            self.decisions.notify_all()
+
+    def _await_automatic_decision(self, run_id: str, timeout: float) -> bool:
+        """Wait (holding ``self.decisions``) until the service has made its automatic
+        decision on ``run_id``, if one is still to come; False on timeout."""
+        return self.decisions.wait_for(lambda: run_id not in self._deciding, timeout)
+
+    def decide_as_operator(self, row: dict, decision: str, by: str, comment: str = "",
+                           timeout: float | None = None) -> dict[str, Any]:
+        """An operator's accept or reject, recorded after the service's own decision on a
+        just finished run (waiting for it), and superseding it: the trail in
+        ``decisions.jsonl`` keeps both, in order, and this one names the decision it
+        replaced (``supersedes``). 409 if the service's decision is still not made."""
+        run_id = row["run_id"]
+        with self.decisions:
+            if not self._await_automatic_decision(
+                    run_id, DECISION_WAIT_S if timeout is None else timeout):
+                raise HTTPException(409, f"run {run_id}: the service's drift check is still "
+                                         "being recorded; try again")
+            previous = self.index.get(run_id)["decision"]
+            extra = {"supersedes": previous} if previous else {}
+            self.set_decision(row, decision, by, comment, **extra)
+        return {"run_id": run_id, "decision": decision, "comment": comment, **extra}
 
     def status(self) -> dict[str, Any]:
         """The rig without moving anything: its devices from the rig file, the lock
@@ -421,8 +471,8 @@ def _set_decision(service: RigService, run_id: str, decision: str,
     if row["procedure"] not in drift.CALIBRATIONS or row["status"] != "succeeded":
         raise HTTPException(409, f"run {run_id} is not a finished calibration")
     request = request or DecisionRequest()
-    service.set_decision(row, decision, request.operator or "operator", request.comment)
-    return {"run_id": row["run_id"], "decision": decision, "comment": request.comment}
+    return service.decide_as_operator(row, decision, request.operator or "operator",
+                                      request.comment)
 
 
 def _rig_routes(service: RigService) -> APIRouter:
