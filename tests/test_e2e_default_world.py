@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 import yaml
 
+from mocks.ur_primary import VERSION as UR_VERSION
 from mocks.world import load_world
 from rigctl.bench.truth import model_against_truth
 from rigctl.config import load_rig
@@ -125,6 +126,13 @@ def test_robot_kinematics_end_to_end(tmp_path, camera_run):
     # methods alone beat the nominal model (with one common base they did not: 7-15 mm)
     assert summary["heldout_mm_axis_based"] < 0.5 * summary["heldout_mm_before"]
     assert summary["heldout_mm_link_by_link"] < summary["heldout_mm_before"]
+    # the controller's factory model lies between nominal and the truth in this world
+    # (mocks/worlds/default.yaml): the calibration improves on it, not only on nominal
+    assert summary["heldout_mm_after"] < summary["heldout_mm_factory"] \
+        < summary["heldout_mm_before"]
+    # ... and it was a start of the joint refinement; the summary names the one that won
+    starts = summary["refinement_starts_rms_px"]
+    assert "controller" in starts and summary["refinement_start"] == min(starts, key=starts.get)
     # D-optimal training views: Schroer's guideline (below 100) for the link parameters
     assert 1 < out["uncertainty"]["condition_number_kinematic"] < 100
     assert min(out["uncertainty"]["plain_dh_smallest_singular_values"]) < 1e-3
@@ -170,6 +178,17 @@ def test_robot_kinematics_end_to_end(tmp_path, camera_run):
         assert_resolves_alone(recorded, tmp_path / "elsewhere")
     # exports
     run_dir = next(records.glob("*robot-kinematics*"))
+    # the controller's version and kinematics hash, in the run's versions.json and in
+    # the results the drift check compares; the views were planned with its model
+    arm = json.loads((run_dir / "versions.json").read_text())["devices"]["arm"]
+    assert arm["controller"] == ".".join(str(v) for v in UR_VERSION)
+    assert arm["kinematics_hash"].startswith("calib_")
+    assert arm["controller_kinematics"]["hash"] == arm["kinematics_hash"]
+    assert out["robot_hash"] == arm["kinematics_hash"]
+    assert json.loads(handeye.stdout)["robot_hash"] == arm["kinematics_hash"]
+    planned = json.loads((run_dir / "inputs.json").read_text())["arm_model"]
+    assert planned["source"] == "controller" and planned["robot_hash"] == arm["kinematics_hash"]
+    assert out["planned_with"]["source"] == "controller"
     assert check["calibration_run"] == run_dir.name
     assert rigctl("export", str(run_dir), "--format", "json").returncode == 0
     exported = json.loads((run_dir / "export.json").read_text())
