@@ -43,6 +43,7 @@ SHIFT_CROSS = 0.15  # and reaches this far across the move, per pixel along it
 REFINE_STRIDE = 2
 PREDICTION_STRIDE = 4
 PREDICTION_ROUNDS = 2  # outlier rounds of a refinement that only predicts the next tier
+TIER_WINDOW_PX = 24.0  # search window around a tier's prediction (the first K's: 12 px)
 # Model error the refinement's covariance cannot see, added in quadrature to the reported
 # intrinsics: clean renders (no noise, no head errors) of random worlds still leave the
 # focal length about 0.03 % off (edge localisation of blurred, anti-aliased contours
@@ -388,7 +389,7 @@ def solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, f
     # those refinements only predict: a quarter of the points do
     K1: dict | RefineResult = dict(K0)
     done = list(small)
-    for tier, window in ((wide, 24.0), (roll_labels, 24.0)):
+    for tier in (wide, roll_labels):
         if not tier:
             continue
         before = [m for m in (tr.motion(lb, PREDICTION_STRIDE) for lb in done) if m]
@@ -400,7 +401,7 @@ def solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, f
                 "fx": K1.fx, "fy": K1.fy, "cx": K1.cx, "cy": K1.cy,
                 "distortion": [K1.k1, K1.k2, K1.p1, K1.p2, K1.k3]}
         for label in tier:
-            tr.track(label, K1, window)
+            tr.track(label, K1, TIER_WINDOW_PX)
         done += tier
     timings["tracking"] = time.perf_counter() - t0
 

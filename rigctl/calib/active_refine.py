@@ -628,13 +628,14 @@ def _result(pb: _Problem, final, r: np.ndarray, assoc, parallax_sigma: float) ->
     J = J.toarray() if hasattr(J, "toarray") else np.asarray(J)
     prior = pb.prior_sigma[pb.free]
     cov, A_inv = _covariance(J, r, _clusters(pb.motions, pb.masks), prior)
-    held = np.flatnonzero(~pb.free)  # the consider parameters (none when depths are known)
+    # the consider parameters: the parallax when it is held (no depths); measured inverse
+    # depths are held too, but as known values, not as consider parameters
+    held = np.flatnonzero(~pb.free[:pb.n_cam])
     J_s = _jacobian_columns(lambda xv: pb.residuals(xv, assoc, cache=False), x, held, r)
     cov = _consider(J, J_s, cov, A_inv, np.full(len(held), parallax_sigma))
     full = np.zeros((len(x), len(x)))  # held inverse depths (measured) stay at zero
     full[np.ix_(pb.free, pb.free)] = cov
-    held_s = [i for i in held if i < pb.n_cam]  # the parallax, held without depths
-    full[held_s, held_s] = parallax_sigma ** 2
+    full[held, held] = parallax_sigma ** 2
     sig = np.sqrt(np.clip(np.diag(full), 0, None))
     fx, fy, cx, cy, _, a, parallax, k = _unpack(x, n_dist)
     names = param_names(n_dist) + [f"rho{i}" for i in range(len(x) - pb.n_cam)]
