@@ -431,6 +431,46 @@ def create_app(service: RigService, stop_service_on_shutdown: bool = False) -> F
     return app
 
 
+def _starting(job: Job) -> dict:
+    """The job the worker has taken but the runner has not recorded yet (it checks the
+    rig and opens the run directory first): answered as "starting", so that the id the
+    API returned for it never answers 404 on its way from the queue to the records."""
+    return {"run_id": job.run_id, "procedure": job.procedure, "status": "starting",
+            "progress": job.progress}
+
+
+def _run_listing(service: RigService, limit: int, procedure: str | None) -> list[dict]:
+    """The queued runs, the one starting (taken off the queue, not recorded yet), then
+    the recorded ones, newest first."""
+    queued = [{"run_id": j.run_id, "procedure": j.procedure, "status": "queued"}
+              for j in list(service.queue) if procedure in (None, j.procedure)]
+    current = service.current
+    rows = [_row(r) for r in service.runs(limit, procedure)]
+    if current is not None and procedure in (None, current.procedure) and \
+            current.run_id not in {r["run_id"] for r in rows}:
+        queued.append(_starting(current))
+    return queued + rows
+
+
+def _run_view(service: RigService, run_id: str) -> dict:
+    """One run: queued, starting, or its record with its progress and result."""
+    for job in list(service.queue):
+        if job.run_id == run_id:
+            return {"run_id": run_id, "procedure": job.procedure, "status": "queued"}
+    current = service.current
+    try:
+        row = _row(_own_run(service, run_id))
+    except HTTPException:
+        if current is None or current.run_id != run_id:
+            raise
+        return _starting(current)
+    if current is not None and current.run_id == row["run_id"]:
+        row["progress"] = current.progress
+    if row["run_dir"] and Path(row["run_dir"], "result.json").exists():
+        row["result"] = RunDirectory(row["run_dir"]).result()
+    return row
+
+
 def _own_run(service: RigService, run_id: str) -> dict:
     """The run with this id (or unique prefix) of this rig; 404 otherwise."""
     try:
@@ -517,22 +557,11 @@ def _run_routes(service: RigService, guarded: list) -> APIRouter:
     @router.get("/runs")
     def list_runs(limit: int = Query(50, ge=1, le=MAX_LIMIT),
                   procedure: str | None = Query(None, pattern=NAME)) -> list[dict]:
-        queued = [{"run_id": j.run_id, "procedure": j.procedure, "status": "queued"}
-                  for j in list(service.queue) if procedure in (None, j.procedure)]
-        return queued + [_row(r) for r in service.runs(limit, procedure)]
+        return _run_listing(service, limit, procedure)
 
     @router.get("/runs/{run_id}")
     def get_run(run_id: str = RUN_ID) -> dict:
-        for job in list(service.queue):
-            if job.run_id == run_id:
-                return {"run_id": run_id, "procedure": job.procedure, "status": "queued"}
-        row = _row(_own_run(service, run_id))
-        current = service.current
-        if current is not None and current.run_id == row["run_id"]:
-            row["progress"] = current.progress
-        if row["run_dir"] and Path(row["run_dir"], "result.json").exists():
-            row["result"] = RunDirectory(row["run_dir"]).result()
-        return row
+        return _run_view(service, run_id)
 
     @router.post("/runs/{run_id}/abort", dependencies=guarded)
     def abort_run(run_id: str = RUN_ID, request: AbortRequest | None = None) -> dict:
