@@ -252,9 +252,9 @@ def test_a_queued_run_refused_when_it_starts_keeps_the_operator_who_asked(tmp_pa
         with TestClient(create_app(service)) as api:
             run_id = api.post("/runs", json={**SWEEP, "operator": "bob"},
                               headers=auth).json()["run_id"]
-            # no status (404) while the worker holds the job before it is recorded
+            # "starting" while the worker holds the job before it is recorded
             row = wait_until(lambda: (r := api.get(f"/runs/{run_id}").json()).get("status")
-                             not in (None, "queued", "running") and r,
+                             not in ("queued", "starting", "running") and r,
                              what="the refused run")
     finally:
         service.stop()
