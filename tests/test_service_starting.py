@@ -54,6 +54,9 @@ def test_a_run_taken_off_the_queue_but_not_yet_recorded_answers_starting(tmp_pat
             listed = {r["run_id"]: r["status"] for r in api.get("/runs").json()}
             assert listed.get(run_id) == "starting"
             assert api.get("/runs/20260101T000000-head-sweep-nosuch").status_code == 404
+            page = api.get(f"/console/runs/{run_id}")  # the console says the same
+            assert page.status_code == 200
+            assert 'id="run-status">starting<' in page.text
             release.set()
             wait_until(lambda: service.current is None, timeout=EVENT_WAIT_S,
                        what="the worker to finish the run")

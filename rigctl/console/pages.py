@@ -257,13 +257,15 @@ def _waiting_row(service, run_id: str) -> dict | None:
     """A run the API has answered with an id but the runner has not recorded yet (queued,
     or just taken off the queue): the start form links to its page at once."""
     with service.cond:
-        jobs = [service.current, *service.queue]
+        current = service.current
+        jobs = [current, *service.queue]
     for job in jobs:
         if job is not None and job.run_id == run_id:
             try:
                 return _find_run(service, run_id)
-            except HTTPException:
-                return {"run_id": run_id, "procedure": job.procedure, "status": "queued",
+            except HTTPException:  # as the API answers it (``rigctl.service._run_view``)
+                status = "starting" if job is current else "queued"
+                return {"run_id": run_id, "procedure": job.procedure, "status": status,
                         "decision": None, "started_at": None, "ended_at": None,
                         "operator": job.operator, "reason": None, "run_dir": "",
                         "rig_name": service.config.name}
@@ -294,7 +296,7 @@ def _run_context(service, results: ResultCache, row: dict) -> dict[str, Any]:
     # current one a moment longer (lock release, decision), and a page loaded then must
     # not show a bar and an abort button that nothing will update
     progress = current.progress if current and current.run_id == row["run_id"] \
-        and row["status"] == "running" else {} if row["status"] == "queued" else None
+        and row["status"] == "running" else {} if row["status"] in ("queued", "starting") else None
     context = {"row": row, "progress": progress, "result": result,
                "is_calibration": row["procedure"] in drift.CALIBRATIONS,
                "params": views.read_optional(run, "params.json") if run else None,
