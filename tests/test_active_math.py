@@ -14,6 +14,7 @@ import pytest
 from mocks.world import CameraTruth, HeadTruth, SceneTruth, World, WorldFile
 from rigctl.calib import active, synthetic
 from rigctl.calib.active import ContourStats
+from rigctl.calib.active_pipeline import centre_identifiability
 from rigctl.calib.active_refine import PARAM_NAMES, Motion, predict, refine
 from rigctl.errors import SolveError
 from tests.forward import brown_project, ellipse_contours
@@ -330,3 +331,25 @@ def test_cached_and_vectorised_residuals_equal_the_plain_ones():
             fast = _residuals(nudged, motions, 5, masks, assoc, refs, rho, cache, targets)
             plain = _residuals(nudged, motions, 5, masks, assoc, refs, rho)
             assert np.array_equal(fast, plain), f"parameter {j}"
+
+
+def test_centre_identifiability_is_the_conditional_sigma_given_the_tangential_terms():
+    """cx correlated 0.97 with p2 and cy 0.94 with p1 (as on a narrow lens): known p1, p2
+    would leave sigma * sqrt(1 - rho^2), and the note says the centre trades with them."""
+    names = ["fx", "cx", "cy", "p1", "p2"]
+    sigma = np.array([0.3, 1.0, 0.7, 4e-4, 5e-4])
+    corr = np.eye(5)
+    corr[1, 4] = corr[4, 1] = 0.97
+    corr[2, 3] = corr[3, 2] = 0.94
+    out = centre_identifiability(names, corr * np.outer(sigma, sigma))
+    assert out["cx"]["sigma_px"] == pytest.approx(1.0)
+    assert out["cx"]["sigma_if_tangential_known_px"] == pytest.approx(np.sqrt(1 - 0.97 ** 2))
+    assert out["cy"]["sigma_if_tangential_known_px"] == pytest.approx(
+        0.7 * np.sqrt(1 - 0.94 ** 2))
+    assert out["cx"]["most_correlated"] == {"with": "p2", "correlation": pytest.approx(0.97)}
+    assert "tangential" in out["note"]
+    # weakly correlated: no note; without tangential terms: no conditional sigma
+    corr[1, 4] = corr[4, 1] = 0.3
+    assert "note" not in centre_identifiability(names, corr * np.outer(sigma, sigma))
+    two = centre_identifiability(names[:3], np.diag(sigma[:3] ** 2))
+    assert "sigma_if_tangential_known_px" not in two["cx"]

@@ -346,6 +346,40 @@ def _with_model_error(refined: RefineResult) -> tuple[list[str], np.ndarray]:
     return names, cov
 
 
+def centre_identifiability(names: list[str], cov: np.ndarray) -> dict:
+    """What limits the principal point from rotations: for cx and cy, the sigma, the
+    sigma were the tangential distortion (p1, p2) known (the conditional sigma
+    ``sqrt(S_cc - S_cp S_pp^-1 S_pc)``) and the parameter it is most correlated with.
+    A decentring term moves the image as a principal-point shift does, plus a field that
+    only the differences between views at large angles off the axis show: on a narrow
+    lens they trade (random world 7001, f 1461 px: cx sigma 1.0 px, 0.22 px with p1, p2
+    known, correlation with p2 0.97). Empty without a covariance."""
+    if cov is None or not len(cov):
+        return {}
+    sigma = np.sqrt(np.diag(cov))
+    corr = cov / np.outer(sigma, sigma)
+    tangential = [names.index(n) for n in ("p1", "p2") if n in names]
+    out: dict[str, Any] = {}
+    for key in ("cx", "cy"):
+        i = names.index(key)
+        others = [j for j in range(len(names)) if j != i]
+        j = max(others, key=lambda k: abs(corr[i, k]))
+        entry = {"sigma_px": float(sigma[i]),
+                 "most_correlated": {"with": names[j], "correlation": float(corr[i, j])}}
+        if tangential:
+            g = tangential
+            conditional = cov[i, i] - cov[i, g] @ np.linalg.solve(cov[np.ix_(g, g)], cov[g, i])
+            entry["sigma_if_tangential_known_px"] = float(np.sqrt(max(conditional, 0.0)))
+        out[key] = entry
+    if tangential and all(out[k]["sigma_if_tangential_known_px"] < 0.5 * out[k]["sigma_px"]
+                          for k in ("cx", "cy")):
+        out["note"] = ("the principal point trades with the tangential distortion (p1, p2): "
+                       "rotations alone pin it to the sigma above; a calibration that "
+                       "fixes p1, p2 (e.g. board views at large tilts) would reach the "
+                       "'if tangential known' sigma")
+    return out
+
+
 def _parallax_report(refined: RefineResult, depths: SceneDepths | None,
                      settings: ActiveSettings) -> dict:
     """What the result says about the centre of projection off the head's axes."""
@@ -437,6 +471,7 @@ def solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, f
         "distortion": [refined.k1, refined.k2, refined.p1, refined.p2, refined.k3],
         "roll_axis_in_cam": refined.roll_axis.tolist(),
         "parallax": _parallax_report(refined, depths, settings),
+        "centre_identifiability": centre_identifiability(names, cov),
         "assumed_centre": tr.centre.tolist(),
         "strategies": strategies, "tracking": tr.report,
         "summary": {"fx": refined.fx, "fy": refined.fy, "cx": refined.cx, "cy": refined.cy,
