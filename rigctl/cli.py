@@ -635,8 +635,11 @@ def bench_worlds(as_json: bool = typer.Option(False, "--json"),
             n = len(result["worlds"])
         else:
             result = worlds.run(n, first_seed, plot, keep, console=err)
+    stopped = typer.Exit(130) if result.get("stopped") else None  # Ctrl-C or SIGTERM
     if as_json:
         _print_json(result, real_stdout)
+        if stopped:
+            raise stopped
         return
     rows = []
     for r in result["worlds"]:
@@ -655,6 +658,8 @@ def bench_worlds(as_json: bool = typer.Option(False, "--json"),
                  "held-out mm", "validate mm", "failure"], rows, out)
     out.print_json(json.dumps(result["summary"]))
     out.print(f"plot: {result.get('plot')}")
+    if stopped:
+        raise stopped
 
 
 @bench_app.command("solve")

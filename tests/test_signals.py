@@ -88,3 +88,48 @@ def test_sigterm_on_the_service_mid_run_aborts_the_run_and_exits(start_sim, tmp_
             server.wait(timeout=10)
     row = _index(rig_path).get(run_id)
     assert row["status"] == "aborted" and "service shutting down" in row["reason"]
+
+
+def _processes_naming(text: str) -> list[int]:
+    """PIDs whose command line names ``text`` (Linux /proc)."""
+    from pathlib import Path
+
+    pids = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                if text in (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode():
+                    pids.append(int(entry.name))
+            except OSError:
+                continue
+    return pids
+
+
+@pytest.mark.timeout(240)
+def test_sigterm_stops_bench_worlds_not_just_one_world(tmp_path):
+    """The runner turns SIGTERM into an aborted run; the benchmark must then stop (exit
+    130, the unfinished world left out, its stand-ins stopped), not go on to the next."""
+    import os
+
+    keep = tmp_path / "kept"
+    proc = subprocess.Popen([sys.executable, "-m", "rigctl.cli", "bench", "worlds", "--n", "3",
+                             "--first-seed", "9100", "--keep", str(keep), "--plot",
+                             str(tmp_path / "plot.png"), "--json"], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        wait_until(lambda: any((keep / "records-9100").glob("*-active-camera-*")),
+                   timeout=120, what="the first world's first run")
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(timeout=10)
+        left = _processes_naming(str(keep))
+        for pid in left:
+            os.kill(pid, signal.SIGKILL)
+    assert proc.returncode == 130, err[-2000:]
+    report = json.loads(out)
+    assert "SIGTERM received" in report["stopped"] and report["worlds"] == []
+    assert not (keep / "world-9101.yaml").exists()  # the next world never started
+    assert not left, f"stand-ins {left} outlived the benchmark"

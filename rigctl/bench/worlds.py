@@ -35,12 +35,14 @@ from mocks.random_world import random_world
 from mocks.world import World, WorldFile
 from rigctl.bench.truth import intrinsics_errors, link_z, model_against_truth, position_z
 from rigctl.config import load_rig, parse_rig
-from rigctl.errors import RigError
+from rigctl.errors import AbortedError, RigError
 from rigctl.geometry.kinematics import nominal_ur
 from rigctl.runner import Runner
 from rigctl.simrig import SimulatedRig
 
 PIPELINE = ("active-camera", "hand-eye", "robot-kinematics", "validate-arm")
+# a run aborted for one of these (the runner's reasons) stops the benchmark, not one world
+OPERATOR_STOPS = ("SIGTERM received", "interrupted by Ctrl-C", "abort requested")
 
 
 def _write_world(seed: int, folder: Path) -> tuple[Path, World]:
@@ -175,6 +177,8 @@ def world_run(seed: int, folder: Path, say: Callable[[str], None]) -> dict:
             say(f"world {seed} ({spec.arm.model}): {name} {outcome.status} in "
                 f"{outcome.timings_s.get('run_s', 0):.0f} s"
                 + (f": {outcome.reason}" if outcome.reason else ""))
+            if outcome.status == "aborted" and outcome.reason in OPERATOR_STOPS:
+                raise AbortedError(f"world {seed}: {outcome.reason}")
             if outcome.status != "succeeded":
                 break
     row["failed"] = _failed(row)
@@ -301,6 +305,11 @@ def run(n: int = 20, first_seed: int = 1000, plot_path: Path | None = None,
     with tempfile.TemporaryDirectory(prefix="rigctl-bench-worlds-") as tmp:
         folder = Path(keep) if keep else Path(tmp)
         folder.mkdir(parents=True, exist_ok=True)
-        for seed in range(first_seed, first_seed + n):
-            rows.append(world_run(seed, folder, console.print))
+        try:
+            for seed in range(first_seed, first_seed + n):
+                rows.append(world_run(seed, folder, console.print))
+        except AbortedError as exc:  # the world in progress is left out of the report
+            console.print(f"bench stopped ({exc}); the report covers the {len(rows)} "
+                          "world(s) finished before it")
+            return {**report(rows, plot_path), "stopped": str(exc)}
     return report(rows, plot_path)
