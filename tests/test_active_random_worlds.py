@@ -21,7 +21,7 @@ from rigctl.bench.active_worlds import world_trial
 def test_default_plan_meets_the_truth_of_an_unseen_world(seed):
     row = world_trial((seed, None, 0.010))
     assert "error" not in row, row.get("error")
-    assert row["focal_pct"] < 0.08, row
+    assert row["focal_pct"] < 0.05, row
     assert row["centre_px"] < 1.0, row
     # the reported sigma covers the error (the model-error floor included)
     assert max(abs(z) for z in row["z"].values()) < 4.0, row["z"]

@@ -30,6 +30,11 @@ def detect_board(image: np.ndarray, rows: int, cols: int) -> np.ndarray | None:
     found, corners = cv2.findChessboardCornersSB(gray, (cols - 1, rows - 1),
                                                  flags=cv2.CALIB_CB_ACCURACY)
     if not found:
+        # the exhaustive search finds boards the quick one misses (a wide lens's strongly
+        # bent board at the image's edge), at about the same cost
+        found, corners = cv2.findChessboardCornersSB(
+            gray, (cols - 1, rows - 1), flags=cv2.CALIB_CB_ACCURACY | cv2.CALIB_CB_EXHAUSTIVE)
+    if not found:
         return None
     pts = corners.reshape(-1, 2).astype(float)
     if (rows + cols) % 2 == 1:
