@@ -55,6 +55,7 @@ MODEL_ERROR_CENTRE_PX = 0.15  # per coordinate
 # Fewer contours than this in the central window: look in WIDE_WINDOW of the image instead
 WANTED_CONTOURS = 6
 WIDE_WINDOW = 0.95
+TILE_PX = 160  # then cut edge networks that reach beyond it into pieces this size
 
 
 @dataclass
@@ -121,6 +122,14 @@ class _Tracker:
             if len(wide) > len(self.contours):
                 self.contours = wide
                 self.report["window"] = WIDE_WINDOW
+        if len(self.contours) < WANTED_CONTOURS:
+            # a board filling the view: its squares' outlines join at the corners into
+            # one edge network that reaches the image's border; take it piece by piece
+            tiled = extract_contours(images["ref"], WIDE_WINDOW, settings.min_points,
+                                     emap=self.emaps["ref"], tile=TILE_PX)
+            if len(tiled) > len(self.contours):
+                self.contours = tiled
+                self.report.update(window=WIDE_WINDOW, tiled_px=TILE_PX)
         if len(self.contours) < 3:
             raise SolveError(f"active-camera: too few contours in the reference image "
                              f"({len(self.contours)} in the central {WIDE_WINDOW:.0%}; "

@@ -65,26 +65,47 @@ def subpixel(emap: EdgeMap, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray,
 
 def extract_contours(image: np.ndarray, window: float = 0.6, min_points: int = 60,
                      min_contrast: float = 40.0, emap: EdgeMap | None = None,
-                     max_contours: int = 60) -> list[Contour]:
+                     max_contours: int = 60, tile: int | None = None) -> list[Contour]:
     """Stable contours in the central ``window`` of the image: long enough
     (``min_points``), good contrast (mean gradient), entirely inside the window, and not
-    touching another contour (connected components of the edge map)."""
+    touching another contour (connected components of the edge map).
+
+    With ``tile`` (px), an edge network that reaches beyond the window (a board filling
+    the view, whose squares' outlines join at their corners into one component) is cut
+    along a grid of that size, and each piece inside the window is a contour too: a piece
+    of a grid of lines is a distinct shape at shifts below the tile size."""
     emap = emap or edge_map(image)
     h, w = emap.edges.shape
     count, labels, stats, _ = cv2.connectedComponentsWithStats(emap.edges, connectivity=8)
     x0, x1 = w * (0.5 - window / 2), w * (0.5 + window / 2)
     y0, y1 = h * (0.5 - window / 2), h * (0.5 + window / 2)
     candidates = []
+
+    def add(pixels: np.ndarray) -> None:
+        pts, normals, mag = subpixel(emap, pixels)
+        contrast = float(np.mean(mag))
+        if contrast >= min_contrast:
+            candidates.append(Contour(pts, normals, contrast, pixels))
+
     for label in range(1, count):
         left, top, bw, bh, area = stats[label]
-        if area < min_points or left < x0 or top < y0 or left + bw > x1 or top + bh > y1:
+        if area < min_points:
+            continue
+        inside = left >= x0 and top >= y0 and left + bw <= x1 and top + bh <= y1
+        if not inside and tile is None:
             continue
         ys, xs = np.nonzero(labels[top:top + bh, left:left + bw] == label)
         pixels = np.c_[xs + left, ys + top]
-        pts, normals, mag = subpixel(emap, pixels)
-        contrast = float(np.mean(mag))
-        if contrast < min_contrast:
+        if inside:
+            add(pixels)
             continue
-        candidates.append(Contour(pts, normals, contrast, pixels))
+        keep = (pixels[:, 0] >= x0) & (pixels[:, 0] < x1) & (pixels[:, 1] >= y0) & \
+            (pixels[:, 1] < y1)
+        pixels = pixels[keep]
+        cells = (pixels[:, 0] // tile) * (w // tile + 1) + pixels[:, 1] // tile
+        for cell in np.unique(cells):
+            piece = pixels[cells == cell]
+            if len(piece) >= min_points:
+                add(piece)
     candidates.sort(key=lambda c: -c.n * c.contrast)
     return candidates[:max_contours]
