@@ -34,21 +34,29 @@ def _running(index) -> dict | None:
     return rows[0] if rows else None
 
 
-@pytest.mark.timeout(180)
-def test_sigterm_on_a_cli_run_exits_3_and_records_it_aborted(start_sim):
-    sim = start_sim()
-    proc = subprocess.Popen([sys.executable, "-m", "rigctl.cli", "run", "head-sweep", "--rig",
-                             str(sim.rig_path), "--json", *SLOW_SWEEP], cwd=ROOT,
+def _sigterm_once(args: list[str], ready, what: str, timeout: float):
+    """Start ``rigctl args``, send it SIGTERM once ``ready()`` holds, and wait for it to
+    exit; killed (by PID) if it outlives the test. Returns the process, its (stdout,
+    stderr) and what ``ready`` returned."""
+    proc = subprocess.Popen([sys.executable, "-m", "rigctl.cli", *args], cwd=ROOT,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        index = _index(sim.rig_path)
-        row = wait_until(lambda: _running(index), timeout=60, what="the run to start")
+        state = wait_until(ready, timeout=timeout, what=what)
         proc.send_signal(signal.SIGTERM)
-        out, err = proc.communicate(timeout=60)
+        return proc, proc.communicate(timeout=timeout), state
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait(timeout=10)
+
+
+@pytest.mark.timeout(180)
+def test_sigterm_on_a_cli_run_exits_3_and_records_it_aborted(start_sim):
+    sim = start_sim()
+    index = _index(sim.rig_path)
+    proc, (out, err), row = _sigterm_once(
+        ["run", "head-sweep", "--rig", str(sim.rig_path), "--json", *SLOW_SWEEP],
+        lambda: _running(index), "the run to start", timeout=60)
     assert proc.returncode == 3, err[-2000:]
     assert json.loads(out)["status"] == "aborted"
     row = index.get(row["run_id"])
@@ -112,19 +120,13 @@ def test_sigterm_stops_bench_worlds_not_just_one_world(tmp_path):
     import os
 
     keep = tmp_path / "kept"
-    proc = subprocess.Popen([sys.executable, "-m", "rigctl.cli", "bench", "worlds", "--n", "3",
-                             "--first-seed", "9100", "--keep", str(keep), "--plot",
-                             str(tmp_path / "plot.png"), "--json"], cwd=ROOT,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        wait_until(lambda: any((keep / "records-9100").glob("*-active-camera-*")),
-                   timeout=120, what="the first world's first run")
-        proc.send_signal(signal.SIGTERM)
-        out, err = proc.communicate(timeout=120)
+        proc, (out, err), _ = _sigterm_once(
+            ["bench", "worlds", "--n", "3", "--first-seed", "9100", "--keep", str(keep),
+             "--plot", str(tmp_path / "plot.png"), "--json"],
+            lambda: any((keep / "records-9100").glob("*-active-camera-*")),
+            "the first world's first run", timeout=120)
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(timeout=10)
         left = _processes_naming(str(keep))
         for pid in left:
             os.kill(pid, signal.SIGKILL)
