@@ -39,6 +39,7 @@ from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
 from rigctl.calib.active_jacobian import N_BASE, distort, pixel_jacobian
+from rigctl.calib.covariance import cluster_meat, larger_variances
 from rigctl.calib.synthetic import rot_axis, rot_x, rot_y
 from rigctl.errors import SolveError
 
@@ -408,20 +409,8 @@ def _covariance(J: np.ndarray, r: np.ndarray, clusters: np.ndarray,
         raise SolveError("refinement: singular normal equations (degenerate motions)") from None
     s2 = float(np.sum(r ** 2) / max(len(r) - n_params, 1))
     classical = A_inv @ (J.T @ J * s2 + P) @ A_inv
-    n_clusters = int(clusters.max()) + 1
-    G = np.zeros((n_clusters, n_params))
-    np.add.at(G, clusters, J * r[:, None])
-    correction = n_clusters / max(n_clusters - 1, 1) * (len(r) - 1) / max(len(r) - n_params, 1)
-    sandwich = A_inv @ (G.T @ G * correction + P) @ A_inv
-    return _larger(sandwich, classical), A_inv
-
-
-def _larger(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Of two covariances, the one with the larger variances, parameter by parameter
-    (correlations from the sandwich where it wins)."""
-    da, db = np.sqrt(np.clip(np.diag(a), 0, None)), np.sqrt(np.clip(np.diag(b), 0, None))
-    scale = np.maximum(db / np.maximum(da, 1e-300), 1.0)
-    return a * np.outer(scale, scale)
+    sandwich = A_inv @ (cluster_meat(J, r, clusters) + P) @ A_inv
+    return larger_variances(sandwich, classical), A_inv
 
 
 def _reject_outliers(r: np.ndarray, motions: list[Motion], masks: list[np.ndarray],

@@ -21,8 +21,9 @@ consecutive axes (alpha_i = 0) d_{i+1} is unobservable and Hayati's beta_i repla
 
 **Joint refinement.** Least squares over every capture of an identifiable parameter set
 (``identifiable_mask``): redundant parameters are absorbed into ``X`` and ``W``; parameter
-estimates come with 1-sigma, the condition number of the scaled identification Jacobian,
-and errors on held-out captures.
+estimates come with 1-sigma (cluster-robust over board views: a view's corners share
+its detection bias and the arm's pose, so they are not independent), the condition
+number of the scaled identification Jacobian, and errors on held-out captures.
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
+from rigctl.calib.covariance import cluster_meat, larger_variances, view_clusters
 from rigctl.errors import SolveError
 from rigctl.geometry.camera import camera_matrix, invert_batch, project_batch
 from rigctl.geometry.kinematics import LINK_KEYS, KinematicModel, link_transform
@@ -443,13 +445,29 @@ def refine(model0: KinematicModel, X0, W0, meas: Measurements, mask=None,
     J = sol.jac
     sv = scaled_singular_values(J)
     condition = condition_number(sv)
-    dof = max(len(sol.fun) - len(p0), 1)
-    s2 = float(np.sum(sol.fun ** 2) / dof)
-    cov = np.linalg.pinv(J.T @ J) * s2
+    cov = _view_robust(J, sol.fun, len(meas.q), np.zeros((len(p0), len(p0))))
     sigma = np.sqrt(np.clip(np.diag(cov), 0, None))
     return RefineResult(model, X, W, names, sol.x, sigma, condition, sv,
                         float(np.sqrt(np.mean(sol.fun ** 2))),
                         _kinematic_condition(J, 12 if free_XW else 0), cov)
+
+
+def _view_robust(J: np.ndarray, r: np.ndarray, n_views: int, P: np.ndarray,
+                 s2: float | None = None) -> np.ndarray:
+    """Covariance of a refinement over ``n_views`` captures (residual rows laid out view
+    by view, ``J`` their Jacobian) with prior information ``P`` (rows already scaled to
+    the residuals' units): the cluster-robust sandwich with one cluster per view, since
+    a view's corners share its error (detection bias, the arm's pose), or the classical
+    ``s^2 A^-1`` where that is larger. ``s2`` defaults to the residuals' variance per
+    degree of freedom."""
+    n_params = J.shape[1]
+    if s2 is None:
+        s2 = float(np.sum(r ** 2) / max(len(r) - n_params, 1))
+    A_inv = np.linalg.pinv(J.T @ J + P)
+    classical = A_inv * s2
+    clusters = view_clusters(n_views, len(r) // n_views)
+    sandwich = A_inv @ (cluster_meat(J, r, clusters) + P * s2) @ A_inv
+    return larger_variances(sandwich, classical)
 
 
 CAMERA_KEYS = ("fx", "fy", "cx", "cy")
@@ -511,8 +529,9 @@ def refine_with_camera(ref: RefineResult, meas: Measurements, prior_sigma: dict[
     K, dist = camera(sol.x)
     n_px = len(sol.fun) - 4
     J = sol.jac
+    J_prior = J[n_px:]
     s2 = float(np.sum(sol.fun[:n_px] ** 2) / max(n_px - len(sol.x), 1))
-    cov = np.linalg.pinv(J.T @ J) * s2
+    cov = _view_robust(J[:n_px], sol.fun[:n_px], len(meas.q), J_prior.T @ J_prior, s2)
     sigma = np.sqrt(np.clip(np.diag(cov), 0, None))
     sv = scaled_singular_values(J[:n_px, :n_arm])
     result = RefineResult(model, X, W, names, sol.x[:n_arm], sigma[:n_arm],

@@ -1,0 +1,43 @@
+"""Covariances of least-squares estimates that do not assume every residual independent.
+
+The classical ``s^2 (J^T J)^-1`` treats each residual row as an independent draw. In
+calibration they are not: the points of one tracked contour share its tracking error,
+and the corners of one board view share that view's error (detection bias under blur and
+perspective, the arm's pose). The cluster-robust (sandwich) covariance
+
+    A^-1 (sum_c g_c g_c^T + P) A^-1,   A = J^T J + P,   g_c = J_c^T r_c
+
+takes the residuals' own correlation within each cluster ``c`` (``P`` is a prior's
+information). With few clusters it can come out smaller than the classical one by
+chance, so callers keep, parameter by parameter, the larger of the two.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def cluster_meat(J: np.ndarray, r: np.ndarray, clusters: np.ndarray) -> np.ndarray:
+    """``sum_c g_c g_c^T`` with ``g_c = J_c^T r_c`` over the clusters (an id per residual
+    row, 0..n-1), times the small-sample factor ``G/(G-1) (N-1)/(N-P)`` for G clusters,
+    N rows and P parameters."""
+    n_params = J.shape[1]
+    n_clusters = int(clusters.max()) + 1
+    G = np.zeros((n_clusters, n_params))
+    np.add.at(G, clusters, J * r[:, None])
+    correction = n_clusters / max(n_clusters - 1, 1) * (len(r) - 1) / max(len(r) - n_params, 1)
+    return G.T @ G * correction
+
+
+def larger_variances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Of two covariances, the one with the larger variances, parameter by parameter
+    (``a``'s correlations, its rows and columns scaled up where ``b``'s variance is
+    larger)."""
+    da, db = np.sqrt(np.clip(np.diag(a), 0, None)), np.sqrt(np.clip(np.diag(b), 0, None))
+    scale = np.maximum(db / np.maximum(da, 1e-300), 1.0)
+    return a * np.outer(scale, scale)
+
+
+def view_clusters(n_views: int, rows_per_view: int) -> np.ndarray:
+    """Cluster ids for residuals laid out view by view, ``rows_per_view`` rows each."""
+    return np.repeat(np.arange(n_views), rows_per_view)
