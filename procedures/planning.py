@@ -179,13 +179,15 @@ def reach_sphere(model: KinematicModel, T_flange_cam: np.ndarray) -> tuple[np.nd
 def plan_target_views(config: RigConfig, n: int, distance_m: float = 0.45,
                       max_tilt_deg: float = 25.0, seed: int = 0,
                       up_axis: np.ndarray | None = None, max_spin_deg: float = 60.0,
-                      model: KinematicModel | None = None,
+                      model: KinematicModel | None = None, lean_deg: float = 0.0,
                       ) -> tuple[list[np.ndarray], list[str]]:
     """Joint configurations whose camera (arm ``model``, the nominal one when None)
     looks at the board centre from ``distance_m``, tilted up to ``max_tilt_deg`` off the
     board normal, with varied roll about the viewing axis (up to ``max_spin_deg`` either
-    way from ``up_axis``, a direction in the board's plane, when given). Returns the
-    reachable ones and notes for the skipped."""
+    way from ``up_axis``, a direction in the board's plane, when given). The first view
+    looks straight at the board, or leans ``lean_deg`` off its normal toward the arm's
+    shoulder (a board at the edge of a small arm's reach). Returns the reachable ones and
+    notes for the skipped."""
     arm = config.devices.arm
     if arm is None:
         raise SolveError("planning target views needs devices.arm in the rig file")
@@ -211,6 +213,8 @@ def plan_target_views(config: RigConfig, n: int, distance_m: float = 0.45,
         v = np.cross(normal, u)
         direction = math.cos(tilt) * normal + math.sin(tilt) * (math.cos(azimuth) * u +
                                                                  math.sin(azimuth) * v)
+        if not poses and lean_deg:
+            direction = _leaning(normal, shoulder - centre, math.radians(lean_deg))
         eye = centre + distance_m * rng.uniform(0.9, 1.1) * direction
         spin = math.radians(rng.uniform(-max_spin_deg, max_spin_deg))
         up = math.cos(spin) * u + math.sin(spin) * v
@@ -240,6 +244,15 @@ def plan_target_views(config: RigConfig, n: int, distance_m: float = 0.45,
         poses.append(q)
         previous = q
     return poses, notes
+
+
+def _leaning(normal: np.ndarray, toward: np.ndarray, lean: float) -> np.ndarray:
+    """The unit direction ``lean`` radians off ``normal`` toward ``toward``'s component
+    in the plane normal to it (``normal`` itself when ``toward`` lies along it)."""
+    side = toward - np.dot(toward, normal) * normal
+    if np.linalg.norm(side) < 1e-9:
+        return normal
+    return math.cos(lean) * normal + math.sin(lean) * side / np.linalg.norm(side)
 
 
 MIN_VIEWS = 3

@@ -89,27 +89,42 @@ class RobotKinematicsParams(Params):
     seed: int = 0
 
 
+BASE_LEANS_DEG = (15.0, 30.0, 45.0)  # sweep-base leans tried when no straight view is reachable
+
+
 def _scaled_to_reach(config, params: RobotKinematicsParams, model=None):
     """The parameters with the sweep and view distances brought closer (``CLOSER``)
     when the arm (``model``, nominal when None) cannot reach a straight view of the
     target from the asked ones (a small arm such as a UR3e), the first sweep base, and a
-    note saying so."""
-    (base, notes), used, _ = closest_plan(
-        lambda d: plan_target_views(config, 1, d, 0.0, params.seed, model=model),
-        params.sweep_distance_m, 1)
+    note saying so. When no straight view is reachable at all (a board at the edge of
+    the reach), the base leans toward the arm's shoulder, by up to ``max_tilt_deg``
+    (``BASE_LEANS_DEG``)."""
+    for lean in (0.0, *(t for t in BASE_LEANS_DEG if t <= params.max_tilt_deg)):
+        (base, notes), used, _ = closest_plan(
+            lambda d, lean=lean: plan_target_views(config, 1, d, 0.0, params.seed,
+                                                   model=model, lean_deg=lean),
+            params.sweep_distance_m, 1)
+        if base:
+            break
     if not base:
         raise SolveError("robot-kinematics: no reachable view of the target from "
                          f"{params.sweep_distance_m:.2f} m or closer (down to "
-                         f"{params.sweep_distance_m * CLOSER[-1]:.2f} m); move the target "
-                         "within the arm's reach or change sweep_distance_m")
+                         f"{params.sweep_distance_m * CLOSER[-1]:.2f} m), straight or leaning "
+                         f"up to {min(params.max_tilt_deg, BASE_LEANS_DEG[-1]):g} deg toward "
+                         "the arm; move the target within the arm's reach or change "
+                         "sweep_distance_m")
     factor = used / params.sweep_distance_m
+    notes = []
     if factor != 1.0:
         params = params.model_copy(update={
             "sweep_distance_m": params.sweep_distance_m * factor,
             "view_distance_m": params.view_distance_m * factor})
-        notes = [f"no straight view of the target is reachable from the asked distances: "
-                 f"sweeps at {params.sweep_distance_m:.2f} m and views at "
-                 f"{params.view_distance_m:.2f} m ({factor:g} times)"]
+        notes.append(f"no straight view of the target is reachable from the asked distances: "
+                     f"sweeps at {params.sweep_distance_m:.2f} m and views at "
+                     f"{params.view_distance_m:.2f} m ({factor:g} times)")
+    if lean:
+        notes.append(f"no straight view of the target is reachable: the sweeps start from a "
+                     f"view leaning {lean:g} deg toward the arm")
     return params, base, notes
 
 

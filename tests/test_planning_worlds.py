@@ -53,3 +53,19 @@ def test_target_out_of_reach_is_refused_before_motion():
         proc.plan(proc.params_model(poses=4), config)
     with pytest.raises(SolveError, match=r"no reachable view of the target from 0\.70 m"):
         _scaled_to_reach(config, RobotKinematicsParams())
+
+
+def test_a_board_at_the_edge_of_the_reach_gets_a_leaning_sweep_base():
+    """Random world 9078 (a UR3e, its board near the edge of the reach): no straight
+    view is reachable at any distance tried, so the sweeps start from a view leaning
+    toward the arm, instead of the run being refused; a board beyond the reach is still
+    refused, by name."""
+    data = random_world(9078)
+    assert data["arm"]["model"] == "ur3e"
+    config = rig_for(data)
+    params, base, notes = _scaled_to_reach(config, RobotKinematicsParams())
+    assert len(base) == 1 and params.sweep_distance_m < 0.5
+    assert any("leaning 15 deg toward the arm" in n for n in notes)
+    data["target"]["xyz_mm"] = [-1500.0, 0.0, 0.0]
+    with pytest.raises(SolveError, match="straight or leaning up to 45 deg toward the arm"):
+        _scaled_to_reach(rig_for(data), RobotKinematicsParams())
