@@ -8,9 +8,10 @@ import numpy as np
 from numpy.linalg import inv
 
 from rigctl.bench.truth import identified_value
-from rigctl.calib import robot
+from rigctl.calib import handeye, robot
 from rigctl.calib.covariance import cluster_meat, larger_variances, view_clusters
-from tests.test_robot_math import DIST, OBJ, K, T_cam_target, board_views, ur_truth, view
+from rigctl.geometry import transforms
+from tests.test_robot_math import DIST, OBJ, K, T_cam_target, board_views, he_data, ur_truth, view
 
 
 def test_cluster_robust_sigma_matches_the_spread_of_a_clustered_regression():
@@ -78,3 +79,23 @@ def test_robot_sigmas_cover_errors_a_board_view_shares():
     assert np.mean(z_position <= 3) >= 0.9 and z_position.max() < 5
     # not covered by inflating: the errors reach a sigma, and sigma stays sub-millimetre
     assert np.mean(z_position >= 1) > 0.1 and np.median(sigmas) < 5e-4
+
+
+def test_hand_eye_sigmas_cover_errors_from_the_arm_poses():
+    """Hand-eye from 20 board views whose arm poses are each off by 0.3 mm and 0.3 mrad
+    (a view's corners then share that error) with 0.1 px of corner noise, 30 draws: the
+    classical sigma of T_flange_cam's translation had 41 % of the errors within 3 sigma
+    (max |z| 22); with one cluster per view 98 % (max 4.3)."""
+    z = []
+    for seed in range(30):
+        rng = np.random.default_rng(seed)
+        X, _, F, C, corners = he_data(20, seed, noise_px=0.1)
+        F = [transforms.make_T(transforms.rotvec_to_R(
+            transforms.R_to_rotvec(f[:3, :3]) + rng.normal(0, 3e-4, 3)),
+            f[:3, 3] + rng.normal(0, 3e-4, 3)) for f in F]
+        ref = handeye.refine_pixels(F, corners, OBJ, K, DIST, handeye.closed_form(F, C)["park"],
+                                    C=C)
+        z += list((ref.X[:3, 3] - X[:3, 3]) / ref.sigma[3:6])
+    z = np.abs(z)
+    assert np.mean(z <= 3) >= 0.9 and z.max() < 6
+    assert np.mean(z >= 1) > 0.2  # the errors do reach the sigma: it is not inflated

@@ -38,6 +38,23 @@ def larger_variances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return a * np.outer(scale, scale)
 
 
-def view_clusters(n_views: int, rows_per_view: int) -> np.ndarray:
-    """Cluster ids for residuals laid out view by view, ``rows_per_view`` rows each."""
+def view_clusters(n_views: int, rows_per_view: int | list[int]) -> np.ndarray:
+    """Cluster ids for residuals laid out view by view, ``rows_per_view`` rows each (or
+    that many for each view)."""
     return np.repeat(np.arange(n_views), rows_per_view)
+
+
+def robust_covariance(J: np.ndarray, r: np.ndarray, clusters: np.ndarray,
+                      P: np.ndarray | None = None, s2: float | None = None) -> np.ndarray:
+    """The covariance of a least-squares estimate with Jacobian ``J`` and residuals ``r``
+    (prior information ``P`` in the residuals' units, not among those rows): the
+    cluster-robust sandwich over ``clusters`` or the classical ``s^2 A^-1``, parameter by
+    parameter the larger. ``s2`` defaults to the residuals' variance per degree of
+    freedom; a pseudo-inverse keeps gauge directions at zero."""
+    n_params = J.shape[1]
+    P = np.zeros((n_params, n_params)) if P is None else P
+    if s2 is None:
+        s2 = float(np.sum(r ** 2) / max(len(r) - n_params, 1))
+    A_inv = np.linalg.pinv(J.T @ J + P)
+    sandwich = A_inv @ (cluster_meat(J, r, clusters) + P * s2) @ A_inv
+    return larger_variances(sandwich, A_inv * s2)

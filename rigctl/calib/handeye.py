@@ -20,6 +20,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
+from rigctl.calib.covariance import robust_covariance, view_clusters
 from rigctl.errors import SolveError
 from rigctl.geometry.transforms import R_to_rotvec, inv_T, make_T, rotation_angle, rotvec_to_R
 
@@ -187,7 +188,8 @@ def refine_poses(F, C, X0, sigma_rot: float = 0.002, sigma_t: float = 0.005,
 def refine_pixels(F, corners: list[np.ndarray], obj: np.ndarray, K, dist, X0,
                   W0: np.ndarray | None = None, C: list[np.ndarray] | None = None
                   ) -> HandEyeResult:
-    """Least squares of X and W on board-corner reprojection error over every sample."""
+    """Least squares of X and W on board-corner reprojection error over every sample,
+    with 1-sigma cluster-robust over the samples (``covariance.robust_covariance``)."""
     if W0 is None:
         if C is None:
             raise SolveError("hand-eye refinement: give W0 or the camera poses C")
@@ -206,8 +208,9 @@ def refine_pixels(F, corners: list[np.ndarray], obj: np.ndarray, K, dist, X0,
 
     sol = least_squares(fun, _params(X0, W0), loss="soft_l1", f_scale=1.0, x_scale="jac")
     X, W = _unpack(sol.x)
-    dof = max(len(sol.fun) - 12, 1)
-    cov = np.linalg.pinv(sol.jac.T @ sol.jac) * float(np.sum(sol.fun ** 2) / dof)
+    # a view's corners share its error (the arm's pose, detection bias): one cluster each
+    clusters = view_clusters(len(corners), [2 * len(np.reshape(c, (-1, 2))) for c in corners])
+    cov = robust_covariance(sol.jac, sol.fun, clusters)
     return HandEyeResult(X, W, float(np.sqrt(np.mean(sol.fun ** 2))),
                          np.sqrt(np.clip(np.diag(cov), 0, None)))
 

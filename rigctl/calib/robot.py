@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
-from rigctl.calib.covariance import cluster_meat, larger_variances, view_clusters
+from rigctl.calib.covariance import robust_covariance, view_clusters
 from rigctl.errors import SolveError
 from rigctl.geometry.camera import camera_matrix, invert_batch, project_batch
 from rigctl.geometry.kinematics import LINK_KEYS, KinematicModel, link_transform
@@ -455,19 +455,9 @@ def refine(model0: KinematicModel, X0, W0, meas: Measurements, mask=None,
 def _view_robust(J: np.ndarray, r: np.ndarray, n_views: int, P: np.ndarray,
                  s2: float | None = None) -> np.ndarray:
     """Covariance of a refinement over ``n_views`` captures (residual rows laid out view
-    by view, ``J`` their Jacobian) with prior information ``P`` (rows already scaled to
-    the residuals' units): the cluster-robust sandwich with one cluster per view, since
-    a view's corners share its error (detection bias, the arm's pose), or the classical
-    ``s^2 A^-1`` where that is larger. ``s2`` defaults to the residuals' variance per
-    degree of freedom."""
-    n_params = J.shape[1]
-    if s2 is None:
-        s2 = float(np.sum(r ** 2) / max(len(r) - n_params, 1))
-    A_inv = np.linalg.pinv(J.T @ J + P)
-    classical = A_inv * s2
-    clusters = view_clusters(n_views, len(r) // n_views)
-    sandwich = A_inv @ (cluster_meat(J, r, clusters) + P * s2) @ A_inv
-    return larger_variances(sandwich, classical)
+    by view) with prior information ``P``: cluster-robust with one cluster per view,
+    since a view's corners share its error (detection bias, the arm's pose)."""
+    return robust_covariance(J, r, view_clusters(n_views, len(r) // n_views), P, s2)
 
 
 CAMERA_KEYS = ("fx", "fy", "cx", "cy")
