@@ -99,7 +99,8 @@ def _scaled_to_reach(config, params: RobotKinematicsParams, model=None):
     note saying so. When no straight view is reachable at all (a board at the edge of
     the reach), the base leans toward the arm's shoulder, by up to ``max_tilt_deg``
     (``BASE_LEANS_DEG``)."""
-    for lean in (0.0, *(t for t in BASE_LEANS_DEG if t <= params.max_tilt_deg)):
+    leans = (0.0, *(t for t in BASE_LEANS_DEG if t <= params.max_tilt_deg))
+    for lean in leans:
         (base, notes), used, _ = closest_plan(
             lambda d, lean=lean: plan_target_views(config, 1, d, 0.0, params.seed,
                                                    model=model, lean_deg=lean),
@@ -107,24 +108,23 @@ def _scaled_to_reach(config, params: RobotKinematicsParams, model=None):
         if base:
             break
     if not base:
+        how = f"straight or leaning up to {leans[-1]:g} deg toward the arm" \
+            if len(leans) > 1 else "straight (max_tilt_deg allows no lean)"
         raise SolveError("robot-kinematics: no reachable view of the target from "
                          f"{params.sweep_distance_m:.2f} m or closer (down to "
-                         f"{params.sweep_distance_m * CLOSER[-1]:.2f} m), straight or leaning "
-                         f"up to {min(params.max_tilt_deg, BASE_LEANS_DEG[-1]):g} deg toward "
-                         "the arm; move the target within the arm's reach or change "
-                         "sweep_distance_m")
+                         f"{params.sweep_distance_m * CLOSER[-1]:.2f} m), {how}; move the "
+                         "target within the arm's reach or change sweep_distance_m")
     factor = used / params.sweep_distance_m
-    notes = []
     if factor != 1.0:
         params = params.model_copy(update={
             "sweep_distance_m": params.sweep_distance_m * factor,
             "view_distance_m": params.view_distance_m * factor})
-        notes.append(f"no straight view of the target is reachable from the asked distances: "
-                     f"sweeps at {params.sweep_distance_m:.2f} m and views at "
-                     f"{params.view_distance_m:.2f} m ({factor:g} times)")
+        notes = [f"no straight view of the target is reachable from the asked distances: "
+                 f"sweeps at {params.sweep_distance_m:.2f} m and views at "
+                 f"{params.view_distance_m:.2f} m ({factor:g} times)"]
     if lean:
-        notes.append(f"no straight view of the target is reachable: the sweeps start from a "
-                     f"view leaning {lean:g} deg toward the arm")
+        notes = [*notes, "no straight view of the target is reachable: the sweeps start "
+                 f"from a view leaning {lean:g} deg toward the arm"]
     return params, base, notes
 
 
