@@ -5,6 +5,7 @@ there, the cluster-robust covariance is not."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from numpy.linalg import inv
 
 from rigctl.bench.truth import identified_value
@@ -44,7 +45,7 @@ def test_larger_variances_keeps_the_larger_sigma_of_each_parameter():
     both = larger_variances(a, b)
     assert np.allclose(np.sqrt(np.diag(both)), [2.0, 3.0])
     assert both[0, 1] / np.sqrt(both[0, 0] * both[1, 1]) == \
-        a[0, 1] / np.sqrt(a[0, 0] * a[1, 1])  # a's correlation kept
+        pytest.approx(a[0, 1] / np.sqrt(a[0, 0] * a[1, 1]))  # a's correlation kept
 
 
 def test_robot_sigmas_cover_errors_a_board_view_shares():
@@ -85,7 +86,7 @@ def test_hand_eye_sigmas_cover_errors_from_the_arm_poses():
     """Hand-eye from 20 board views whose arm poses are each off by 0.3 mm and 0.3 mrad
     (a view's corners then share that error) with 0.1 px of corner noise, 30 draws: the
     classical sigma of T_flange_cam's translation had 41 % of the errors within 3 sigma
-    (max |z| 22); with one cluster per view 98 % (max 4.3)."""
+    (max |z| 22); with one cluster per view 96 % (max 5.1)."""
     z = []
     for seed in range(30):
         rng = np.random.default_rng(seed)

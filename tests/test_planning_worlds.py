@@ -66,6 +66,10 @@ def test_a_board_at_the_edge_of_the_reach_gets_a_leaning_sweep_base():
     params, base, notes = _scaled_to_reach(config, RobotKinematicsParams())
     assert len(base) == 1 and params.sweep_distance_m < 0.5
     assert any("leaning 15 deg toward the arm" in n for n in notes)
+    proc = get_procedure("robot-kinematics")  # the whole plan holds, inside the limits
+    steps = proc.plan(proc.params_model(), config)
+    assert not check_plan(config, steps, proc.devices)
+    assert len([s for s in steps if type(s).__name__ == "CaptureStep"]) > 40
     data["target"]["xyz_mm"] = [-1500.0, 0.0, 0.0]
     with pytest.raises(SolveError, match="straight or leaning up to 45 deg toward the arm"):
         _scaled_to_reach(rig_for(data), RobotKinematicsParams())

@@ -8,8 +8,10 @@ perspective, the arm's pose). The cluster-robust (sandwich) covariance
     A^-1 (sum_c g_c g_c^T + P) A^-1,   A = J^T J + P,   g_c = J_c^T r_c
 
 takes the residuals' own correlation within each cluster ``c`` (``P`` is a prior's
-information). With few clusters it can come out smaller than the classical one by
-chance, so callers keep, parameter by parameter, the larger of the two.
+information, here in units where the prior's own noise is one; ``robust_covariance``
+takes it in the residuals' units instead and scales it by ``s^2``). With few clusters it
+can come out smaller than the classical one by chance, so callers keep, parameter by
+parameter, the larger of the two.
 """
 
 from __future__ import annotations

@@ -210,7 +210,10 @@ def refine_pixels(F, corners: list[np.ndarray], obj: np.ndarray, K, dist, X0,
     X, W = _unpack(sol.x)
     # a view's corners share its error (the arm's pose, detection bias): one cluster each
     clusters = view_clusters(len(corners), [2 * len(np.reshape(c, (-1, 2))) for c in corners])
-    cov = robust_covariance(sol.jac, sol.fun, clusters)
+    # scipy returns the Jacobian weighted by the soft_l1 loss (sqrt rho'); weigh the
+    # residuals alike so the sandwich pairs rows that match
+    weight = (1.0 + sol.fun ** 2) ** -0.25
+    cov = robust_covariance(sol.jac, sol.fun * weight, clusters)
     return HandEyeResult(X, W, float(np.sqrt(np.mean(sol.fun ** 2))),
                          np.sqrt(np.clip(np.diag(cov), 0, None)))
 

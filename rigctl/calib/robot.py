@@ -457,6 +457,9 @@ def _view_robust(J: np.ndarray, r: np.ndarray, n_views: int, P: np.ndarray,
     """Covariance of a refinement over ``n_views`` captures (residual rows laid out view
     by view) with prior information ``P``: cluster-robust with one cluster per view,
     since a view's corners share its error (detection bias, the arm's pose)."""
+    if len(r) % n_views:
+        raise SolveError(f"robot refinement: {len(r)} residual rows do not split evenly "
+                         f"into {n_views} views")
     return robust_covariance(J, r, view_clusters(n_views, len(r) // n_views), P, s2)
 
 
