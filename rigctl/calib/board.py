@@ -60,17 +60,20 @@ def squares_alternate(gray: np.ndarray, pts: np.ndarray, rows: int, cols: int) -
     is one square off.
 
     Each square is sampled through a homography of the 3 x 3 inner corners nearest to
-    it, which follows lens distortion locally; squares that reach outside the image are
-    not judged. Either colouring is accepted (a square board may come back turned a
-    quarter). Every inner square must fall on its side of the midpoint between the
-    median dark and the median light square, and all but one of the outer ring (a
-    corner square shaded, or cut by the lens's edge); a grid one square off puts at least
-    two of a border column's squares on the margin."""
+    it, which follows lens distortion locally. An outer square whose sample reaches
+    outside the image is sampled in its quarter next to the inner corners instead
+    (``_toward_grid``), and counts against the grid only where it clearly shows the
+    other colour (``CLEAR``; a margin seen where a dark square should be), since that far
+    out the local homography is a coarse guide; squares still outside are not judged.
+    Either colouring is accepted (a square board may come back turned a quarter). Every
+    inner square must fall on its side of the midpoint between the median dark and the
+    median light square, and all but one of the outer ring (a corner square shaded, or
+    cut by the lens's edge); a grid one square off puts at least two of a border
+    column's squares on the margin."""
     nodes = pts.reshape(rows - 1, cols - 1, 2)
-    height, width = gray.shape[:2]
     inset = ((0.3, 0.3), (0.7, 0.3), (0.7, 0.7), (0.3, 0.7))
     homographies: dict[tuple[int, int], np.ndarray | None] = {}  # one per 3 x 3 block
-    means, parity, ring = [], [], []
+    means, parity, ring, near = [], [], [], []
     for r in range(rows):
         for s in range(cols):
             i0, j0 = min(max(r, 1), rows - 3), min(max(s, 1), cols - 3)  # node coordinates
@@ -81,29 +84,62 @@ def squares_alternate(gray: np.ndarray, pts: np.ndarray, rows: int, cols: int) -
             H = homographies[i0, j0]
             if H is None:
                 return False
-            cell = np.array([[s + u, r + v] for u, v in inset])
-            quad = cv2.perspectiveTransform(cell[None], H)[0]
-            if (quad.min() < 0 or np.any(quad[:, 0] > width - 1)
-                    or np.any(quad[:, 1] > height - 1)):
-                continue
-            corners = np.round(quad).astype(np.int32)
-            x, y, w, h = cv2.boundingRect(corners)
-            mask = np.zeros((h, w), np.uint8)
-            cv2.fillConvexPoly(mask, corners - [x, y], 255)
-            if mask.any():
-                means.append(cv2.mean(gray[y:y + h, x:x + w], mask)[0])
+            outer = r in (0, rows - 1) or s in (0, cols - 1)
+            mean = _square_mean(gray, H, r, s, inset)
+            fallback = mean is None and outer
+            if fallback:
+                mean = _square_mean(gray, H, r, s, _toward_grid(inset, r, s, rows, cols))
+            if mean is not None:
+                means.append(mean)
                 parity.append((r + s) % 2)
-                ring.append(r in (0, rows - 1) or s in (0, cols - 1))
-    means, parity, ring = np.array(means), np.array(parity), np.array(ring, bool)
+                ring.append(outer)
+                near.append(fallback)
+    means, parity = np.array(means), np.array(parity)
+    ring, near = np.array(ring, bool), np.array(near, bool)
     if len(set(parity.tolist())) < 2:
         return True  # too little of the board in the image to judge
     for dark in (0, 1):
         is_dark = parity == dark
-        middle = (np.median(means[is_dark]) + np.median(means[~is_dark])) / 2
+        low, high = np.median(means[is_dark]), np.median(means[~is_dark])
+        middle, margin = (low + high) / 2, CLEAR * abs(high - low)
         wrong = np.where(is_dark, means >= middle, means <= middle)
+        clearly = np.where(is_dark, means >= middle + margin, means <= middle - margin)
+        wrong = np.where(near, clearly, wrong)
         if not np.any(wrong & ~ring) and np.sum(wrong & ring) <= 1:
             return True
     return False
+
+
+CLEAR = 0.25  # of the dark-light contrast past the midpoint: a quarter-square sample's "clearly"
+
+
+def _square_mean(gray: np.ndarray, H: np.ndarray, r: int, s: int, inset) -> float | None:
+    """Mean grey of square (r, s) over ``inset`` (cell fractions) mapped by ``H``, or None
+    when that reaches outside the image."""
+    height, width = gray.shape[:2]
+    cell = np.array([[s + u, r + v] for u, v in inset])
+    quad = cv2.perspectiveTransform(cell[None], H)[0]
+    if quad.min() < 0 or np.any(quad[:, 0] > width - 1) or np.any(quad[:, 1] > height - 1):
+        return None
+    corners = np.round(quad).astype(np.int32)
+    x, y, w, h = cv2.boundingRect(corners)
+    mask = np.zeros((h, w), np.uint8)
+    cv2.fillConvexPoly(mask, corners - [x, y], 255)
+    return cv2.mean(gray[y:y + h, x:x + w], mask)[0] if mask.any() else None
+
+
+def _toward_grid(inset, r: int, s: int, rows: int, cols: int):
+    """The sampling quad of square (r, s) of the outer ring drawn into its quarter next
+    to the inner corners: that part is in the image even when the rest of the square is
+    not (a grid found one square off, its outer corners on the margin at the image's
+    edge, puts margin there where the border squares should be)."""
+    def squeeze(t: float, index: int, last: int) -> float:
+        if index == 0:
+            return 0.7 + 0.25 * (t - 0.3) / 0.4   # the ring's side nearer the grid: 0.7-0.95
+        if index == last:
+            return 0.05 + 0.25 * (t - 0.3) / 0.4  # 0.05-0.3
+        return t
+    return [(squeeze(u, s, cols - 1), squeeze(v, r, rows - 1)) for u, v in inset]
 
 
 def symmetric(rows: int, cols: int) -> bool:
