@@ -11,8 +11,17 @@ from numpy.linalg import inv
 from rigctl.bench.truth import identified_value
 from rigctl.calib import handeye, robot
 from rigctl.calib.covariance import cluster_meat, larger_variances, view_clusters
-from rigctl.geometry import transforms
-from tests.test_robot_math import DIST, OBJ, K, T_cam_target, board_views, he_data, ur_truth, view
+from tests.test_robot_math import (
+    DIST,
+    OBJ,
+    K,
+    T_cam_target,
+    board_views,
+    he_data,
+    opencv_noisy,
+    ur_truth,
+    view,
+)
 
 
 def test_cluster_robust_sigma_matches_the_spread_of_a_clustered_regression():
@@ -91,9 +100,7 @@ def test_hand_eye_sigmas_cover_errors_from_the_arm_poses():
     for seed in range(30):
         rng = np.random.default_rng(seed)
         X, _, F, C, corners = he_data(20, seed, noise_px=0.1)
-        F = [transforms.make_T(transforms.rotvec_to_R(
-            transforms.R_to_rotvec(f[:3, :3]) + rng.normal(0, 3e-4, 3)),
-            f[:3, 3] + rng.normal(0, 3e-4, 3)) for f in F]
+        F = [opencv_noisy(f, rng, 3e-4, 3e-4) for f in F]
         ref = handeye.refine_pixels(F, corners, OBJ, K, DIST, handeye.closed_form(F, C)["park"],
                                     C=C)
         z += list((ref.X[:3, 3] - X[:3, 3]) / ref.sigma[3:6])
