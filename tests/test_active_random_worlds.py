@@ -7,7 +7,13 @@ the arm's sideways move included, and ``rigctl.calib.active_pipeline`` solves it
 Seeds 24 and 38 are wide lenses (681 and 635 px) with strong barrel distortion, where
 Strategies B-D fail; before the refinement started from the pan/tilt refinement and
 tracked the wide angles tier by tier, seed 24 came out 2.1 % and 104 px off, and seed 38
-0.18 % off. Seed 26 is an ordinary 1000 px lens."""
+0.18 % off. Seed 26 is an ordinary 1000 px lens.
+
+Seed 11015 is a UR3e whose scene is near (0.25 m) and turned away, with the camera
+2.6 mm off the head's axes: the pans' and the rolls' centres both carry that parallax
+(33 and 22 px). Before the tiers' refinements used the measured depths and the final
+refinement tried more than one start, it ended 26 px off with a reported sigma of 0.9 px
+(z 29); now 0.3 px."""
 
 from __future__ import annotations
 
@@ -17,7 +23,7 @@ from rigctl.bench.active_worlds import world_trial
 
 
 @pytest.mark.timeout(300)
-@pytest.mark.parametrize("seed", [24, 38, 26])
+@pytest.mark.parametrize("seed", [24, 38, 26, 11015])
 def test_default_plan_meets_the_truth_of_an_unseen_world(seed):
     row = world_trial((seed, None, 0.010))
     assert "error" not in row, row.get("error")

@@ -56,6 +56,7 @@ MODEL_ERROR_CENTRE_PX = 0.15  # per coordinate
 WANTED_CONTOURS = 6
 WIDE_WINDOW = 0.95
 TILE_PX = 160  # then cut edge networks that reach beyond it into pieces this size
+DISTINCT_START_PX = 3.0  # the final refinement also starts from centres this far apart
 
 
 @dataclass
@@ -108,6 +109,7 @@ class _Tracker:
     def __init__(self, images: dict, angles: dict, settings: ActiveSettings) -> None:
         self.angles = angles
         self.emaps = {k: edge_map(img) for k, img in images.items()}
+        self.inv_depth: np.ndarray | None = None  # each contour's, once measured (1/m)
         h, w = images["ref"].shape[:2]
         self.size = (w, h)
         self.centre = np.array(settings.assumed_centre or [(w - 1) / 2, (h - 1) / 2], float)
@@ -203,10 +205,9 @@ class _Tracker:
         """Follows every reference contour into ``label``'s image: predicted by a pinhole
         ``K`` or by a refinement's whole model (distortion included), then searched
         +-``window`` px around the prediction."""
-        predictor = K.predictor(self.angles["ref"], self.angles[label]) \
-            if isinstance(K, RefineResult) else _predictor(K, self.rel[label])
-        self.matches[label] = [track_by_prediction(c, self.emaps[label], predictor,
-                                                   window=window) for c in self.contours]
+        self.matches[label] = [track_by_prediction(c, self.emaps[label],
+                                                   self._predictor(K, label, i), window=window)
+                               for i, c in enumerate(self.contours)]
         rejected: dict[str, int] = {}
         for m in self.matches[label]:
             if not m.ok:
@@ -215,6 +216,16 @@ class _Tracker:
         self.report["motions"][label] = {
             "tracked": sum(m.ok for m in self.matches[label]), "rejected": rejected,
             "angles_deg": np.degrees(self.rel[label]).tolist()}
+
+    def _predictor(self, K: dict | RefineResult, label: str, contour: int):
+        """Contour ``contour``'s prediction into ``label``: the pinhole K's, or the
+        refinement's with that contour's inverse depth once the scene's are measured
+        (``inv_depth``) and the refinement estimated the offset with them."""
+        if not isinstance(K, RefineResult):
+            return _predictor(K, self.rel[label])
+        rho = None if self.inv_depth is None or not K.with_depths else \
+            float(self.inv_depth[contour])
+        return K.predictor(self.angles["ref"], self.angles[label], rho)
 
     def motion(self, label: str, stride: int = 1) -> Motion | None:
         """The tracked contours of ``label`` as one refinement motion: every
@@ -303,6 +314,79 @@ def _final_start(K1: dict | RefineResult, strategies: dict, K0: dict) -> dict:
     if closed is not None:
         start.update(cx=closed["cx"], cy=closed["cy"])
     return start
+
+
+def _predicting_refinement(motions, start: dict, settings: ActiveSettings,
+                           depths: SceneDepths | None) -> RefineResult:
+    """A refinement that only predicts the next tier: k1, k2 and a quarter of the points,
+    with the scene's depths when measured (a near scene turned away from the camera,
+    moving by its parallax, biases the pans' centre otherwise: random world 11015, 33 px)."""
+    return refine(motions, start, n_dist=_distortion_terms(settings, None),
+                  outer_iterations=PREDICTION_ROUNDS,
+                  depths=None if depths is None else depths.prior(),
+                  offset_sigma_m=settings.nodal_offset_mm / 1000.0)
+
+
+def _measured_depths(tr: _Tracker, K: RefineResult, settings: ActiveSettings, images: dict
+                     ) -> SceneDepths | None:
+    """The scene's depths from the SHIFT capture (reported), or None without one."""
+    if SHIFT not in images or settings.shift_m <= 0:
+        return None
+    try:
+        depths = _scene_depths(tr, K, settings.shift_m)
+    except SolveError as exc:
+        tr.report["scene_depth"] = f"not used: {exc}"
+        return None
+    tr.report["scene_depth"] = depths.as_dict()
+    tr.inv_depth = depths.filled()
+    return depths
+
+
+def _starts(start: dict, K1: dict | RefineResult, K0: dict) -> dict[str, dict]:
+    """The final refinement's starts: ``_final_start``'s, and the same with the centre
+    of the refinement on the pans and tilts and of the first K (the image's centre or
+    the assumed one), those more than ``DISTINCT_START_PX`` from the ones before. The
+    roll centre and the pans' centre both carry the parallax of a camera off the axes
+    (the rolls swing it round the roll axis; the pans see a near, turned scene at
+    varying depth), and a refinement from there can stop in a local minimum: random
+    world 11015 (UR3e, scene at 0.25 m, camera 2.6 mm off) ended 26 px off with the
+    offset near 0; from the image's centre it finds the offset and the centre within
+    0.1 px, at a lower cost."""
+    out = {"final start": start}
+    for name, centre in (("pans", _centre_of(K1)), ("first K", _centre_of(K0))):
+        if all(math.dist(centre, (s["cx"], s["cy"])) > DISTINCT_START_PX
+               for s in out.values()):
+            out[name] = {**start, "cx": centre[0], "cy": centre[1]}
+    return out
+
+
+def _centre_of(K: dict | RefineResult) -> tuple[float, float]:
+    return (K["cx"], K["cy"]) if isinstance(K, dict) else (K.cx, K.cy)
+
+
+def _refine_from_starts(motions, starts: dict[str, dict], kwargs: dict
+                        ) -> tuple[RefineResult, dict]:
+    """The refinement from each start; the one of least ``robust_cost`` (comparable across
+    starts: every point counts, whatever each run rejected). A start whose refinement
+    fails is reported and skipped; if all fail, the first's error is raised."""
+    results: dict[str, RefineResult] = {}
+    report: dict[str, dict] = {}
+    first_error: SolveError | None = None
+    for name, start in starts.items():
+        try:
+            results[name] = refine(motions, start, **kwargs)
+        except SolveError as exc:
+            first_error = first_error or exc
+            report[name] = {"centre": [start["cx"], start["cy"]], "error": str(exc)}
+            continue
+        r = results[name]
+        report[name] = {"centre": [start["cx"], start["cy"]], "ended_at": [r.cx, r.cy],
+                        "robust_cost": r.robust_cost, "rms_px": r.rms_px}
+    if not results:
+        raise first_error
+    best = min(results, key=lambda name: results[name].robust_cost)
+    report[best]["chosen"] = True
+    return results[best], report
 
 
 def _distortion_terms(settings: ActiveSettings, depths: SceneDepths | None) -> int:
@@ -433,14 +517,18 @@ def solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, f
     # those refinements only predict: a quarter of the points do
     K1: dict | RefineResult = dict(K0)
     done = list(small)
+    depths = None
     for tier in (wide, roll_labels):
         if not tier:
             continue
         before = [m for m in (tr.motion(lb, PREDICTION_STRIDE) for lb in done) if m]
         if len(before) >= 2:
-            K1 = refine(before, K0 if isinstance(K1, dict) else _as_start(K1),
-                        n_dist=_distortion_terms(settings, None),
-                        outer_iterations=PREDICTION_ROUNDS)
+            K1 = _predicting_refinement(before, K0 if isinstance(K1, dict) else _as_start(K1),
+                                        settings, depths)
+            if depths is None:  # measured once the pans' K is known, used from then on
+                depths = _measured_depths(tr, K1, settings, images)
+                if depths is not None:
+                    K1 = _predicting_refinement(before, _as_start(K1), settings, depths)
             tr.report["K_for_rolls" if tier is roll_labels else "K_for_wide"] = {
                 "fx": K1.fx, "fy": K1.fy, "cx": K1.cx, "cy": K1.cy,
                 "distortion": [K1.k1, K1.k2, K1.p1, K1.p2, K1.k3]}
@@ -449,23 +537,19 @@ def solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, f
         done += tier
     timings["tracking"] = time.perf_counter() - t0
 
-    depths = None
-    if SHIFT in images and settings.shift_m > 0:
-        try:
-            depths = _scene_depths(tr, K1, settings.shift_m)
-            tr.report["scene_depth"] = depths.as_dict()
-        except SolveError as exc:
-            tr.report["scene_depth"] = f"not used: {exc}"
+    if SHIFT in images and settings.shift_m > 0:  # again, with the K of every pose
+        depths = _measured_depths(tr, K1, settings, images)
 
     strategies = _strategies(tr, roll_labels)
     start = _final_start(K1, strategies, K0)
 
     t0 = time.perf_counter()
     motions = [m for m in (tr.motion(lb, REFINE_STRIDE) for lb in order) if m is not None]
-    refined = refine(motions, start, n_dist=_distortion_terms(settings, depths),
-                     parallax_sigma=settings.parallax_sigma,
-                     depths=None if depths is None else depths.prior(),
-                     offset_sigma_m=settings.nodal_offset_mm / 1000.0)
+    refined, tr.report["final_starts"] = _refine_from_starts(
+        motions, _starts(start, K1, K0),
+        dict(n_dist=_distortion_terms(settings, depths), parallax_sigma=settings.parallax_sigma,
+             depths=None if depths is None else depths.prior(),
+             offset_sigma_m=settings.nodal_offset_mm / 1000.0))
     timings["refinement"] = time.perf_counter() - t0
     strategies["refined"] = refined.as_dict()
     w, h = tr.size

@@ -290,12 +290,20 @@ class RefineResult:
     # of the camera parameters (``param_names(n_dist)``): the free ones' covariance, the
     # held parallax's consider variance on the diagonal
     covariance: np.ndarray | None = field(default=None, repr=False)
+    # ``robust_cost``: comparable between refinements of the same motions from different
+    # starts (every point, outliers included, soft-L1 at 1 px, plus the priors)
+    robust_cost: float = float("nan")
+    with_depths: bool = False  # the parallax is the offset o (m), each contour's s = rho o
 
-    def predictor(self, angles0, angles1):
+    def predictor(self, angles0, angles1, inv_depth: float | None = None):
         """Where reference pixels land after the head moves from ``angles0`` to
-        ``angles1`` under this solution (eq. 3.3 with distortion): for tracking."""
+        ``angles1`` under this solution (eq. 3.3 with distortion): for tracking. With
+        ``inv_depth`` (1/m, the contour's) the parallax is the offset ``o`` over that
+        depth, as the refinement with depths models it; without, ``s`` as estimated."""
         def predict_points(points: np.ndarray) -> np.ndarray:
-            return predict(Motion(angles0, angles1, points, points), self.x, self.n_dist)
+            rho = None if inv_depth is None else np.full(len(points), inv_depth)
+            return predict_many([Motion(angles0, angles1, points, points)], self.x,
+                                self.n_dist, rho=rho)[0]
         return predict_points
 
     def as_dict(self) -> dict:
@@ -606,7 +614,24 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
     r = pb.residuals(pb.x, assoc, cache=False)
     if not np.all(np.isfinite(pb.x)) or not np.all(np.isfinite(r)):
         raise SolveError("refinement diverged (non-finite parameters)")
-    return _result(pb, final, r, assoc, parallax_sigma)
+    result = _result(pb, final, r, assoc, parallax_sigma)
+    result.robust_cost = _robust_cost(pb)
+    result.with_depths = pb.groups is not None
+    return result
+
+
+def _robust_cost(pb: _Problem) -> float:
+    """The soft-L1 cost (scale 1 px) of every point, the rejected ones included, plus the
+    priors' squares, at ``pb.x``: what tells two refinements of the same motions from
+    different starts apart, whatever points each rejected."""
+    masks, pb.masks = pb.masks, [np.ones(len(m.ref_points), bool) for m in pb.motions]
+    try:
+        r = pb.residuals(pb.x, pb.associate(pb.x), cache=False)
+    finally:
+        pb.masks = masks
+    has = np.isfinite(pb.prior_sigma) & pb.free
+    prior = (pb.x - pb.prior_mean)[has] / pb.prior_sigma[has]
+    return float(np.sum(2.0 * (np.sqrt(1.0 + r ** 2) - 1.0)) + np.sum(prior ** 2))
 
 
 def _result(pb: _Problem, final, r: np.ndarray, assoc, parallax_sigma: float) -> RefineResult:
