@@ -38,8 +38,13 @@ class ActiveCameraParams(Params):
                                   description="wider pan and tilt angles, each captured "
                                   "at + and -; contours that leave the image are dropped")
     # -180 rather than +180: position-mode servos span 0..4095 pulses, so +180 deg from the
-    # centre (4096) is one pulse out of range; the image rotation is the same.
-    rolls_deg: list[float] = Field(default_factory=lambda: [90.0, -180.0, -90.0])
+    # centre (4096) is one pulse out of range; the image rotation is the same. Rolls tell
+    # the centre from the tangential terms (a shift against a quadratic field), so every
+    # 45 deg: six sets of 20 unseen worlds (bench active-worlds, seeds 5000-12019), centre
+    # error p90 0.70-1.48 -> 0.74-1.17 px, worst 1.20-2.09 -> 1.13-2.00 px, against
+    # [90, -180, -90]; every 30 deg did no better.
+    rolls_deg: list[float] = Field(
+        default_factory=lambda: [45.0, 90.0, 135.0, -180.0, -135.0, -90.0, -45.0])
     settle_s: float = Field(0.3, ge=0)
     window: float = Field(0.8, gt=0.1, le=0.95, description="central window for contours")
     min_points: int = Field(40, ge=10)
