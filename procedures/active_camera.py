@@ -2,7 +2,7 @@
 
 Sequence: home; reference capture; with an arm, the camera moved ``shift_mm`` sideways
 and captured (scene depths, for the parallax), then home again; pan +-theta_p, tilt
-+-theta_t; the wide pans and tilts (``wide_deg``); rolls (90, -180, -90 deg); each
++-theta_t; the wide pans and tilts (``wide_deg``); rolls (``rolls_deg``, every 45 deg); each
 captured after settling, with the encoder angles actually reached.
 
 Solve (``rigctl.calib.active_pipeline``): extract contours in the reference image; track
