@@ -49,7 +49,11 @@ from .base import (
 from .intrinsics import camera_model, default_prior_sigma, intrinsics_from
 from .planning import (
     CLOSER,
+    aligned_spin,
+    arm_model,
+    board_visible,
     closest_plan,
+    fit_distance,
     informative_views,
     plan_sweeps,
     plan_target_views,
@@ -92,28 +96,46 @@ class RobotKinematicsParams(Params):
 BASE_LEANS_DEG = (15.0, 30.0, 45.0)  # sweep-base leans tried when no straight view is reachable
 
 
-def _scaled_to_reach(config, params: RobotKinematicsParams, model=None):
+def _base_view(config, params: RobotKinematicsParams, model, K, distance_m: float,
+               lean: float) -> tuple[list, list[str]]:
+    """The first sweep base at ``distance_m`` (leaning ``lean`` deg toward the arm): a
+    reachable view that, with ``K``, shows the whole board; spun freely, else with the
+    board's longer side along the image's (``aligned_spin``: a long lens close up)."""
+    notes: list[str] = []
+    for spin in ({}, aligned_spin(config)):
+        base, notes = plan_target_views(config, 1, distance_m, 0.0, params.seed,
+                                        model=model, lean_deg=lean, **spin)
+        if base and (K is None or board_visible(config, arm_model(config, model), base[0], K)):
+            return base, notes
+    return [], notes
+
+
+def _scaled_to_reach(config, params: RobotKinematicsParams, model=None, K=None):
     """The parameters with the sweep and view distances brought closer (``CLOSER``)
     when the arm (``model``, nominal when None) cannot reach a straight view of the
     target from the asked ones (a small arm such as a UR3e), the first sweep base, and a
     note saying so. When no straight view is reachable at all (a board at the edge of
     the reach), the base leans toward the arm's shoulder, by up to ``max_tilt_deg``
-    (``BASE_LEANS_DEG``)."""
+    (``BASE_LEANS_DEG``). With ``K`` the base must also show the whole board: random
+    world 13003 (UR3e, f 1600 px, camera turned 92 deg on the flange) reached a base only
+    at 0.35 m, where the board fits the image only aligned with it; the unaligned base
+    showed none of it, no joint could be swept, and the plan failed."""
     leans = (0.0, *(t for t in BASE_LEANS_DEG if t <= params.max_tilt_deg))
     for lean in leans:
         (base, notes), used, _ = closest_plan(
-            lambda d, lean=lean: plan_target_views(config, 1, d, 0.0, params.seed,
-                                                   model=model, lean_deg=lean),
+            lambda d, lean=lean: _base_view(config, params, model, K, d, lean),
             params.sweep_distance_m, 1)
         if base:
             break
     if not base:
         how = f"straight or leaning up to {leans[-1]:g} deg toward the arm" \
             if len(leans) > 1 else "straight (max_tilt_deg allows no lean)"
+        seen = "" if K is None else \
+            f" with the whole board in view (it fits from {fit_distance(config, K):.2f} m)"
         raise SolveError("robot-kinematics: no reachable view of the target from "
                          f"{params.sweep_distance_m:.2f} m or closer (down to "
-                         f"{params.sweep_distance_m * CLOSER[-1]:.2f} m), {how}; move the "
-                         "target within the arm's reach or change sweep_distance_m")
+                         f"{params.sweep_distance_m * CLOSER[-1]:.2f} m), {how}{seen}; move "
+                         "the target within the arm's reach or change sweep_distance_m")
     factor = used / params.sweep_distance_m
     if factor != 1.0:
         params = params.model_copy(update={
@@ -126,6 +148,20 @@ def _scaled_to_reach(config, params: RobotKinematicsParams, model=None):
         notes = [*notes, "no straight view of the target is reachable: the sweeps start "
                  f"from a view leaning {lean:g} deg toward the arm"]
     return params, base, notes
+
+
+def _sweep_bases(config, params: RobotKinematicsParams, model, q_base) -> list:
+    """The first base, and with ``sweep_bases="widest"`` the candidates for each joint's
+    base: views spun freely, and views with the board's longer side along the image's
+    (a long lens close up sees the whole board only so: random world 13003)."""
+    bases = [q_base]
+    if params.sweep_bases == "widest":
+        for k, spin in enumerate(({}, aligned_spin(config))):
+            more, _ = plan_target_views(config, params.sweep_base_candidates,
+                                        params.sweep_distance_m, params.max_tilt_deg,
+                                        params.seed + 7 + k, model=model, **spin)
+            bases += more
+    return bases
 
 
 class RobotKinematics(Procedure):
@@ -143,16 +179,15 @@ class RobotKinematics(Procedure):
         arm = planning_arm(config, params.use_controller_model)
         model = arm.model
         # the sweeps start from a farther view, so the board stays in sight longer
-        params, base, notes = _scaled_to_reach(config, params, model)
-        q_base = base[0]
         K = planning_K(config, params.intrinsics)
-        bases = [q_base]
-        if params.sweep_bases == "widest":
-            more, _ = plan_target_views(config, params.sweep_base_candidates,
-                                        params.sweep_distance_m, params.max_tilt_deg,
-                                        params.seed + 7, model=model)
-            bases += more
+        params, base, notes = _scaled_to_reach(config, params, model, K)
+        q_base = base[0]
+        bases = _sweep_bases(config, params, model, q_base)
         sweeps, sweep_notes = plan_sweeps(config, bases, K, params.sweep_steps, model=model)
+        if not sweeps:
+            raise SolveError("robot-kinematics: no joint can be swept with the whole board "
+                             f"in view from any of {len(bases)} sweep bases at "
+                             f"{params.sweep_distance_m:.2f} m; " + "; ".join(sweep_notes))
         steps += [Note(n) for n in [arm.note, *notes, *sweep_notes]]
 
         def capture(label, **extra):

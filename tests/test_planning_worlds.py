@@ -73,3 +73,26 @@ def test_a_board_at_the_edge_of_the_reach_gets_a_leaning_sweep_base():
     data["target"]["xyz_mm"] = [-1500.0, 0.0, 0.0]
     with pytest.raises(SolveError, match="straight or leaning up to 45 deg toward the arm"):
         _scaled_to_reach(rig_for(data), RobotKinematicsParams())
+
+
+def test_a_long_lens_close_up_gets_sweep_bases_that_show_the_whole_board():
+    """Random world 13003 (a UR3e; f 1600 px on a 1280 x 720 image, the camera turned
+    92 deg on the flange): the sweeps are reachable only at 0.35 m, where the board fits
+    the image only with its longer side along the image's. The bases were planned without
+    the intrinsics and spun freely: none showed the whole board, no joint could be swept,
+    and planning crashed (an IndexError on no sweeps). Now every base shows the board and
+    every joint is swept."""
+    data = random_world(13003)
+    assert data["arm"]["model"] == "ur3e"
+    config = rig_for(data)
+    cam = data["camera"]
+    given = {k: cam[k] for k in ("fx", "fy", "cx", "cy")}
+    proc = get_procedure("robot-kinematics")
+    steps = proc.plan(proc.params_model(intrinsics=given), config)
+    assert not check_plan(config, steps, proc.devices)
+    notes = [s.text for s in steps if type(s).__name__ == "Note"]
+    assert any("sweeps at 0.35 m" in n for n in notes)
+    swept = [n for n in notes if n.startswith("joint ") and ("sweep +" in n or "sweep -" in n)]
+    assert len(swept) == 6, notes
+    captures = [s for s in steps if type(s).__name__ == "CaptureStep"]
+    assert len([c for c in captures if c.extra.get("kind") == "sweep"]) >= 24

@@ -169,6 +169,12 @@ def world_run(seed: int, folder: Path, say: Callable[[str], None]) -> dict:
                 row["procedures"][name] = {"status": "refused",
                                            "reason": f"{type(exc).__name__}: {exc}"}
                 break
+            except Exception as exc:  # a bug: the world fails, the benchmark goes on
+                row["procedures"][name] = {"status": "crashed",
+                                           "reason": f"{type(exc).__name__}: {exc}"}
+                say(f"world {seed} ({spec.arm.model}): {name} crashed: "
+                    f"{type(exc).__name__}: {exc}")
+                break
             entry = {"status": outcome.status, "reason": outcome.reason,
                      "timings_s": outcome.timings_s}
             if outcome.result is not None:
