@@ -131,10 +131,13 @@ class RunOutcome:
     run_dir: str
     result: dict[str, Any] | None
     timings_s: dict[str, float] = field(default_factory=dict)
+    # aborted by the operator (abort(), SIGTERM, Ctrl-C), not by a device or a check
+    operator_stop: bool = False
 
     def as_dict(self) -> dict[str, Any]:
         return {"run_id": self.run_id, "status": self.status, "reason": self.reason,
-                "run_dir": self.run_dir, "result": self.result, "timings_s": self.timings_s}
+                "run_dir": self.run_dir, "result": self.result, "timings_s": self.timings_s,
+                "operator_stop": self.operator_stop}
 
 
 def linear_path_q(arm, q_from: list[float], pose, samples: int = 24) -> list[float]:
@@ -320,6 +323,7 @@ class Runner:
         self._emit(type="started", run_id=run_id, procedure=procedure.name,
                    total=len(plan.steps))
         status, reason, result = "running", None, None
+        operator_stop = False
         timings: dict[str, float] = {}
         ctx = SolveContext(run, self.config, params, inputs)
         started = time.monotonic()
@@ -342,6 +346,7 @@ class Runner:
             status = "succeeded"
         except (AbortedError, KeyboardInterrupt) as exc:
             status = "aborted"
+            operator_stop = self.abort_event.is_set() or isinstance(exc, KeyboardInterrupt)
             reason = self._abort_reason if self.abort_event.is_set() else (
                 "interrupted by Ctrl-C" if isinstance(exc, KeyboardInterrupt) else str(exc))
         except SafetyError as exc:  # a protective or emergency stop aborts the run
@@ -366,7 +371,8 @@ class Runner:
             root.removeHandler(handler)
             handler.close()
             self._emit(type="finished", run_id=run_id, status=status, reason=reason)
-        return RunOutcome(run_id, status, reason, str(run.path), result, timings)
+        return RunOutcome(run_id, status, reason, str(run.path), result, timings,
+                          operator_stop)
 
     def _safe_stop(self, rig: Rig, reason: str | None) -> None:
         """Stop every touched device, then close each (which applies its park policy)."""

@@ -41,8 +41,6 @@ from rigctl.runner import Runner
 from rigctl.simrig import SimulatedRig
 
 PIPELINE = ("active-camera", "hand-eye", "robot-kinematics", "validate-arm")
-# a run aborted for one of these (the runner's reasons) stops the benchmark, not one world
-OPERATOR_STOPS = ("SIGTERM received", "interrupted by Ctrl-C", "abort requested")
 
 
 def _write_world(seed: int, folder: Path) -> tuple[Path, World]:
@@ -183,7 +181,7 @@ def world_run(seed: int, folder: Path, say: Callable[[str], None]) -> dict:
             say(f"world {seed} ({spec.arm.model}): {name} {outcome.status} in "
                 f"{outcome.timings_s.get('run_s', 0):.0f} s"
                 + (f": {outcome.reason}" if outcome.reason else ""))
-            if outcome.status == "aborted" and outcome.reason in OPERATOR_STOPS:
+            if outcome.operator_stop:  # the operator stopped the benchmark, not one world
                 raise AbortedError(f"world {seed}: {outcome.reason}")
             if outcome.status != "succeeded":
                 break
