@@ -345,10 +345,10 @@ class Runner:
             run.write_result(result)
             status = "succeeded"
         except (AbortedError, KeyboardInterrupt) as exc:
-            status = "aborted"
-            operator_stop = self.abort_event.is_set() or isinstance(exc, KeyboardInterrupt)
-            reason = self._abort_reason if self.abort_event.is_set() else (
-                "interrupted by Ctrl-C" if isinstance(exc, KeyboardInterrupt) else str(exc))
+            requested, ctrl_c = self.abort_event.is_set(), isinstance(exc, KeyboardInterrupt)
+            status, operator_stop = "aborted", requested or ctrl_c
+            reason = self._abort_reason if requested else (
+                "interrupted by Ctrl-C" if ctrl_c else str(exc))
         except SafetyError as exc:  # a protective or emergency stop aborts the run
             status, reason = "aborted", f"SafetyError: {exc}"
         except RigError as exc:
