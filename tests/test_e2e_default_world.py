@@ -76,9 +76,9 @@ def test_active_camera_on_default_world(camera_run):
     for name in ("camera.opencv.yaml", "camera_info.yaml", "plots/contours.png",
                  "plots/residuals.png", "result.json"):
         assert (run_dirs[0] / name).exists(), name
-    # the reference, pan/tilt +-3, +-15 and +-25 deg, seven rolls (every 45 deg), and one
-    # capture after the arm moved the camera 10 mm sideways
-    assert len(list(Path(run_dirs[0], "captures").glob("*.png"))) == 21
+    # the reference, pan/tilt +-3, +-8, +-12, +-16, +-20 and +-25 deg, seven rolls (every
+    # 45 deg), and one capture after the arm moved the camera 10 mm sideways
+    assert len(list(Path(run_dirs[0], "captures").glob("*.png"))) == 33
     depths = out["tracking"]["scene_depth"]
     assert depths["contours_measured"] >= 6
     assert np.linalg.norm(depths["move_in_camera_mm"]) == pytest.approx(10.0, rel=0.01)
