@@ -250,13 +250,15 @@ def plot(rows: list[dict], path: Path) -> str:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(2, 3, figsize=(13, 7.5), layout="constrained")
-    panels = [("active-camera", "focal_pct", "focal error (%)", 0.05),
-              ("active-camera", "centre_px", "centre error (px)", 0.5),
-              ("robot-kinematics", "model_rms_mm", "exported model vs truth, RMS (mm)", 0.12)]
-    for ax, (proc, key, label, target) in zip(axes[0], panels, strict=True):
+    panels = [("active-camera", "focal_pct", "focal error (%)", 0.05, 0.15),
+              ("active-camera", "centre_px", "centre error (px)", 0.5, 1.5),
+              ("robot-kinematics", "model_rms_mm", "exported model vs truth, RMS (mm)", 0.12,
+               0.25)]
+    for ax, (proc, key, label, median, worst) in zip(axes[0], panels, strict=True):
         data = _values(rows, proc, key)
         ax.plot(sorted(data), np.arange(1, len(data) + 1) / max(len(data), 1), "o-")
-        ax.axvline(target, color="tab:red", ls="--", label=f"median target {target}")
+        ax.axvline(median, color="tab:red", ls="--", label=f"median target {median}")
+        ax.axvline(worst, color="tab:red", ls=":", label=f"worst target {worst}")
         ax.set_xlabel(label)
         ax.set_ylabel("share of worlds")
         ax.legend(loc="lower right")
@@ -282,7 +284,7 @@ def plot(rows: list[dict], path: Path) -> str:
     heldout = [r["procedures"].get("robot-kinematics", {}).get("heldout_mm_after")
                for r in rows]
     ax.bar(range(len(rows)), [math.nan if v is None else v for v in heldout])
-    ax.set_xticks(range(len(rows)), [str(s) for s in seeds])
+    ax.set_xticks(range(len(rows)), [str(s) for s in seeds], rotation=90, fontsize=7)
     ax.set_xlabel("world seed")
     ax.set_ylabel("held-out camera position RMS (mm)")
     fig.suptitle(f"rigctl bench worlds: {len(rows)} random worlds through the stand-ins")
