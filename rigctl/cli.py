@@ -585,7 +585,7 @@ def bench_active_worlds(as_json: bool = typer.Option(False, "--json"),
                         first_seed: int = typer.Option(0, "--first-seed", min=0),
                         distortion_terms: int = typer.Option(
                             -1, "--distortion-terms",
-                            help="0-5; -1: automatic (4 with scene depths, else 2)"),
+                            help="0-5; -1: automatic (5 with scene depths, else 2)"),
                         workers: int = typer.Option(1, "--workers", min=1, max=16),
                         shift_mm: float = typer.Option(
                             10.0, "--shift-mm", min=0, max=50,
