@@ -22,7 +22,9 @@ import pytest
 from rigctl.bench.active_worlds import world_trial
 
 
-@pytest.mark.timeout(300)
+# A hang guard, not a time limit: seed 11015 (many contours, each with its own depth)
+# solves in ~80 s idle with the five wide angles, and took over 300 s under the load check
+@pytest.mark.timeout(900)
 @pytest.mark.parametrize("seed", [24, 38, 26, 11015])
 def test_default_plan_meets_the_truth_of_an_unseen_world(seed):
     row = world_trial((seed, None, 0.010))
