@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from rigctl.bench.active_worlds import world_trial
-from rigctl.calib.active_depth import camera_shift_joints, fit_depths
+from rigctl.calib.active_depth import camera_shift_joints, contour_shift, fit_depths, rigid_shifts
 from rigctl.errors import SolveError
 from rigctl.geometry.kinematics import nominal_ur
 from rigctl.geometry.transforms import xyz_rpy_to_T
@@ -81,3 +81,36 @@ def test_a_contour_followed_to_the_wrong_edge_is_dropped_from_the_depths():
     assert np.isnan(fit.inv_depth[3])
     others = np.arange(8) != 3
     assert np.allclose(fit.inv_depth[others], 1 / depth[others], rtol=1e-6)
+
+
+def _ellipse_edges(centre, shift, n=400):
+    """Edge points and unit normals of an ellipse (px), moved by ``shift``."""
+    t = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    a, b = 40.0, 25.0
+    pts = np.c_[a * np.cos(t), b * np.sin(t)] + centre
+    normals = np.c_[b * np.cos(t), a * np.sin(t)]
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    return pts, pts + shift, normals
+
+
+def test_a_contour_traced_over_two_depths_is_left_out_of_the_measured_ones():
+    """Five contours move rigidly (edge noise 0.1 px); a sixth is two shapes traced as
+    one, its halves at different depths (shifts of 10 and 8 px). Its shift fit leaves
+    over 0.5 px RMS, the rigid ones about the noise, and only it is flagged."""
+    rng = np.random.default_rng(11)
+    fits = []
+    for k in range(5):
+        ref, moved, normals = _ellipse_edges([100.0 * k, 50.0], [-6.0 - k, 0.3])
+        moved = moved + normals * rng.normal(0, 0.1, (len(moved), 1))
+        shift, rms = contour_shift(ref, moved, normals, [-5.0 - k, 0.0])
+        assert np.allclose(shift, [-6.0 - k, 0.3], atol=0.03)
+        assert rms < 0.15
+        fits.append(rms)
+    ref, moved, normals = _ellipse_edges([600.0, 50.0], [-10.0, 0.0])
+    lower = ref[:, 1] < 50.0
+    moved[lower] += [2.0, 0.0]  # the lower half is farther: it moved 8 px, not 10
+    _, rms = contour_shift(ref, moved, normals, [-9.0, 0.0])
+    assert rms > 0.5
+    assert rigid_shifts(np.array([*fits, rms])).tolist() == [True] * 5 + [False]
+    # a scene of equally sharp contours is measured whole, however noisy its edges
+    assert rigid_shifts(np.array([0.4, 0.5, 0.45, 0.6])).all()

@@ -25,7 +25,7 @@ import numpy as np
 
 from rigctl.calib import active
 from rigctl.calib.active import ContourStats
-from rigctl.calib.active_depth import SceneDepths, contour_shift, fit_depths
+from rigctl.calib.active_depth import SceneDepths, contour_shift, fit_depths, rigid_shifts
 from rigctl.calib.active_refine import Motion, RefineResult, _undistort, param_names, refine
 from rigctl.calib.blas_threads import with_one_blas_thread
 from rigctl.calib.synthetic import intrinsics, rot_x, rot_y, rot_z
@@ -416,12 +416,18 @@ def _scene_depths(tr: _Tracker, K: dict | RefineResult, baseline_m: float) -> Sc
     tr.matches[SHIFT] = [track_in_range(c.points, tr.emaps[SHIFT], (-window, 2.0),
                                         (-cross, cross)) for c in tr.contours]
     ids = [i for i, m in enumerate(tr.matches[SHIFT]) if m.ok]
-    tr.report["motions"][SHIFT] = {"tracked": len(ids), "window_px": window}
+    fits = [contour_shift(tr.contours[i].points, tr.matches[SHIFT][i].points,
+                          tr.matches[SHIFT][i].normals, tr.matches[SHIFT][i].offset)
+            for i in ids]
+    rigid = rigid_shifts(np.array([rms for _, rms in fits])) if fits else np.zeros(0, bool)
+    tr.report["motions"][SHIFT] = {
+        "tracked": len(ids), "window_px": window,
+        "not_rigid": [{"contour": i, "rms_px": round(f[1], 3)}
+                      for i, f, ok in zip(ids, fits, rigid, strict=True) if not ok]}
+    ids = [i for i, ok in zip(ids, rigid, strict=True) if ok]
     centres = np.array([tr.contours[i].points.mean(axis=0) for i in ids]).reshape(-1, 2)
-    moved = centres + np.array([
-        contour_shift(tr.contours[i].points, tr.matches[SHIFT][i].points,
-                      tr.matches[SHIFT][i].normals, tr.matches[SHIFT][i].offset)
-        for i in ids]).reshape(-1, 2)
+    moved = centres + np.array([d for (d, _), ok in zip(fits, rigid, strict=True)
+                                if ok]).reshape(-1, 2)
     c_n = _undistort(centres, fx, fy, cx, cy, k)
     m_n = _undistort(moved, fx, fy, cx, cy, k)
     return fit_depths(c_n, m_n - c_n, baseline_m, len(tr.contours), np.array(ids, int))
