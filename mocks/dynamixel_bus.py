@@ -378,21 +378,26 @@ class BusServer:
             self.bus.stats["replies"] += len(held)
 
     def _on_control(self, key) -> None:
+        """Answers a control client's complete lines. A client that gave up (the camera
+        stand-in's ``Client`` waits 1 s, then reconnects: a busy host delays the bus
+        longer) is dropped, never the bus: an unguarded EPIPE here once ended the head
+        stand-in, and `sim up` with it, in the middle of a run under the load check."""
         conn = key.fileobj
         try:
             chunk = conn.recv(65536)
+            if not chunk:
+                raise ConnectionResetError
+            key.data[1] += chunk
+            while b"\n" in key.data[1]:
+                line, key.data[1] = key.data[1].split(b"\n", 1)
+                conn.setblocking(True)
+                conn.sendall(answer(line, self.control))
+                conn.setblocking(False)
         except BlockingIOError:
             return
-        if not chunk:
+        except OSError:  # the peer closed or reset: forget it
             self.selector.unregister(conn)
             conn.close()
-            return
-        key.data[1] += chunk
-        while b"\n" in key.data[1]:
-            line, key.data[1] = key.data[1].split(b"\n", 1)
-            conn.setblocking(True)
-            conn.sendall(answer(line, self.control))
-            conn.setblocking(False)
 
     def control(self, request: dict) -> dict:
         cmd = request.get("cmd")

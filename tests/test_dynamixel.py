@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import socket
 import time
 from pathlib import Path
 
@@ -54,6 +55,21 @@ def head_config(link: str, **extra):
 
 
 ph = sdk.PacketHandler(2.0)
+
+
+def test_a_control_client_that_gives_up_does_not_stop_the_bus(port, bus):
+    """A control client that hangs up before reading its replies (as the camera stand-in
+    does after 1 s on a busy host) is dropped; the bus goes on answering on the serial
+    port and on the control socket. Before, writing the replies raised EPIPE and the
+    stand-in exited."""
+    for _ in range(3):
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
+            sock.connect(bus.ready["control"])
+            sock.sendall(b'{"cmd": "dump"}\n' * 500)  # more reply than a socket buffers
+    assert control(bus.ready["control"], {"cmd": "dump"})["ok"]
+    assert bus.proc.poll() is None
+    model, comm, error = ph.ping(port, 2)
+    assert (model, comm, error) == (1020, sdk.COMM_SUCCESS, 0)
 
 
 def test_ping_and_broadcast_ping(port, bus):
