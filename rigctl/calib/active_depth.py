@@ -72,13 +72,15 @@ def contour_shift(ref_points: np.ndarray, moved_points: np.ndarray,
 
 
 def rigid_shifts(rms_px: np.ndarray) -> np.ndarray:
-    """Which contours moved as one piece under the arm's move: their shift's RMS
-    (``contour_shift``) within ``NONRIGID_RATIO`` of the contours' median and under
-    ``NONRIGID_FLOOR_PX`` or so. The others' depths are left unmeasured (free in the
-    refinement): random world 14003's contour traced over two shapes fitted 1.3 px RMS
-    against the others' 0.05-0.13 px and its depth came out 12 % off."""
-    limit = max(NONRIGID_RATIO * float(np.median(rms_px)), NONRIGID_FLOOR_PX)
-    return np.asarray(rms_px) <= limit
+    """Which contours moved as one piece under the arm's move: all but those whose shift
+    RMS (``contour_shift``) exceeds both ``NONRIGID_RATIO`` times the contours' median and
+    ``NONRIGID_FLOOR_PX``. Those depths are left unmeasured (free in the refinement):
+    random world 14003's contour traced over two shapes fitted 1.3 px RMS against the
+    others' 0.05-0.13 px and its depth came out 12 % off."""
+    rms_px = np.asarray(rms_px, float)
+    if not len(rms_px):
+        return np.zeros(0, bool)
+    return rms_px <= max(NONRIGID_RATIO * float(np.median(rms_px)), NONRIGID_FLOOR_PX)
 
 
 @dataclass

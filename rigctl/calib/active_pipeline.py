@@ -419,18 +419,20 @@ def _scene_depths(tr: _Tracker, K: dict | RefineResult, baseline_m: float) -> Sc
     fits = [contour_shift(tr.contours[i].points, tr.matches[SHIFT][i].points,
                           tr.matches[SHIFT][i].normals, tr.matches[SHIFT][i].offset)
             for i in ids]
-    rigid = rigid_shifts(np.array([rms for _, rms in fits])) if fits else np.zeros(0, bool)
+    ids = np.array(ids, int)
+    shifts = np.array([d for d, _ in fits]).reshape(-1, 2)
+    rms = np.array([r for _, r in fits])
+    rigid = rigid_shifts(rms)
     tr.report["motions"][SHIFT] = {
         "tracked": len(ids), "window_px": window,
-        "not_rigid": [{"contour": i, "rms_px": round(f[1], 3)}
-                      for i, f, ok in zip(ids, fits, rigid, strict=True) if not ok]}
-    ids = [i for i, ok in zip(ids, rigid, strict=True) if ok]
+        "not_rigid": [{"contour": int(i), "rms_px": round(float(r), 3)}
+                      for i, r in zip(ids[~rigid], rms[~rigid], strict=True)]}
+    ids = ids[rigid]
     centres = np.array([tr.contours[i].points.mean(axis=0) for i in ids]).reshape(-1, 2)
-    moved = centres + np.array([d for (d, _), ok in zip(fits, rigid, strict=True)
-                                if ok]).reshape(-1, 2)
+    moved = centres + shifts[rigid]
     c_n = _undistort(centres, fx, fy, cx, cy, k)
     m_n = _undistort(moved, fx, fy, cx, cy, k)
-    return fit_depths(c_n, m_n - c_n, baseline_m, len(tr.contours), np.array(ids, int))
+    return fit_depths(c_n, m_n - c_n, baseline_m, len(tr.contours), ids)
 
 
 def _with_model_error(refined: RefineResult) -> tuple[list[str], np.ndarray]:
