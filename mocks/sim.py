@@ -3,6 +3,9 @@
 Starts the Dynamixel bus (pty), the UR controller and the camera server, writes a rig file
 pointing at them, prints one JSON ready line, and runs until SIGTERM; then it stops every
 child by PID and removes its links and sockets. ``rigctl sim down`` stops a running one.
+When a stand-in ends on its own (a crash), the others are stopped the same way, the
+stand-in is named on stderr (where the stand-ins' own tracebacks go too) and the exit
+status is 1 instead of 0.
 """
 
 from __future__ import annotations
@@ -98,6 +101,7 @@ def up(world_file: str, rig_out: str, host: str = "127.0.0.1", records: str = "r
     workdir.mkdir(parents=True, exist_ok=True)
     children: list[ChildProcess] = []
     stop = threading.Event()
+    crashed: list[str] = []  # stand-ins that ended on their own
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     try:
@@ -126,6 +130,7 @@ def up(world_file: str, rig_out: str, host: str = "127.0.0.1", records: str = "r
         while not stop.is_set():
             for child in children:
                 if child.proc.poll() is not None:
+                    crashed.append(child.name)
                     print(json.dumps({"error": f"{child.name} stand-in exited "
                                                f"({child.proc.returncode})"}), file=sys.stderr)
                     stop.set()
@@ -139,7 +144,7 @@ def up(world_file: str, rig_out: str, host: str = "127.0.0.1", records: str = "r
             for name in ("dxl", "dxl.sock", "ur.sock", "camera.sock"):
                 (workdir / name).unlink(missing_ok=True)
         state_path(host).unlink(missing_ok=True)
-    return 0
+    return 1 if crashed else 0
 
 
 def _alive(pid: int) -> bool:

@@ -31,13 +31,22 @@ class ChildProcess:
     """``python <args>`` in its own session; ``ready`` is its first stdout line (JSON)."""
 
     def __init__(self, args: list[str], timeout: float = 20.0, name: str = "",
-                 capture_stderr: bool = False) -> None:
+                 capture_stderr: bool = False, stderr_log: str | Path | None = None) -> None:
+        """``capture_stderr``: the child's stderr to a temporary file (``stderr_text``);
+        ``stderr_log``: to that file instead, appended to and kept after ``stop``, so a
+        crash's traceback outlives the process that captured it."""
         env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH",
                                                                                  "")}
         self.name = name or " ".join(args[:2])
         # stderr to a file, never an unread pipe (a full pipe would block the child)
-        self._stderr = (tempfile.TemporaryFile(mode="w+")  # noqa: SIM115 - closed in stop()
-                        if capture_stderr else None)
+        if stderr_log is not None:
+            self._stderr = open(stderr_log, "a+")  # noqa: SIM115 - closed in stop()
+        elif capture_stderr:
+            self._stderr = tempfile.TemporaryFile(mode="w+")  # noqa: SIM115 - closed in stop()
+        else:
+            self._stderr = None
+        self.ended_before_stop: int | None = None  # its exit status, if it ended on its own
+        self._stop_called = False
         self.proc = subprocess.Popen([sys.executable, *args], stdout=subprocess.PIPE,
                                      stderr=self._stderr, text=True, env=env, cwd=ROOT,
                                      start_new_session=True, preexec_fn=_die_with_parent)
@@ -64,14 +73,19 @@ class ChildProcess:
     def stop(self, timeout: float = 10.0) -> int | None:
         """SIGTERM, then SIGKILL to the group after ``timeout``; then any process the ready
         line lists under ``children`` (stand-ins in sessions of their own) that outlived
-        it is killed too and named in ``orphans``."""
-        if self.proc.poll() is None:
+        it is killed too and named in ``orphans``. A child that had already ended leaves
+        its exit status in ``ended_before_stop``."""
+        if self.proc.poll() is not None:
+            if not self._stop_called:
+                self.ended_before_stop = self.proc.returncode
+        else:
             os.kill(self.pid, signal.SIGTERM)
             try:
                 self.proc.wait(timeout=timeout)
             except subprocess.TimeoutExpired:
                 os.killpg(self.pid, signal.SIGKILL)
                 self.proc.wait(timeout=5)
+        self._stop_called = True
         self.orphans = [pid for pid in getattr(self, "ready", {}).get("children", [])
                         if _kill_if_alive(pid)]
         if self.proc.stdout:

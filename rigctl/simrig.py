@@ -26,15 +26,21 @@ def world_path(world: str | Path) -> Path:
 
 class SimulatedRig:
     """`sim up` on ``world``; ``rig_path`` is the rig file it wrote, ``ready`` its ready
-    line (host, pids of the stand-ins, camera port, workdir)."""
+    line (host, pids of the stand-ins, camera port, workdir). Its stderr (and the
+    stand-ins') goes to ``log`` when given, appended to and kept; else to a temporary
+    file. After ``stop``, ``crash`` says whether `sim up` had ended on its own with an
+    error (a stand-in crashed), with the end of that stderr."""
 
     def __init__(self, world: str | Path = "default", records: str | Path | None = None,
                  host: str | None = None, camera_port: int = 0,
                  workdir: str | Path | None = None, rig_out: str | Path | None = None,
-                 ready_timeout: float = 60.0) -> None:
+                 ready_timeout: float = 60.0, log: str | Path | None = None) -> None:
         self._tmp = tempfile.TemporaryDirectory(prefix="rigctl-simrig-")
         tmp = Path(self._tmp.name)
         self.host = host or free_host()
+        self.world = str(world)
+        self.log = Path(log) if log else None
+        self.crash: str | None = None
         self.rig_path = Path(rig_out) if rig_out else tmp / "sim-rig.yaml"
         records = Path(records).resolve() if records else tmp / "records"
         args = ["-m", "rigctl.cli", "sim", "up", "--world", str(world_path(world)),
@@ -44,7 +50,7 @@ class SimulatedRig:
             args += ["--workdir", str(workdir)]
         try:
             self.proc = ChildProcess(args, ready_timeout, name=f"sim up ({world})",
-                                     capture_stderr=True)
+                                     capture_stderr=True, stderr_log=self.log)
         except BaseException:
             self._tmp.cleanup()
             raise
@@ -53,7 +59,14 @@ class SimulatedRig:
 
     def stop(self, timeout: float = 20.0) -> list[int]:
         """Stop `sim up` by PID; returns the stand-ins that outlived it (killed now)."""
+        stderr = self.proc.stderr_text() if self.proc.proc.poll() is not None else ""
         self.proc.stop(timeout=timeout)
+        status = self.proc.ended_before_stop
+        if status not in (None, 0):
+            where = f" (whole log: {self.log})" if self.log else ""
+            self.crash = (f"`sim up` ({self.world}) ended on its own with status {status} "
+                          f"before it was stopped{where}; its stderr ends:\n"
+                          f"{stderr[-3000:]}")
         self.orphans = list(self.proc.orphans)
         self._tmp.cleanup()
         return self.orphans

@@ -13,7 +13,8 @@ ROOT = Path(__file__).resolve().parents[1]
 @pytest.fixture
 def start_sim(tmp_path: Path):
     """Start ``rigctl sim up`` (``rigctl.simrig.SimulatedRig`` keywords, world "ideal" by
-    default); every rig started is stopped, with its stand-ins, by PID in teardown."""
+    default); every rig started is stopped, with its stand-ins, by PID in teardown, and
+    teardown fails if one had crashed (its stderr is kept in ``sim-up.log``)."""
     from rigctl.simrig import SimulatedRig
 
     started = []
@@ -21,12 +22,15 @@ def start_sim(tmp_path: Path):
     def start(world: str = "ideal", **kwargs):
         kwargs.setdefault("records", tmp_path / "records")
         kwargs.setdefault("rig_out", tmp_path / "sim-rig.yaml")
+        kwargs.setdefault("log", tmp_path / "sim-up.log")
         started.append(SimulatedRig(world, **kwargs))
         return started[-1]
 
     yield start
     orphans = [pid for rig in started for pid in rig.stop()]
     assert not orphans, f"stand-ins {orphans} outlived `sim up`"
+    crashes = [rig.crash for rig in started if rig.crash]
+    assert not crashes, "\n".join(crashes)
 
 
 @pytest.fixture

@@ -50,7 +50,8 @@ def start_sim(tmp, world, host=None, camera_port=0):
     """`sim up` on a fresh loopback address; a restart passes the old host and camera port
     so that the service's rig file still points at the stand-ins."""
     return SimulatedRig(world, records=tmp / "records", host=host, camera_port=camera_port,
-                        workdir=tmp / "simwork", rig_out=tmp / "sim-rig.yaml")
+                        workdir=tmp / "simwork", rig_out=tmp / "sim-rig.yaml",
+                        log=tmp / "sim-up.log")
 
 
 class Stack:
@@ -59,6 +60,7 @@ class Stack:
 
     def __init__(self, tmp, schedules=()):
         self.tmp, self.sim, self.server = tmp, None, None
+        self.crashes: list[str] = []  # simulated rigs that ended on their own
         self.hook = Webhook()
         try:
             self._start(tmp, list(schedules))
@@ -95,8 +97,7 @@ class Stack:
     def restart_sim(self, world):
         """The same devices (loopback host, camera port) on another world."""
         ready = self.sim.ready
-        self.sim.stop(timeout=20)
-        self.sim = None
+        self._stop_sim()
         self.sim = start_sim(self.tmp, world, host=ready["host"],
                              camera_port=ready["camera"]["port"])
 
@@ -108,9 +109,15 @@ class Stack:
             except subprocess.TimeoutExpired:
                 self.server.kill()
                 self.server.wait(5)
+        self._stop_sim()
+        self.hook.close()
+
+    def _stop_sim(self):
         if self.sim is not None:
             self.sim.stop(timeout=20)
-        self.hook.close()
+            if self.sim.crash:
+                self.crashes.append(self.sim.crash)
+            self.sim = None
 
 
 # A generous bound on every request: on a busy host the service can take seconds to

@@ -49,13 +49,15 @@ def camera_run(tmp_path_factory):
     """The default world's simulated rig with one active-camera run (its default plan) on
     it; stopped with its stand-ins, by PID, after the module's last test."""
     base = tmp_path_factory.mktemp("default-rig")
-    rig = SimulatedRig("default", records=base / "records", rig_out=base / "sim-rig.yaml")
+    rig = SimulatedRig("default", records=base / "records", rig_out=base / "sim-rig.yaml",
+                       log=base / "sim-up.log")
     try:
         result = rigctl("run", "active-camera", "--rig", str(rig.rig_path), "--json")
         yield CameraRun(rig, base / "records", result)
     finally:
         orphans = rig.stop()
         assert not orphans, f"stand-ins {orphans} outlived `sim up`"
+        assert not rig.crash, rig.crash
 
 
 @pytest.mark.timeout(600)

@@ -28,6 +28,7 @@ def stack(tmp_path_factory):
     s = Stack(tmp_path_factory.mktemp("service"))
     yield s
     s.stop()
+    assert not s.crashes, "\n".join(s.crashes)
 
 
 @pytest.fixture(scope="module")
@@ -185,6 +186,7 @@ def test_schedule_fires_and_records_its_run(tmp_path):
         assert all("busy" in (r["reason"] or "") for r in done if r["status"] == "skipped")
     finally:
         own.stop()
+    assert not own.crashes, "\n".join(own.crashes)
 
 
 @pytest.mark.timeout(900)

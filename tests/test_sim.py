@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -31,9 +32,11 @@ pytestmark = pytest.mark.integration
 @pytest.fixture(scope="module")
 def sim(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("sim")
-    rig = SimulatedRig("ideal", records=tmp / "records", rig_out=tmp / "sim-rig.yaml")
+    rig = SimulatedRig("ideal", records=tmp / "records", rig_out=tmp / "sim-rig.yaml",
+                       log=tmp / "sim-up.log")
     yield rig
     assert not rig.stop(), "stand-ins outlived `sim up`"
+    assert not rig.crash, rig.crash
 
 
 def corner_rms(world, image, q, head) -> float:
@@ -172,3 +175,27 @@ def test_sim_up_then_down_leaves_nothing_running(start_sim):
         with pytest.raises(ProcessLookupError):
             os.kill(pid, 0)
     assert not workdir.exists()
+
+
+@pytest.mark.timeout(120)
+def test_a_crashed_stand_in_ends_sim_up_with_an_error_and_its_log_is_kept(tmp_path):
+    """A stand-in that dies (here SIGKILL to the head's bus) ends `sim up` with status 1
+    and every other stand-in; the rig says so after stop, and its stderr outlives it in
+    the log file, where a failing test's teardown can point."""
+    log = tmp_path / "sim-up.log"
+    rig = SimulatedRig("ideal", records=tmp_path / "records",
+                       rig_out=tmp_path / "sim-rig.yaml", log=log)
+    try:
+        os.kill(rig.ready["head"]["pid"], signal.SIGKILL)
+        wait_until(lambda: rig.proc.proc.poll() is not None, timeout=60, poll=0.1,
+                   what="`sim up` to end after its head stand-in died")
+    finally:
+        orphans = rig.stop()
+    assert rig.proc.proc.returncode == 1
+    assert not orphans
+    for pid in rig.ready["children"]:
+        with pytest.raises(ProcessLookupError):
+            os.kill(pid, 0)
+    assert rig.crash and "status 1" in rig.crash and str(log) in rig.crash
+    assert "sim head stand-in exited (-9)" in rig.crash
+    assert "sim head stand-in exited (-9)" in log.read_text()

@@ -5,7 +5,9 @@
 
 Each busy loop is its own process (a pure-Python spin), started before the first run and
 stopped by PID when the check ends, whatever happens. Prints one line per run and a JSON
-summary; exits 0 only when every run passed.
+summary; exits 0 only when every run passed. A failed run keeps its pytest temporary
+folder beside its log (``<run>-tmp``: the stand-ins' ``sim-up.log``, the run records), a
+passed one's is removed.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -45,11 +48,14 @@ def _interrupt(*_) -> None:
 
 def run_once(tests: list[str], extra: list[str], log_path: Path) -> tuple[int, float]:
     """One pytest run; interrupted, its pytest is stopped by PID (SIGINT first, so that
-    pytest's own teardown stops what the tests started, then SIGKILL)."""
+    pytest's own teardown stops what the tests started, then SIGKILL). Its temporary
+    folder (``--basetemp``) is kept only when it failed."""
     t0 = time.monotonic()
+    basetemp = log_path.with_name(log_path.stem + "-tmp").resolve()
     with log_path.open("w") as log:
         proc = subprocess.Popen([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
-                                 *tests, *extra], cwd=ROOT, stdout=log, stderr=subprocess.STDOUT,
+                                 "--basetemp", str(basetemp), *tests, *extra], cwd=ROOT,
+                                stdout=log, stderr=subprocess.STDOUT,
                                 start_new_session=True)  # its workers and stand-ins: one group
         try:
             code = proc.wait()
@@ -61,6 +67,8 @@ def run_once(tests: list[str], extra: list[str], log_path: Path) -> tuple[int, f
                 os.killpg(proc.pid, signal.SIGKILL)
                 proc.wait(timeout=10)
             raise
+    if code == 0:
+        shutil.rmtree(basetemp, ignore_errors=True)
     return code, time.monotonic() - t0
 
 
