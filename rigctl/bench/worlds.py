@@ -157,7 +157,8 @@ def world_run(seed: int, folder: Path, say: Callable[[str], None]) -> dict:
     path, world = _write_world(seed, folder)
     spec, truth = world.spec, world.truth()
     row = _row(seed, spec)
-    with SimulatedRig(path, records=folder / f"records-{seed}") as sim:
+    with SimulatedRig(path, records=folder / f"records-{seed}",
+                      log=folder / f"sim-up-{seed}.log") as sim:
         config = load_rig(sim.rig_path)
         runner = Runner(config, show_progress=False, operator="bench-worlds")
         for name in PIPELINE:
@@ -185,6 +186,9 @@ def world_run(seed: int, folder: Path, say: Callable[[str], None]) -> dict:
                 raise AbortedError(f"world {seed}: {outcome.reason}")
             if outcome.status != "succeeded":
                 break
+    if sim.crash:  # a stand-in died: the world's failure is the simulation's, not the rig's
+        row["simulation_crashed"] = sim.crash
+        say(f"world {seed}: {sim.crash.splitlines()[0]}")
     row["failed"] = _failed(row)
     return row
 
