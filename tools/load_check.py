@@ -6,8 +6,9 @@
 Each busy loop is its own process (a pure-Python spin), started before the first run and
 stopped by PID when the check ends, whatever happens. Prints one line per run and a JSON
 summary; exits 0 only when every run passed. A failed run keeps its pytest temporary
-folder beside its log (``<run>-tmp``: the stand-ins' ``sim-up.log``, the run records), a
-passed one's is removed.
+folder (the stand-ins' ``sim-up.log``, the run records; its path is in the summary), a
+passed one's is removed. The folder is a short one under the system's temp folder: the
+tests make Unix sockets in it, whose paths may not exceed 107 bytes.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -46,12 +48,13 @@ def _interrupt(*_) -> None:
     raise KeyboardInterrupt
 
 
-def run_once(tests: list[str], extra: list[str], log_path: Path) -> tuple[int, float]:
+def run_once(tests: list[str], extra: list[str], log_path: Path
+             ) -> tuple[int, float, Path | None]:
     """One pytest run; interrupted, its pytest is stopped by PID (SIGINT first, so that
     pytest's own teardown stops what the tests started, then SIGKILL). Its temporary
-    folder (``--basetemp``) is kept only when it failed."""
+    folder (``--basetemp``) is kept, and returned, only when it failed."""
     t0 = time.monotonic()
-    basetemp = log_path.with_name(log_path.stem + "-tmp").resolve()
+    basetemp = Path(tempfile.mkdtemp(prefix="rigctl-load-"))
     with log_path.open("w") as log:
         proc = subprocess.Popen([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
                                  "--basetemp", str(basetemp), *tests, *extra], cwd=ROOT,
@@ -67,9 +70,11 @@ def run_once(tests: list[str], extra: list[str], log_path: Path) -> tuple[int, f
                 os.killpg(proc.pid, signal.SIGKILL)
                 proc.wait(timeout=10)
             raise
+    seconds = time.monotonic() - t0
     if code == 0:
         shutil.rmtree(basetemp, ignore_errors=True)
-    return code, time.monotonic() - t0
+        return code, seconds, None
+    return code, seconds, basetemp
 
 
 def last_line(path: Path) -> str:
@@ -95,9 +100,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         for k in range(1, args.runs + 1):
             log_path = logs / f"{'e2e' if args.e2e else 'suite'}-busy{args.busy}-run{k}.log"
-            code, seconds = run_once(tests, args.pytest_args, log_path)
+            code, seconds, kept = run_once(tests, args.pytest_args, log_path)
             results.append({"run": k, "exit": code, "seconds": round(seconds, 1),
-                            "log": str(log_path), "summary": last_line(log_path)})
+                            "log": str(log_path), "summary": last_line(log_path),
+                            "tmp_kept": str(kept) if kept else None})
             print(f"run {k}/{args.runs}: {'PASS' if code == 0 else 'FAIL'} in {seconds:.0f} s "
                   f"- {results[-1]['summary']}", file=sys.stderr, flush=True)
     except KeyboardInterrupt:
