@@ -10,7 +10,12 @@ from numpy.linalg import inv
 
 from rigctl.bench.truth import identified_value
 from rigctl.calib import handeye, robot
-from rigctl.calib.covariance import cluster_meat, larger_variances, view_clusters
+from rigctl.calib.covariance import (
+    cluster_meat,
+    jackknife_covariance,
+    larger_variances,
+    view_clusters,
+)
 from tests.test_robot_math import (
     DIST,
     OBJ,
@@ -46,6 +51,35 @@ def test_cluster_robust_sigma_matches_the_spread_of_a_clustered_regression():
         z_classical.append((beta[1] - 0.5) / np.sqrt(s2 * A_inv[1, 1]))
     assert 0.85 < np.std(z_robust) < 1.3
     assert np.std(z_classical) > 3.0
+
+
+def test_jackknife_sigma_holds_where_each_cluster_carries_much_of_the_fit():
+    """8 parameters from 16 clusters of 30 rows whose regressors sit mostly at the
+    cluster's level (leverage ~0.5 per cluster, as ~48 board views for ~40 arm
+    parameters), each cluster sharing a random offset; 400 draws. The residuals left in a
+    cluster understate its error: the sandwich's error/sigma has RMS 2.0 (44 % within 1
+    sigma, 89 % within 3); the delete-one-cluster jackknife's 0.93 (76 %, 99.4 %)."""
+    rng = np.random.default_rng(11)
+    groups, per, n = 16, 30, 8
+    levels = np.repeat(rng.normal(size=(groups, n - 1)), per, axis=0)
+    J = np.c_[np.ones(groups * per), levels + rng.normal(0, 0.3, levels.shape)]
+    clusters = view_clusters(groups, per)
+    A = J.T @ J
+    A_inv = inv(A)
+    z_sandwich, z_jackknife = [], []
+    for _ in range(400):
+        y = J @ np.ones(n) + np.repeat(rng.normal(0, 1, groups), per) \
+            + rng.normal(0, 0.2, groups * per)
+        beta, *_ = np.linalg.lstsq(J, y, rcond=None)
+        r = J @ beta - y
+        sandwich = A_inv @ cluster_meat(J, r, clusters) @ A_inv
+        z_sandwich.append((beta - 1) / np.sqrt(np.diag(sandwich)))
+        z_jackknife.append((beta - 1) / np.sqrt(np.diag(jackknife_covariance(J, r, clusters,
+                                                                               A))))
+    z_sandwich, z_jackknife = np.abs(z_sandwich), np.abs(z_jackknife)
+    assert np.sqrt(np.mean(z_sandwich ** 2)) > 1.6
+    assert 0.75 < np.sqrt(np.mean(z_jackknife ** 2)) < 1.2
+    assert np.mean(z_jackknife <= 3) > 0.98 and np.mean(z_jackknife <= 1) > 0.6
 
 
 def test_larger_variances_keeps_the_larger_sigma_of_each_parameter():

@@ -12,6 +12,12 @@ information, here in units where the prior's own noise is one; ``robust_covarian
 takes it in the residuals' units instead and scales it by ``s^2``). With few clusters it
 can come out smaller than the classical one by chance, so callers keep, parameter by
 parameter, the larger of the two.
+
+When each cluster carries much of the fit (the arm's refinement: ~48 board views for ~40
+parameters), the residuals left in a cluster understate its error, since the fit has
+already bent towards it, and the sandwich above comes out small. ``robust_covariance``
+then uses the delete-one-cluster jackknife (CR3) instead: the spread of the estimate
+when each cluster in turn is left out, to first order ``(A - J_c^T J_c)^-1 g_c``.
 """
 
 from __future__ import annotations
@@ -46,17 +52,39 @@ def view_clusters(n_views: int, rows_per_view: int | list[int]) -> np.ndarray:
     return np.repeat(np.arange(n_views), rows_per_view)
 
 
+def jackknife_covariance(J: np.ndarray, r: np.ndarray, clusters: np.ndarray,
+                         A: np.ndarray) -> np.ndarray:
+    """The delete-one-cluster jackknife covariance (CR3) of a least-squares estimate with
+    normal matrix ``A`` (``J^T J`` plus any prior information): ``(G-1)/G sum_c d_c
+    d_c^T`` over the G clusters, with ``d_c = (A - J_c^T J_c)^-1 J_c^T r_c`` the
+    estimate's change, to first order, when cluster ``c`` is left out. It is the
+    sandwich with each cluster's score scaled up by its leverage, ``A (A - J_c^T J_c)^-1
+    g_c``; a pseudo-inverse keeps gauge directions at zero."""
+    n_clusters = int(clusters.max()) + 1
+    scores = np.zeros((n_clusters, J.shape[1]))
+    np.add.at(scores, clusters, J * r[:, None])
+    changes = np.empty_like(scores)
+    for c in range(n_clusters):
+        Jc = J[clusters == c]
+        changes[c] = np.linalg.pinv(A - Jc.T @ Jc) @ scores[c]
+    return changes.T @ changes * (n_clusters - 1) / max(n_clusters, 1)
+
+
 def robust_covariance(J: np.ndarray, r: np.ndarray, clusters: np.ndarray,
                       P: np.ndarray | None = None, s2: float | None = None) -> np.ndarray:
     """The covariance of a least-squares estimate with Jacobian ``J`` and residuals ``r``
     (prior information ``P`` in the residuals' units, not among those rows): the
-    cluster-robust sandwich over ``clusters`` or the classical ``s^2 A^-1``, parameter by
-    parameter the larger. ``s2`` defaults to the residuals' variance per degree of
-    freedom; a pseudo-inverse keeps gauge directions at zero."""
+    delete-one-cluster jackknife over ``clusters`` (``jackknife_covariance``; the prior's
+    part added as in the sandwich) or the classical ``s^2 A^-1``, parameter by parameter
+    the larger. ``s2`` defaults to the residuals' variance per degree of freedom; a
+    pseudo-inverse keeps gauge directions at zero. Random worlds 18000-18019 (bench
+    worlds): with the plain sandwich the arm's link parameters were within 1 sigma of the
+    truth 52 % of the time, their error/sigma RMS 1.5."""
     n_params = J.shape[1]
     P = np.zeros((n_params, n_params)) if P is None else P
     if s2 is None:
         s2 = float(np.sum(r ** 2) / max(len(r) - n_params, 1))
-    A_inv = np.linalg.pinv(J.T @ J + P)
-    sandwich = A_inv @ (cluster_meat(J, r, clusters) + P * s2) @ A_inv
-    return larger_variances(sandwich, A_inv * s2)
+    A = J.T @ J + P
+    A_inv = np.linalg.pinv(A)
+    spread = jackknife_covariance(J, r, clusters, A) + A_inv @ (P * s2) @ A_inv
+    return larger_variances(spread, A_inv * s2)

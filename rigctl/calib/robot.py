@@ -22,7 +22,8 @@ consecutive axes (alpha_i = 0) d_{i+1} is unobservable and Hayati's beta_i repla
 **Joint refinement.** Least squares over every capture of an identifiable parameter set
 (``identifiable_mask``): redundant parameters are absorbed into ``X`` and ``W``; parameter
 estimates come with 1-sigma (cluster-robust over board views: a view's corners share
-its detection bias and the arm's pose, so they are not independent), the condition
+its detection bias and the arm's pose, so they are not independent; the delete-one-view
+jackknife, ``covariance.robust_covariance``), the condition
 number of the scaled identification Jacobian, and errors on held-out captures.
 """
 
@@ -456,7 +457,8 @@ def _view_robust(J: np.ndarray, r: np.ndarray, n_views: int, P: np.ndarray,
                  s2: float | None = None) -> np.ndarray:
     """Covariance of a refinement over ``n_views`` captures (residual rows laid out view
     by view) with prior information ``P``: cluster-robust with one cluster per view,
-    since a view's corners share its error (detection bias, the arm's pose)."""
+    since a view's corners share its error (detection bias, the arm's pose), by the
+    delete-one-view jackknife (``covariance.robust_covariance``)."""
     if len(r) % n_views:
         raise SolveError(f"robot refinement: {len(r)} residual rows do not split evenly "
                          f"into {n_views} views")
