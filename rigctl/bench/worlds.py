@@ -167,6 +167,7 @@ def world_run(seed: int, folder: Path, say: Callable[[str], None]) -> dict:
             except RigError as exc:  # refused before anything moved
                 row["procedures"][name] = {"status": "refused",
                                            "reason": f"{type(exc).__name__}: {exc}"}
+                say(f"world {seed} ({spec.arm.model}): {name} refused: {exc}")
                 break
             except Exception as exc:  # a bug: the world fails, the benchmark goes on
                 row["procedures"][name] = {"status": "crashed",
