@@ -94,6 +94,11 @@ class RobotKinematicsParams(Params):
 
 
 BASE_LEANS_DEG = (15.0, 30.0, 45.0)  # sweep-base leans tried when no straight view is reachable
+# With the run's intrinsics, when no sweep base at the asked distance or nearer shows the
+# whole board: bases just beyond the distance at which the board fits the image
+# (``fit_distance``), then farther than asked (a long lens, a large board)
+FIT_DISTANCE_MARGIN = 1.03
+FARTHER = (1.15, 1.3, 1.5)
 
 
 def _base_view(config, params: RobotKinematicsParams, model, K, distance_m: float,
@@ -119,7 +124,10 @@ def _scaled_to_reach(config, params: RobotKinematicsParams, model=None, K=None):
     (``BASE_LEANS_DEG``). With ``K`` the base must also show the whole board: random
     world 13003 (UR3e, f 1600 px, camera turned 92 deg on the flange) reached a base only
     at 0.35 m, where the board fits the image only aligned with it; the unaligned base
-    showed none of it, no joint could be swept, and the plan failed."""
+    showed none of it, no joint could be swept, and the plan failed. Then, with ``K``,
+    farther bases (``FARTHER``): random world 19002 (UR10e, f 1483 px, a 7x7 board of
+    54 mm squares) showed the whole board from no reachable base nearer than 0.80 m,
+    and the plan was refused."""
     leans = (0.0, *(t for t in BASE_LEANS_DEG if t <= params.max_tilt_deg))
     for lean in leans:
         (base, notes), used, _ = closest_plan(
@@ -127,27 +135,51 @@ def _scaled_to_reach(config, params: RobotKinematicsParams, model=None, K=None):
             params.sweep_distance_m, 1)
         if base:
             break
+    if not base and K is not None:
+        base, notes, used, lean = _farther_base(config, params, model, K, leans)
     if not base:
         how = f"straight or leaning up to {leans[-1]:g} deg toward the arm" \
             if len(leans) > 1 else "straight (max_tilt_deg allows no lean)"
         seen = "" if K is None else \
-            f" with the whole board in view (it fits from {fit_distance(config, K):.2f} m)"
+            (f" or farther (up to {params.sweep_distance_m * FARTHER[-1]:.2f} m), {how}, with "
+             f"the whole board in view (it fits from {fit_distance(config, K):.2f} m)")
         raise SolveError("robot-kinematics: no reachable view of the target from "
                          f"{params.sweep_distance_m:.2f} m or closer (down to "
-                         f"{params.sweep_distance_m * CLOSER[-1]:.2f} m), {how}{seen}; move "
-                         "the target within the arm's reach or change sweep_distance_m")
+                         f"{params.sweep_distance_m * CLOSER[-1]:.2f} m)"
+                         f"{seen or ', ' + how}; move the target within the arm's reach or "
+                         "change sweep_distance_m")
     factor = used / params.sweep_distance_m
     if factor != 1.0:
         params = params.model_copy(update={
             "sweep_distance_m": params.sweep_distance_m * factor,
             "view_distance_m": params.view_distance_m * factor})
-        notes = [f"no straight view of the target is reachable from the asked distances: "
-                 f"sweeps at {params.sweep_distance_m:.2f} m and views at "
+        why = "no straight view of the target is reachable from the asked distances" \
+            if factor < 1 else "the whole board is in view from no reachable base as near as " \
+            "asked"
+        notes = [f"{why}: sweeps at {params.sweep_distance_m:.2f} m and views at "
                  f"{params.view_distance_m:.2f} m ({factor:g} times)"]
     if lean:
         notes = [*notes, "no straight view of the target is reachable: the sweeps start "
                  f"from a view leaning {lean:g} deg toward the arm"]
     return params, base, notes
+
+
+def _farther_base(config, params: RobotKinematicsParams, model, K, leans
+                  ) -> tuple[list, list[str], float, float]:
+    """A first sweep base showing the whole board with ``K`` beyond the asked distance:
+    just beyond where the board fits the image (when that is nearer than asked), then at
+    ``FARTHER`` times the asked distance, straight before leaning. ``([], notes, ...)``
+    when none is reachable."""
+    asked = params.sweep_distance_m
+    fits_from = fit_distance(config, K) * FIT_DISTANCE_MARGIN
+    distances = ([fits_from] if fits_from < asked else []) + [asked * f for f in FARTHER]
+    notes: list[str] = []
+    for distance in distances:
+        for lean in leans:
+            base, notes = _base_view(config, params, model, K, distance, lean)
+            if base:
+                return base, notes, distance, lean
+    return [], notes, asked, 0.0
 
 
 def _sweep_bases(config, params: RobotKinematicsParams, model, q_base) -> list:

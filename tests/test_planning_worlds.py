@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -96,3 +97,31 @@ def test_a_long_lens_close_up_gets_sweep_bases_that_show_the_whole_board():
     assert len(swept) == 6, notes
     captures = [s for s in steps if type(s).__name__ == "CaptureStep"]
     assert len([c for c in captures if c.extra.get("kind") == "sweep"]) >= 24
+
+
+def test_a_long_lens_on_a_large_board_gets_its_sweeps_farther_than_asked():
+    """Random world 21016 (a UR10e, f 1372 px, a 7 x 7 board of large squares): from no
+    reachable base at the asked 0.70 m or nearer does the camera see the whole board, and
+    the plan was refused before motion although the arm reaches farther views. Now the
+    sweeps start farther (0.80 m), the views scale with them, and every joint is swept."""
+    data = random_world(21016)
+    assert data["arm"]["model"] == "ur10e"
+    config = rig_for(data)
+    cam = data["camera"]
+    given = {k: cam[k] for k in ("fx", "fy", "cx", "cy")}
+    proc = get_procedure("robot-kinematics")
+    steps = proc.plan(proc.params_model(intrinsics=given, use_controller_model=False), config)
+    assert not check_plan(config, steps, proc.devices)
+    notes = [s.text for s in steps if type(s).__name__ == "Note"]
+    assert any("from no reachable base as near as asked: sweeps at 0.80 m and views at "
+               "0.52 m" in n for n in notes), notes
+    swept = [n for n in notes if n.startswith("joint ") and ("sweep +" in n or "sweep -" in n)]
+    assert len(swept) == 6, notes
+    captures = [s for s in steps if type(s).__name__ == "CaptureStep"]
+    assert len([c for c in captures if c.extra.get("kind") == "sweep"]) >= 24
+    # a target beyond every distance tried is still refused, naming them
+    data["target"]["xyz_mm"] = [-3000.0, 0.0, 0.0]
+    with pytest.raises(SolveError, match=r"or farther \(up to 1\.05 m\).*fits from"):
+        _scaled_to_reach(rig_for(data), RobotKinematicsParams(), None,
+                         np.array([[cam["fx"], 0, cam["cx"]], [0, cam["fy"], cam["cy"]],
+                                   [0, 0, 1.0]]))
