@@ -46,6 +46,7 @@ class ChildProcess:
         else:
             self._stderr = None
         self.ended_before_stop: int | None = None  # its exit status, if it ended on its own
+        self.ended_stderr = ""  # and its stderr then
         self._stop_called = False
         self.proc = subprocess.Popen([sys.executable, *args], stdout=subprocess.PIPE,
                                      stderr=self._stderr, text=True, env=env, cwd=ROOT,
@@ -74,10 +75,11 @@ class ChildProcess:
         """SIGTERM, then SIGKILL to the group after ``timeout``; then any process the ready
         line lists under ``children`` (stand-ins in sessions of their own) that outlived
         it is killed too and named in ``orphans``. A child that had already ended leaves
-        its exit status in ``ended_before_stop``."""
+        its exit status in ``ended_before_stop`` and its stderr in ``ended_stderr``."""
         if self.proc.poll() is not None:
             if not self._stop_called:
                 self.ended_before_stop = self.proc.returncode
+                self.ended_stderr = self.stderr_text()
         else:
             os.kill(self.pid, signal.SIGTERM)
             try:

@@ -59,14 +59,13 @@ class SimulatedRig:
 
     def stop(self, timeout: float = 20.0) -> list[int]:
         """Stop `sim up` by PID; returns the stand-ins that outlived it (killed now)."""
-        stderr = self.proc.stderr_text() if self.proc.proc.poll() is not None else ""
         self.proc.stop(timeout=timeout)
         status = self.proc.ended_before_stop
         if status not in (None, 0):
             where = f" (whole log: {self.log})" if self.log else ""
             self.crash = (f"`sim up` ({self.world}) ended on its own with status {status} "
                           f"before it was stopped{where}; its stderr ends:\n"
-                          f"{stderr[-3000:]}")
+                          f"{self.proc.ended_stderr[-3000:]}")
         self.orphans = list(self.proc.orphans)
         self._tmp.cleanup()
         return self.orphans

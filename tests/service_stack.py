@@ -112,6 +112,10 @@ class Stack:
         self._stop_sim()
         self.hook.close()
 
+    def assert_no_crash(self):
+        """After ``stop``: no simulated rig of this stack ended on its own."""
+        assert not self.crashes, "\n".join(self.crashes)
+
     def _stop_sim(self):
         if self.sim is not None:
             self.sim.stop(timeout=20)

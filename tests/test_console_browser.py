@@ -63,7 +63,7 @@ def stack(tmp_path_factory, browser):
     s = Stack(tmp_path_factory.mktemp("console"))
     yield s
     s.stop()
-    assert not s.crashes, "\n".join(s.crashes)
+    s.assert_no_crash()
 
 
 @pytest.fixture

@@ -85,18 +85,24 @@ def test_a_long_lens_close_up_gets_sweep_bases_that_show_the_whole_board():
     every joint is swept."""
     data = random_world(13003)
     assert data["arm"]["model"] == "ur3e"
+    notes = _plan_sweeping_every_joint(data)
+    assert any("sweeps at 0.35 m" in n for n in notes)
+
+
+def _plan_sweeping_every_joint(data: dict, **params) -> list[str]:
+    """robot-kinematics planned on world ``data`` with its true intrinsics: the plan is
+    inside the limits and sweeps all six joints (24 sweep captures or more); its notes."""
     config = rig_for(data)
-    cam = data["camera"]
-    given = {k: cam[k] for k in ("fx", "fy", "cx", "cy")}
+    given = {k: data["camera"][k] for k in ("fx", "fy", "cx", "cy")}
     proc = get_procedure("robot-kinematics")
-    steps = proc.plan(proc.params_model(intrinsics=given), config)
+    steps = proc.plan(proc.params_model(intrinsics=given, **params), config)
     assert not check_plan(config, steps, proc.devices)
     notes = [s.text for s in steps if type(s).__name__ == "Note"]
-    assert any("sweeps at 0.35 m" in n for n in notes)
     swept = [n for n in notes if n.startswith("joint ") and ("sweep +" in n or "sweep -" in n)]
     assert len(swept) == 6, notes
     captures = [s for s in steps if type(s).__name__ == "CaptureStep"]
     assert len([c for c in captures if c.extra.get("kind") == "sweep"]) >= 24
+    return notes
 
 
 def test_a_long_lens_on_a_large_board_gets_its_sweeps_farther_than_asked():
@@ -106,19 +112,10 @@ def test_a_long_lens_on_a_large_board_gets_its_sweeps_farther_than_asked():
     sweeps start farther (0.80 m), the views scale with them, and every joint is swept."""
     data = random_world(21016)
     assert data["arm"]["model"] == "ur10e"
-    config = rig_for(data)
-    cam = data["camera"]
-    given = {k: cam[k] for k in ("fx", "fy", "cx", "cy")}
-    proc = get_procedure("robot-kinematics")
-    steps = proc.plan(proc.params_model(intrinsics=given, use_controller_model=False), config)
-    assert not check_plan(config, steps, proc.devices)
-    notes = [s.text for s in steps if type(s).__name__ == "Note"]
+    notes = _plan_sweeping_every_joint(data, use_controller_model=False)
     assert any("from no reachable base as near as asked: sweeps at 0.80 m and views at "
                "0.52 m" in n for n in notes), notes
-    swept = [n for n in notes if n.startswith("joint ") and ("sweep +" in n or "sweep -" in n)]
-    assert len(swept) == 6, notes
-    captures = [s for s in steps if type(s).__name__ == "CaptureStep"]
-    assert len([c for c in captures if c.extra.get("kind") == "sweep"]) >= 24
+    cam = data["camera"]
     # a target beyond every distance tried is still refused, naming them
     data["target"]["xyz_mm"] = [-3000.0, 0.0, 0.0]
     with pytest.raises(SolveError, match=r"or farther \(up to 1\.05 m\).*fits from"):

@@ -28,7 +28,7 @@ def stack(tmp_path_factory):
     s = Stack(tmp_path_factory.mktemp("service"))
     yield s
     s.stop()
-    assert not s.crashes, "\n".join(s.crashes)
+    s.assert_no_crash()
 
 
 @pytest.fixture(scope="module")
@@ -186,7 +186,7 @@ def test_schedule_fires_and_records_its_run(tmp_path):
         assert all("busy" in (r["reason"] or "") for r in done if r["status"] == "skipped")
     finally:
         own.stop()
-    assert not own.crashes, "\n".join(own.crashes)
+    own.assert_no_crash()
 
 
 @pytest.mark.timeout(900)
