@@ -23,6 +23,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from mocks.ur_kinematics import ArmModel
+from mocks.view_clip import clip_to_view
 from rigctl.errors import ConfigError
 
 WORLDS = Path(__file__).resolve().parent / "worlds"
@@ -30,6 +31,7 @@ WORLDS = Path(__file__).resolve().parent / "worlds"
 # sampling): OpenCV's anti-aliased fill drew every shape about 0.65 px larger than its
 # outline, with 0.18 px RMS of orientation-dependent ripple along the edges.
 SUPERSAMPLE = 4
+NEAR_M = 0.02  # nothing nearer the camera is drawn
 
 
 class _Strict(BaseModel):
@@ -307,13 +309,11 @@ class World:
         for group in groups:
             cam_polys = []
             for pts, shade in group:
-                pc = (R @ pts.T).T + t
-                z = pc[:, 2]
-                xn, yn = pc[:, 0] / np.maximum(z, 1e-9), pc[:, 1] / np.maximum(z, 1e-9)
-                if np.any(z < 0.02) or np.any(np.abs(xn) > 2 * limit_x) or \
-                        np.any(np.abs(yn) > 2 * limit_y):
-                    cam_polys = []  # behind the camera, or where distortion folds back
-                    break
+                # cut away what is behind the camera, or where distortion folds back
+                pc = clip_to_view((R @ pts.T).T + t, 2 * limit_x, 2 * limit_y, NEAR_M)
+                if len(pc) == 0:
+                    continue
+                xn, yn = pc[:, 0] / pc[:, 2], pc[:, 1] / pc[:, 2]
                 if np.all(np.abs(xn) > limit_x) or np.all(np.abs(yn) > limit_y):
                     continue
                 cam_polys.append((pc, shade))
