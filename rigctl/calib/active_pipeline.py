@@ -52,7 +52,8 @@ TIER_WINDOW_PX = 24.0  # search window around a tier's prediction (the first K's
 # 0.2 px chosen before covered a renderer that drew every shape 0.65 px too large.)
 MODEL_ERROR_FOCAL = 1.0e-4   # relative, per focal length
 MODEL_ERROR_CENTRE_PX = 0.15  # per coordinate
-# Fewer contours than this in the central window: look in WIDE_WINDOW of the image instead
+# Fewer contours than this in a narrower central window (an operator's choice): look in
+# WIDE_WINDOW of the image instead
 WANTED_CONTOURS = 6
 WIDE_WINDOW = 0.95
 TILE_PX = 160  # then cut edge networks that reach beyond it into pieces this size
@@ -63,7 +64,7 @@ DISTINCT_START_PX = 3.0  # the final refinement also starts from centres this fa
 class ActiveSettings:
     """The solve's knobs (the procedure's parameters without the motion plan)."""
 
-    window: float = 0.8
+    window: float = WIDE_WINDOW  # see ``ActiveCameraParams.window``
     min_points: int = 40
     distortion_terms: int | None = None  # None: 4 with scene depths, else 2 (see below)
     assumed_centre: list[float] | None = None
