@@ -13,7 +13,15 @@ Seed 11015 is a UR3e whose scene is near (0.25 m) and turned away, with the came
 2.6 mm off the head's axes: the pans' and the rolls' centres both carry that parallax
 (33 and 22 px). Before the tiers' refinements used the measured depths and the final
 refinement tried more than one start, it ended 26 px off with a reported sigma of 0.9 px
-(z 29); now 0.3 px."""
+(z 29); now 0.3 px.
+
+Seed 70038 is a narrow lens (1497 px) with strong barrel distortion (k1 -0.26): the
+refinement on the pans and tilts alone put the centre 22 px off, the rolls of 90 degrees
+and more were all predicted from it and lost (0-5 of 56 contours tracked), and the
+centre came out 7.4 px off with a sigma of 0.35 px (z 18). Rolls tracked 45 degrees at a
+time, each roll's predictions first moved together by one shift for the whole image: 0.4
+px. (Tiers alone broke seed 24, whose pans' centre is 30 px off: its +-45 degree rolls
+kept 3 of 24 contours, and the model predicting the larger ones came out 1 % off.)"""
 
 from __future__ import annotations
 
@@ -25,7 +33,7 @@ from rigctl.bench.active_worlds import world_trial
 # A hang guard, not a time limit: seed 11015 (many contours, each with its own depth)
 # solves in ~80 s idle with the five wide angles, and took over 300 s under the load check
 @pytest.mark.timeout(900)
-@pytest.mark.parametrize("seed", [24, 38, 26, 11015])
+@pytest.mark.parametrize("seed", [24, 38, 26, 11015, 70038])
 def test_default_plan_meets_the_truth_of_an_unseen_world(seed):
     row = world_trial((seed, None, 0.010))
     assert "error" not in row, row.get("error")

@@ -8,7 +8,8 @@ Stages (thesis chapter 3, automated):
 1. contours in the reference image; the thesis's shift search through pan+ and tilt+;
    Strategy B for a first K (eqs. 3.19-3.22);
 2. every pan/tilt motion tracked again by prediction from that K, a refinement on them
-   alone, then the rolls tracked by prediction from the refined K;
+   alone, then the rolls tracked by prediction from the refined K, 45 degrees of roll
+   at a time (``_roll_tiers``);
 3. Strategies A-D (eqs. 3.14-3.35) on the tracked contours;
 4. the nonlinear refinement over every motion (``active_refine.refine``), started from
    D (or C, or the first K).
@@ -31,7 +32,7 @@ from rigctl.calib.blas_threads import with_one_blas_thread
 from rigctl.calib.synthetic import intrinsics, rot_x, rot_y, rot_z
 from rigctl.errors import SolveError
 from rigctl.vision.contours import edge_map, extract_contours
-from rigctl.vision.tracking import track_by_prediction, track_by_shift, track_in_range
+from rigctl.vision.tracking import common_shift, track_by_prediction, track_by_shift, track_in_range
 
 MOTIONS = ("pan+", "pan-", "tilt+", "tilt-")
 SHIFT = "shift"  # the capture after the arm moved the camera sideways (scene depths)
@@ -58,6 +59,12 @@ WANTED_CONTOURS = 6
 WIDE_WINDOW = 0.95
 TILE_PX = 160  # then cut edge networks that reach beyond it into pieces this size
 DISTINCT_START_PX = 3.0  # the final refinement also starts from centres this far apart
+ROLL_TIER_DEG = 45.0  # rolls are tracked in tiers of this many degrees, smallest first
+# A roll predicted about a centre e px off is off by (I - R) e, one shift for the whole
+# image (2 e at 180 degrees): searched for all contours at once within this many px
+# before each is searched in TIER_WINDOW_PX. The pans' centre of a narrow or strongly
+# distorted lens can be 20-30 px off (random worlds 70038, 24).
+ROLL_JOINT_WINDOW_PX = 80.0
 
 
 @dataclass
@@ -102,6 +109,12 @@ def _predictor(K: dict, rel_angles):
         return moved[:, :2] / moved[:, 2:3]
 
     return predict
+
+
+def _shifted(predict, shift: tuple[float, float]):
+    """``predict`` followed by a constant image shift (px)."""
+    offset = np.asarray(shift, float)
+    return lambda points: predict(points) + offset
 
 
 class _Tracker:
@@ -202,13 +215,24 @@ class _Tracker:
             raise SolveError("active-camera: no first focal length from the pan/tilt shifts")
         return f
 
-    def track(self, label: str, K: dict | RefineResult, window: float) -> None:
+    def track(self, label: str, K: dict | RefineResult, window: float,
+              joint_window: float = 0.0) -> None:
         """Follows every reference contour into ``label``'s image: predicted by a pinhole
         ``K`` or by a refinement's whole model (distortion included), then searched
-        +-``window`` px around the prediction."""
-        self.matches[label] = [track_by_prediction(c, self.emaps[label],
-                                                   self._predictor(K, label, i), window=window)
-                               for i, c in enumerate(self.contours)]
+        +-``window`` px around the prediction. With ``joint_window``, the predictions
+        are first moved by the one shift, within +-``joint_window`` px, that lays all of
+        them best on the image's edges (``common_shift``)."""
+        predictors = [self._predictor(K, label, i) for i in range(len(self.contours))]
+        if joint_window > 0:
+            shift = common_shift([p(c.points) for p, c in zip(predictors, self.contours,
+                                                              strict=True)],
+                                 self.emaps[label], joint_window)
+            if shift is not None:
+                predictors = [_shifted(p, shift) for p in predictors]
+            self.report.setdefault("joint_shift_px", {})[label] = \
+                None if shift is None else list(shift)
+        self.matches[label] = [track_by_prediction(c, self.emaps[label], p, window=window)
+                               for p, c in zip(predictors, self.contours, strict=True)]
         rejected: dict[str, int] = {}
         for m in self.matches[label]:
             if not m.ok:
@@ -290,11 +314,36 @@ def _tiers(images: dict) -> tuple[list[str], list[str], list[str]]:
     """The captures in the order they are tracked: the small pan/tilt motions
     (``MOTIONS``, tracked from the first K), any wider pan/tilt motions (any other label
     but ``ref``, ``SHIFT`` and the rolls, tracked by prediction from a refinement on the
-    small ones), then the rolls (tracked from a refinement on all of those)."""
+    small ones), then the rolls (tracked from a refinement on all of those, in the
+    tiers of ``_roll_tiers``)."""
     small = [m for m in MOTIONS if m in images]
     rolls = [m for m in images if m.startswith("roll")]
     wide = [m for m in images if m not in small and m not in rolls and m not in ("ref", SHIFT)]
     return small, wide, rolls
+
+
+def _roll_tiers(rolls: list[str], rel: dict) -> list[list[str]]:
+    """The rolls grouped by how far they turn (to the nearest ``ROLL_TIER_DEG``),
+    smallest first, each group tracked from a refinement on everything before it. A
+    centre ``e`` px off moves a contour by ``2 e sin(r / 2)`` under a roll ``r``: the
+    pans' centre on a narrow lens can be 20 px off (p1, p2 and the mounting trade with
+    it), which the +-45 degree rolls survive and the larger ones do not (random world
+    70038, f 1497 px, k1 -0.26: rolls of 90 degrees and more tracked 0-5 of 56 contours,
+    and without them the centre came out 7 px off)."""
+    groups: dict[int, list[str]] = {}
+    for label in rolls:
+        step = round(abs(math.degrees(rel[label][2])) / ROLL_TIER_DEG)
+        groups.setdefault(step, []).append(label)
+    return [groups[k] for k in sorted(groups)]
+
+
+def _tier_key(tier: list[str], wide: list[str], roll_tiers: list[list[str]]) -> str:
+    """The tracking report's name for the model that predicted ``tier``."""
+    if tier is wide:
+        return "K_for_wide"
+    if tier is roll_tiers[0]:
+        return "K_for_rolls"
+    return "K_for_rolls_" + "_".join(label.removeprefix("roll") for label in tier)
 
 
 def _as_start(K: RefineResult) -> dict:
@@ -525,9 +574,11 @@ def solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, f
     # each tier is tracked by prediction from the model refined on the tiers before it;
     # those refinements only predict: a quarter of the points do
     K1: dict | RefineResult = dict(K0)
+    K_pans: dict | RefineResult | None = None  # the refinement on every pan and tilt
     done = list(small)
     depths = None
-    for tier in (wide, roll_labels):
+    roll_tiers = _roll_tiers(roll_labels, tr.rel)
+    for tier in (wide, *roll_tiers):
         if not tier:
             continue
         before = [m for m in (tr.motion(lb, PREDICTION_STRIDE) for lb in done) if m]
@@ -538,24 +589,28 @@ def solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, f
                 depths = _measured_depths(tr, K1, settings, images)
                 if depths is not None:
                     K1 = _predicting_refinement(before, _as_start(K1), settings, depths)
-            tr.report["K_for_rolls" if tier is roll_labels else "K_for_wide"] = {
+            tr.report[_tier_key(tier, wide, roll_tiers)] = {
                 "fx": K1.fx, "fy": K1.fy, "cx": K1.cx, "cy": K1.cy,
                 "distortion": [K1.k1, K1.k2, K1.p1, K1.p2, K1.k3]}
+        if roll_tiers and tier is roll_tiers[0]:
+            K_pans = K1
         for label in tier:
-            tr.track(label, K1, TIER_WINDOW_PX)
+            tr.track(label, K1, TIER_WINDOW_PX,
+                     ROLL_JOINT_WINDOW_PX if tier is not wide else 0.0)
         done += tier
+    K_pans = K1 if K_pans is None else K_pans
     timings["tracking"] = time.perf_counter() - t0
 
     if SHIFT in images and settings.shift_m > 0:  # again, with the K of every pose
         depths = _measured_depths(tr, K1, settings, images)
 
     strategies = _strategies(tr, roll_labels)
-    start = _final_start(K1, strategies, K0)
+    start = _final_start(K_pans, strategies, K0)
 
     t0 = time.perf_counter()
     motions = [m for m in (tr.motion(lb, REFINE_STRIDE) for lb in order) if m is not None]
     refined, tr.report["final_starts"] = _refine_from_starts(
-        motions, _starts(start, K1, K0),
+        motions, _starts(start, K_pans, K0),
         dict(n_dist=_distortion_terms(settings, depths), parallax_sigma=settings.parallax_sigma,
              depths=None if depths is None else depths.prior(),
              offset_sigma_m=settings.nodal_offset_mm / 1000.0))

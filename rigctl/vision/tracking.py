@@ -28,6 +28,7 @@ from scipy.ndimage import map_coordinates
 from rigctl.vision.contours import Contour, EdgeMap, subpixel
 
 RADIUS = 2.0
+PLATEAU = 0.98  # share of the best joint score still on its plateau (``common_shift``)
 
 
 @dataclass
@@ -177,3 +178,27 @@ def track_by_prediction(contour: Contour, moved: EdgeMap,
     around the prediction for the best chamfer score."""
     return track_in_range(predict(contour.points), moved, (-window, window),
                           (-window, window), min_coverage, ambiguity)
+
+
+def common_shift(templates: list[np.ndarray], moved: EdgeMap, window: float,
+                 ambiguity: float = 0.9) -> tuple[float, float] | None:
+    """One shift of every predicted contour together (``templates``, px), within
+    +-``window`` px, that best lays them on the moved image's edges (the chamfer
+    coverage of all their points at once); None when no shift covers any point or a
+    second, separate peak scores nearly as well (a periodic scene). A prediction that
+    is off by one shift for the whole image, e.g. a roll predicted about a wrong centre
+    (the error of a rotation about a centre ``e`` off is the translation
+    ``(I - R) e``), is corrected so, before each contour is searched in a small window."""
+    pts = np.concatenate([t for t in templates if len(t)]) if templates else np.zeros((0, 2))
+    if not len(pts):
+        return None
+    scores, xs, ys = _search_shifts(moved, pts, np.array([-window, window]),
+                                    np.array([-window, window]))
+    offset, best, second = _best_and_second(scores, xs, ys, exclusion=6.0)
+    if best <= 0 or second >= ambiguity * best:
+        return None
+    # a point counts within RADIUS of an edge, so the best score is a plateau a few px
+    # wide around the true shift: its middle, not its first pixel
+    yy, xx = np.meshgrid(ys, xs, indexing="ij")
+    top = (scores >= PLATEAU * best) & (np.hypot(xx - offset[0], yy - offset[1]) <= 6.0)
+    return float(xx[top].mean()), float(yy[top].mean())
