@@ -9,7 +9,7 @@ Stages (thesis chapter 3, automated):
    Strategy B for a first K (eqs. 3.19-3.22);
 2. every pan/tilt motion tracked again by prediction from that K, a refinement on them
    alone, then the rolls tracked by prediction from the refined K, 45 degrees of roll
-   at a time (``_roll_tiers``);
+   at a time (``active_tracking.roll_tiers``);
 3. Strategies A-D (eqs. 3.14-3.35) on the tracked contours;
 4. the nonlinear refinement over every motion (``active_refine.refine``), started from
    D (or C, or the first K).
@@ -25,17 +25,13 @@ from typing import Any
 import numpy as np
 
 from rigctl.calib import active
-from rigctl.calib.active import ContourStats
 from rigctl.calib.active_depth import SceneDepths, contour_shift, fit_depths, rigid_shifts
-from rigctl.calib.active_refine import Motion, RefineResult, _undistort, param_names, refine
+from rigctl.calib.active_refine import RefineResult, _undistort, param_names, refine
+from rigctl.calib.active_tracking import SHIFT, WIDE_WINDOW, Tracker, roll_tiers, tier_key, tiers
 from rigctl.calib.blas_threads import with_one_blas_thread
-from rigctl.calib.synthetic import intrinsics, rot_x, rot_y, rot_z
 from rigctl.errors import SolveError
-from rigctl.vision.contours import edge_map, extract_contours
-from rigctl.vision.tracking import common_shift, track_by_prediction, track_by_shift, track_in_range
+from rigctl.vision.tracking import track_in_range
 
-MOTIONS = ("pan+", "pan-", "tilt+", "tilt-")
-SHIFT = "shift"  # the capture after the arm moved the camera sideways (scene depths)
 NEAREST_SCENE_M = 0.25  # the shift capture's search window covers contours this close
 SHIFT_CROSS = 0.15  # and reaches this far across the move, per pixel along it
 # Reference points used per contour in the refinements: edge points a pixel apart share
@@ -53,13 +49,7 @@ TIER_WINDOW_PX = 24.0  # search window around a tier's prediction (the first K's
 # 0.2 px chosen before covered a renderer that drew every shape 0.65 px too large.)
 MODEL_ERROR_FOCAL = 1.0e-4   # relative, per focal length
 MODEL_ERROR_CENTRE_PX = 0.15  # per coordinate
-# Fewer contours than this in a narrower central window (an operator's choice): look in
-# WIDE_WINDOW of the image instead
-WANTED_CONTOURS = 6
-WIDE_WINDOW = 0.95
-TILE_PX = 160  # then cut edge networks that reach beyond it into pieces this size
 DISTINCT_START_PX = 3.0  # the final refinement also starts from centres this far apart
-ROLL_TIER_DEG = 45.0  # rolls are tracked in tiers of this many degrees, smallest first
 # A roll predicted about a centre e px off is off by (I - R) e, one shift for the whole
 # image (2 e at 180 degrees): searched for all contours at once within this many px
 # before each is searched in TIER_WINDOW_PX. The pans' centre of a narrow or strongly
@@ -95,188 +85,7 @@ class ActiveSolution:
     timings_s: dict[str, float] = field(default_factory=dict)
 
 
-def _predictor(K: dict, rel_angles):
-    """Maps reference pixels to the moved image with the nominal head (pure rotation,
-    thesis eq. 3.3 with a distortion-free K)."""
-    Km = intrinsics(K["fx"], K["fy"], K["cx"], K["cy"])
-    Kinv = np.linalg.inv(Km)
-    p, t, r = rel_angles
-    R = rot_y(p) @ rot_x(t) @ rot_z(r)
-
-    def predict(points: np.ndarray) -> np.ndarray:
-        rays = (Kinv @ np.c_[points, np.ones(len(points))].T).T
-        moved = (Km @ (R.T @ rays.T)).T
-        return moved[:, :2] / moved[:, 2:3]
-
-    return predict
-
-
-def _shifted(predict, shift: tuple[float, float]):
-    """``predict`` followed by a constant image shift (px)."""
-    offset = np.asarray(shift, float)
-    return lambda points: predict(points) + offset
-
-
-class _Tracker:
-    """Contours of the reference image followed through the other captures."""
-
-    def __init__(self, images: dict, angles: dict, settings: ActiveSettings) -> None:
-        self.angles = angles
-        self.emaps = {k: edge_map(img) for k, img in images.items()}
-        self.inv_depth: np.ndarray | None = None  # each contour's, once measured (1/m)
-        h, w = images["ref"].shape[:2]
-        self.size = (w, h)
-        self.centre = np.array(settings.assumed_centre or [(w - 1) / 2, (h - 1) / 2], float)
-        self.contours = extract_contours(images["ref"], settings.window, settings.min_points,
-                                         emap=self.emaps["ref"])
-        self.report: dict[str, Any] = {"window": settings.window}
-        if len(self.contours) < WANTED_CONTOURS and settings.window < WIDE_WINDOW:
-            # a scene filled by one large pattern (e.g. the board close up) leaves few
-            # closed contours in the centre: use the whole image rather than fail
-            wide = extract_contours(images["ref"], WIDE_WINDOW, settings.min_points,
-                                    emap=self.emaps["ref"])
-            if len(wide) > len(self.contours):
-                self.contours = wide
-                self.report["window"] = WIDE_WINDOW
-        if len(self.contours) < WANTED_CONTOURS:
-            # a board filling the view: its squares' outlines join at the corners into
-            # one edge network that reaches the image's border; take it piece by piece
-            tiled = extract_contours(images["ref"], WIDE_WINDOW, settings.min_points,
-                                     emap=self.emaps["ref"], tile=TILE_PX)
-            if len(tiled) > len(self.contours):
-                self.contours = tiled
-                self.report.update(window=WIDE_WINDOW, tiled_px=TILE_PX)
-        if len(self.contours) < 3:
-            raise SolveError(f"active-camera: too few contours in the reference image "
-                             f"({len(self.contours)} in the central {WIDE_WINDOW:.0%}; "
-                             "need 3): point the camera at a scene with separate shapes")
-        self.rel = {k: tuple(np.subtract(v, angles["ref"])) for k, v in angles.items()}
-        self.matches: dict[str, list] = {}
-        self.report.update({"contours": len(self.contours), "motions": {}})
-
-    def first_K(self) -> dict:
-        """The thesis's shift search through pan+ and tilt+, then Strategy B."""
-        w = self.size[0]
-        thesis = {}
-        for label, direction, theta in (("pan+", "x", self.rel["pan+"][0]),
-                                        ("tilt+", "y", self.rel["tilt+"][1])):
-            max_shift = abs(theta) * 2.0 * w + 10
-            thesis[label] = [track_by_shift(c, self.emaps[label], direction, max_shift)
-                             for c in self.contours]
-        both = [i for i in range(len(self.contours))
-                if thesis["pan+"][i].ok and thesis["tilt+"][i].ok]
-        self.report["thesis_shift_tracked"] = len(both)
-        if len(both) < 2:
-            return self._first_K_one_axis(thesis)
-        of = ContourStats.of
-        try:
-            first = active.strategy_b(
-                [of(self.contours[i].points, self.centre) for i in both],
-                [of(thesis["tilt+"][i].points, self.centre) for i in both],
-                [of(thesis["pan+"][i].points, self.centre) for i in both],
-                self.rel["tilt+"][1], self.rel["pan+"][0])
-        except SolveError as exc:
-            # Strategy B's quadratic has no root when distortion or a wide lens bends
-            # the shifts: start from the shifts themselves; the refinement takes over.
-            first = {"fx": self._focal_from_shifts(thesis["pan+"], both, 0),
-                     "fy": self._focal_from_shifts(thesis["tilt+"], both, 1)}
-            self.report["first_K"] = f"from the median shift ({exc})"
-        return {"fx": first["fx"], "fy": first["fy"], "cx": self.centre[0],
-                "cy": self.centre[1]}
-
-    def _first_K_one_axis(self, thesis: dict) -> dict:
-        """When the shift search follows too few contours through both pan+ and tilt+
-        (shapes a pure shift cannot follow, e.g. a board close up under strong
-        distortion): the focal length from the axis that tracked, the other assumed equal
-        (square pixels to within a few per cent); tracking by prediction and the
-        refinement then free both."""
-        for label, axis in (("pan+", 0), ("tilt+", 1)):
-            ok = [i for i, m in enumerate(thesis[label]) if m.ok]
-            if len(ok) >= 2:
-                f = self._focal_from_shifts(thesis[label], ok, axis)
-                self.report["first_K"] = (f"from the {label} shifts alone ({len(ok)} "
-                                          "contours), square pixels assumed")
-                return {"fx": f, "fy": f, "cx": self.centre[0], "cy": self.centre[1]}
-        counts = {label: sum(m.ok for m in thesis[label]) for label in thesis}
-        raise SolveError("active-camera: contours lost in the pan/tilt images "
-                         f"(tracked by the shift search: {counts}; need 2 in one of them)")
-
-    def _focal_from_shifts(self, matches: list, idx: list[int], axis: int) -> float:
-        """Focal length from pure-rotation shifts: a contour at ``u = (x - c) / f`` moves
-        by ``f theta (1 + u^2)`` to first order (thesis eq. 3.3 linearised)."""
-        theta = abs(self.rel["pan+" if axis == 0 else "tilt+"][axis])
-        shifts = np.array([abs(matches[i].offset[axis]) for i in idx])
-        centres = np.array([self.contours[i].points[:, axis].mean() for i in idx])
-        f = np.median(shifts) / theta
-        for _ in range(3):
-            u = (centres - self.centre[axis]) / f
-            f = float(np.median(shifts / (theta * (1 + u * u))))
-        if not np.isfinite(f) or f <= 0:
-            raise SolveError("active-camera: no first focal length from the pan/tilt shifts")
-        return f
-
-    def track(self, label: str, K: dict | RefineResult, window: float,
-              joint_window: float = 0.0) -> None:
-        """Follows every reference contour into ``label``'s image: predicted by a pinhole
-        ``K`` or by a refinement's whole model (distortion included), then searched
-        +-``window`` px around the prediction. With ``joint_window``, the predictions
-        are first moved by the one shift, within +-``joint_window`` px, that lays all of
-        them best on the image's edges (``common_shift``)."""
-        predictors = [self._predictor(K, label, i) for i in range(len(self.contours))]
-        if joint_window > 0:
-            shift = common_shift([p(c.points) for p, c in zip(predictors, self.contours,
-                                                              strict=True)],
-                                 self.emaps[label], joint_window)
-            if shift is not None:
-                predictors = [_shifted(p, shift) for p in predictors]
-            self.report.setdefault("joint_shift_px", {})[label] = \
-                None if shift is None else list(shift)
-        self.matches[label] = [track_by_prediction(c, self.emaps[label], p, window=window)
-                               for p, c in zip(predictors, self.contours, strict=True)]
-        rejected: dict[str, int] = {}
-        for m in self.matches[label]:
-            if not m.ok:
-                key = m.reason.split(" (")[0]
-                rejected[key] = rejected.get(key, 0) + 1
-        self.report["motions"][label] = {
-            "tracked": sum(m.ok for m in self.matches[label]), "rejected": rejected,
-            "angles_deg": np.degrees(self.rel[label]).tolist()}
-
-    def _predictor(self, K: dict | RefineResult, label: str, contour: int):
-        """Contour ``contour``'s prediction into ``label``: the pinhole K's, or the
-        refinement's with that contour's inverse depth once the scene's are measured
-        (``inv_depth``) and the refinement estimated the offset with them."""
-        if not isinstance(K, RefineResult):
-            return _predictor(K, self.rel[label])
-        rho = None if self.inv_depth is None or not K.with_depths else \
-            float(self.inv_depth[contour])
-        return K.predictor(self.angles["ref"], self.angles[label], rho)
-
-    def motion(self, label: str, stride: int = 1) -> Motion | None:
-        """The tracked contours of ``label`` as one refinement motion: every
-        ``stride``-th reference point of each (the moved curves stay whole)."""
-        idx = [i for i, m in enumerate(self.matches[label]) if m.ok]
-        if not idx:
-            return None
-        refs = [self.contours[i].points[::stride] for i in idx]
-        return Motion(self.angles["ref"], self.angles[label], np.concatenate(refs),
-                      np.concatenate([self.matches[label][i].points for i in idx]),
-                      np.concatenate([self.matches[label][i].normals for i in idx]),
-                      label=label,
-                      groups=np.concatenate([np.full(len(r), i) for r, i in zip(refs, idx,
-                                                                              strict=True)]))
-
-    def stats(self, label: str, idx: list[int]) -> list[ContourStats]:
-        if label == "ref":
-            return [ContourStats.of(self.contours[i].points, self.centre) for i in idx]
-        return [ContourStats.of(self.matches[label][i].points, self.centre) for i in idx]
-
-    def ok_in(self, *labels: str) -> list[int]:
-        return [i for i in range(len(self.contours))
-                if all(lb in self.matches and self.matches[lb][i].ok for lb in labels)]
-
-
-def _strategies(tr: _Tracker, roll_labels: list[str]) -> dict[str, Any]:
+def _strategies(tr: Tracker, roll_labels: list[str]) -> dict[str, Any]:
     """Strategies A-D of the thesis (eqs. 3.14-3.35) on the tracked contours."""
     th_p, th_t = tr.rel["pan+"][0], tr.rel["tilt+"][1]
     pt = tr.ok_in("pan+", "tilt+")
@@ -310,42 +119,6 @@ def _strategies(tr: _Tracker, roll_labels: list[str]) -> dict[str, Any]:
     return out
 
 
-def _tiers(images: dict) -> tuple[list[str], list[str], list[str]]:
-    """The captures in the order they are tracked: the small pan/tilt motions
-    (``MOTIONS``, tracked from the first K), any wider pan/tilt motions (any other label
-    but ``ref``, ``SHIFT`` and the rolls, tracked by prediction from a refinement on the
-    small ones), then the rolls (tracked from a refinement on all of those, in the
-    tiers of ``_roll_tiers``)."""
-    small = [m for m in MOTIONS if m in images]
-    rolls = [m for m in images if m.startswith("roll")]
-    wide = [m for m in images if m not in small and m not in rolls and m not in ("ref", SHIFT)]
-    return small, wide, rolls
-
-
-def _roll_tiers(rolls: list[str], rel: dict) -> list[list[str]]:
-    """The rolls grouped by how far they turn (to the nearest ``ROLL_TIER_DEG``),
-    smallest first, each group tracked from a refinement on everything before it. A
-    centre ``e`` px off moves a contour by ``2 e sin(r / 2)`` under a roll ``r``: the
-    pans' centre on a narrow lens can be 20 px off (p1, p2 and the mounting trade with
-    it), which the +-45 degree rolls survive and the larger ones do not (random world
-    70038, f 1497 px, k1 -0.26: rolls of 90 degrees and more tracked 0-5 of 56 contours,
-    and without them the centre came out 7 px off)."""
-    groups: dict[int, list[str]] = {}
-    for label in rolls:
-        step = round(abs(math.degrees(rel[label][2])) / ROLL_TIER_DEG)
-        groups.setdefault(step, []).append(label)
-    return [groups[k] for k in sorted(groups)]
-
-
-def _tier_key(tier: list[str], wide: list[str], roll_tiers: list[list[str]]) -> str:
-    """The tracking report's name for the model that predicted ``tier``."""
-    if tier is wide:
-        return "K_for_wide"
-    if tier is roll_tiers[0]:
-        return "K_for_rolls"
-    return "K_for_rolls_" + "_".join(label.removeprefix("roll") for label in tier)
-
-
 def _as_start(K: RefineResult) -> dict:
     return {"fx": K.fx, "fy": K.fy, "cx": K.cx, "cy": K.cy}
 
@@ -377,7 +150,7 @@ def _predicting_refinement(motions, start: dict, settings: ActiveSettings,
                   offset_sigma_m=settings.nodal_offset_mm / 1000.0)
 
 
-def _measured_depths(tr: _Tracker, K: RefineResult, settings: ActiveSettings, images: dict
+def _measured_depths(tr: Tracker, K: RefineResult, settings: ActiveSettings, images: dict
                      ) -> SceneDepths | None:
     """The scene's depths from the SHIFT capture (reported), or None without one."""
     if SHIFT not in images or settings.shift_m <= 0:
@@ -450,7 +223,7 @@ def _distortion_terms(settings: ActiveSettings, depths: SceneDepths | None) -> i
     return 5 if depths is not None else 2
 
 
-def _scene_depths(tr: _Tracker, K: dict | RefineResult, baseline_m: float) -> SceneDepths:
+def _scene_depths(tr: Tracker, K: dict | RefineResult, baseline_m: float) -> SceneDepths:
     """Each contour's inverse depth from its shift in the SHIFT capture (``active_depth``),
     in image coordinates normalised and undistorted with ``K``."""
     if isinstance(K, RefineResult):
@@ -562,12 +335,13 @@ def solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, f
         raise SolveError(f"active-camera: captures missing: {missing}")
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    tr = _Tracker(images, angles, settings)
+    tr = Tracker(images, angles, settings.window, settings.min_points,
+                 settings.assumed_centre)
     K0 = tr.first_K()
     timings["contours_and_first_K"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    small, wide, roll_labels = _tiers(images)
+    small, wide, roll_labels = tiers(images)
     order = small + wide + roll_labels
     for label in small:
         tr.track(label, K0, 12.0)
@@ -577,8 +351,8 @@ def solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, f
     K_pans: dict | RefineResult | None = None  # the refinement on every pan and tilt
     done = list(small)
     depths = None
-    roll_tiers = _roll_tiers(roll_labels, tr.rel)
-    for tier in (wide, *roll_tiers):
+    roll_groups = roll_tiers(roll_labels, tr.rel)
+    for tier in (wide, *roll_groups):
         if not tier:
             continue
         before = [m for m in (tr.motion(lb, PREDICTION_STRIDE) for lb in done) if m]
@@ -589,10 +363,10 @@ def solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, f
                 depths = _measured_depths(tr, K1, settings, images)
                 if depths is not None:
                     K1 = _predicting_refinement(before, _as_start(K1), settings, depths)
-            tr.report[_tier_key(tier, wide, roll_tiers)] = {
+            tr.report[tier_key(tier, wide, roll_groups)] = {
                 "fx": K1.fx, "fy": K1.fy, "cx": K1.cx, "cy": K1.cy,
                 "distortion": [K1.k1, K1.k2, K1.p1, K1.p2, K1.k3]}
-        if roll_tiers and tier is roll_tiers[0]:
+        if roll_groups and tier is roll_groups[0]:
             K_pans = K1
         for label in tier:
             tr.track(label, K1, TIER_WINDOW_PX,
