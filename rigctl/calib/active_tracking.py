@@ -44,12 +44,6 @@ def pinhole_predictor(K: dict, rel_angles):
     return predict
 
 
-def shifted(predict, shift: tuple[float, float]):
-    """``predict`` followed by a constant image shift (px)."""
-    offset = np.asarray(shift, float)
-    return lambda points: predict(points) + offset
-
-
 class Tracker:
     """Contours of the reference image followed through the other captures."""
 
@@ -156,17 +150,19 @@ class Tracker:
         +-``window`` px around the prediction. With ``joint_window``, the predictions
         are first moved by the one shift, within +-``joint_window`` px, that lays all of
         them best on the image's edges (``common_shift``)."""
-        predictors = [self._predictor(K, label, i) for i in range(len(self.contours))]
+        # each contour's prediction is made once: the model's can be costly (distortion
+        # and depths), and the joint shift and the per-contour search both need it
+        predicted = [self._predictor(K, label, i)(c.points)
+                     for i, c in enumerate(self.contours)]
         if joint_window > 0:
-            shift = common_shift([p(c.points) for p, c in zip(predictors, self.contours,
-                                                              strict=True)],
-                                 self.emaps[label], joint_window)
+            shift = common_shift(predicted, self.emaps[label], joint_window)
             if shift is not None:
-                predictors = [shifted(p, shift) for p in predictors]
+                predicted = [q + np.asarray(shift, float) for q in predicted]
             self.report.setdefault("joint_shift_px", {})[label] = \
                 None if shift is None else list(shift)
-        self.matches[label] = [track_by_prediction(c, self.emaps[label], p, window=window)
-                               for p, c in zip(predictors, self.contours, strict=True)]
+        self.matches[label] = [
+            track_by_prediction(c, self.emaps[label], lambda _points, q=q: q, window=window)
+            for c, q in zip(self.contours, predicted, strict=True)]
         rejected: dict[str, int] = {}
         for m in self.matches[label]:
             if not m.ok:
