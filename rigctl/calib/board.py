@@ -1,4 +1,5 @@
-"""Checkerboard detection (OpenCV ``findChessboardCornersSB``)."""
+"""Checkerboard detection (OpenCV ``findChessboardCornersSB``, corners refined by
+``cornerSubPix``)."""
 
 from __future__ import annotations
 
@@ -25,7 +26,7 @@ def detect_board(image: np.ndarray, rows: int, cols: int) -> np.ndarray | None:
     enclosed by the first 2x2 inner corners is square (1, 1) of the board, which is black
     (the origin square (0, 0) is black); in the reversed order it would be square
     (rows-2, cols-2), white when rows + cols is odd. So a bright first square means the
-    order is reversed, and we flip it."""
+    order is reversed, and we flip it. The corners are then refined (``refine_corners``)."""
     gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
     found, corners = cv2.findChessboardCornersSB(gray, (cols - 1, rows - 1),
                                                  flags=cv2.CALIB_CB_ACCURACY)
@@ -50,7 +51,52 @@ def detect_board(image: np.ndarray, rows: int, cols: int) -> np.ndarray | None:
             pts = pts[::-1].copy()
     if not squares_alternate(gray, pts, rows, cols):
         return None
-    return pts
+    return refine_corners(gray, pts, rows, cols)
+
+
+# cornerSubPix's half window: this fraction of the distance to the nearest neighbouring
+# corner (so that no other corner's edges enter it), within these bounds (pixels)
+SUBPIX_WINDOW_FRACTION = 0.3
+SUBPIX_HALF_WINDOW = (2, 8)
+
+
+def refine_corners(gray: np.ndarray, pts: np.ndarray, rows: int, cols: int) -> np.ndarray:
+    """The inner corners ``pts`` of ``detect_board`` moved to where the image's gradients
+    meet (``cv2.cornerSubPix``, each corner's window scaled to its grid spacing). A
+    corner whose window would leave the image, or that moves by more than its half
+    window, keeps its place.
+
+    ``findChessboardCornersSB``'s own corners carry a shared error per view: on 825
+    views of 40 random worlds 0.029 px RMS for a view's mean corner (0.022 px after this),
+    and its exhaustive search, which finds a board seen far off its normal, left corners
+    0.6 px off on average. The arm model (thesis 4.11) fits poses to whole views, so a
+    view's shared error is what it cannot average away."""
+    nodes = pts.reshape(rows - 1, cols - 1, 2)
+    spacing = np.full(nodes.shape[:2], np.inf)
+    along = np.linalg.norm(np.diff(nodes, axis=1), axis=2)
+    across = np.linalg.norm(np.diff(nodes, axis=0), axis=2)
+    spacing[:, :-1] = np.minimum(spacing[:, :-1], along)
+    spacing[:, 1:] = np.minimum(spacing[:, 1:], along)
+    spacing[:-1, :] = np.minimum(spacing[:-1, :], across)
+    spacing[1:, :] = np.minimum(spacing[1:, :], across)
+    lo, hi = SUBPIX_HALF_WINDOW
+    half = np.clip(np.floor(SUBPIX_WINDOW_FRACTION * spacing.ravel()), lo, hi).astype(int)
+    height, width = gray.shape[:2]
+    out = pts.copy()
+    criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-3)
+    for w in np.unique(half):
+        inside = (half == w) & np.all(pts >= w + 1, axis=1) & \
+            (pts[:, 0] < width - w - 2) & (pts[:, 1] < height - w - 2)
+        if not inside.any():
+            continue
+        start = pts[inside].astype(np.float32).reshape(-1, 1, 2)
+        moved = cv2.cornerSubPix(gray, start.copy(), (int(w), int(w)), (-1, -1),
+                                 criteria).reshape(-1, 2).astype(float)
+        keep = np.all(np.isfinite(moved), axis=1) & \
+            (np.linalg.norm(moved - pts[inside], axis=1) <= w)
+        rows_in = np.flatnonzero(inside)
+        out[rows_in[keep]] = moved[keep]
+    return out
 
 
 def squares_alternate(gray: np.ndarray, pts: np.ndarray, rows: int, cols: int) -> bool:
