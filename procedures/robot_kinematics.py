@@ -367,7 +367,11 @@ def _export(sol: RobotSolution, intr: dict) -> dict[str, Any]:
                               "source": "robot-kinematics joint refinement (prior: "
                                         f"{intr.get('source')})",
                               "settings": intr.get("settings")},
-               "intrinsics_prior": intr, "intrinsics_moved_px": cam.moved()}
+               "intrinsics_prior": intr, "intrinsics_moved_px": cam.moved(),
+               # the board views' own intrinsics (no prior), and the factor the prior's
+               # sigma grew by to agree with them (1: they agreed)
+               "intrinsics_board_only": cam.board_only,
+               "intrinsics_prior_inflation": cam.prior_inflation}
               if cam else {"intrinsics": intr, "camera_note": sol.camera_note})
     names = ref.names + ([f"camera.{k}" for k in robot.CAMERA_KEYS + robot.DIST_KEYS]
                          if cam else [])

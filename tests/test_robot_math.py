@@ -615,6 +615,48 @@ def test_camera_free_in_the_bundle_adjustment_recovers_biased_intrinsics():
     assert 1e-5 < np.median(sigma) < 3e-4  # about 0.1 mm here: not a vacuous bound
 
 
+def test_an_overconfident_prior_is_inflated_until_it_agrees_with_the_board_views():
+    """As above, but the prior claims 0.1 px for intrinsics 0.2 % / 2 px off (random
+    world 62019's active-camera result was 12 sigma off). The board views' own estimate
+    disagrees with it far beyond both sigmas, so the prior's sigma grows until they agree
+    (Birge's ratio), and the camera's error falls within its sigma."""
+    nominal, world, X, W, rng = ur_truth(5)
+    qs = board_views(world, X, 60, rng, tilt_deg=45.0, spread=0.3)
+    corners = [view(world, T_cam_target(world, q), noise=0.2, rng=rng) for q in qs]
+    K_off = K.copy()
+    K_off[0, 0] *= 1.002
+    K_off[1, 1] *= 1.002
+    K_off[0, 2] += 2.0
+    K_off[1, 2] -= 1.5
+    meas = robot.Measurements(qs, corners=corners, obj=OBJ, K=K_off, dist=np.zeros(5))
+    held = robot.refine(nominal, X, W, meas)
+    free, cam = robot.refine_with_camera(held, meas, dict.fromkeys(robot.CAMERA_KEYS, 0.1))
+    assert cam.prior_inflation > 5
+    got = cam.intrinsics()
+    for key, value in {"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2]}.items():
+        assert abs(got[key] - value) < (0.5 if key in ("fx", "fy") else 1.0), key
+        assert abs(got[key] - value) < 3 * cam.sigma[key], key
+        assert abs(cam.board_only[key] - value) < 3 * cam.sigma[key], key
+    # 0.14 mm (0.05 mm with an honest 3 px prior; 0.84 mm with the prior as claimed, its
+    # intrinsics then 35 sigma off)
+    test_q = board_views(world, X, 20, rng)
+    pos_free, _ = held_out(free.model, free.X, free.W, world, test_q)
+    assert pos_free < 2e-4
+
+
+def test_prior_inflation_is_one_while_the_estimates_agree():
+    """Birge's ratio on two estimates of four intrinsics: within the chi-square 99 %
+    point nothing changes; 10 sigma apart, the inflated prior leaves m^2 = 4."""
+    prior, sigma = np.array([900.0, 905.0, 640.0, 360.0]), np.full(4, 0.2)
+    cov = np.diag(np.full(4, 0.3 ** 2))
+    assert robot.prior_inflation(prior + 0.3, cov, prior, sigma) == 1.0
+    board = prior + np.array([3.6, -3.6, 0.0, 1.0])
+    k = robot.prior_inflation(board, cov, prior, sigma)
+    d = board - prior
+    m2 = d @ np.linalg.solve(cov + np.diag((k * sigma) ** 2), d)
+    assert k > 5 and m2 == pytest.approx(4.0, rel=1e-6)
+
+
 def test_a_view_found_one_square_off_is_rejected_and_the_model_holds():
     """Board corners from the simulator in 30 views; one view's corners are those of a
     grid one square off (as a detector once returned them on an unseen world). Kept, it

@@ -478,7 +478,9 @@ class CameraRefinement:
     dist: np.ndarray
     sigma: dict[str, float]
     prior: dict[str, float]
-    prior_sigma: dict[str, float]
+    prior_sigma: dict[str, float]  # as used: the given sigma times ``prior_inflation``
+    prior_inflation: float = 1.0
+    board_only: dict[str, float] | None = None  # the board views' estimate, no prior
 
     def intrinsics(self) -> dict:
         return {"fx": float(self.K[0, 0]), "fy": float(self.K[1, 1]),
@@ -490,6 +492,37 @@ class CameraRefinement:
         return {k: now[k] - self.prior[k] for k in CAMERA_KEYS}
 
 
+# a prior whose Mahalanobis distance (4 dof) from the board views' own estimate exceeds
+# this (chi-square's 99 % point) is inconsistent with them: its sigma is inflated
+PRIOR_CONSISTENT_CHI2 = 13.28
+
+
+def prior_inflation(board: np.ndarray, board_cov: np.ndarray, prior: np.ndarray,
+                    prior_sigma: np.ndarray) -> float:
+    """The factor by which the prior's sigma must grow so that the prior and the board
+    views' own estimate of the same intrinsics (``board``, covariance ``board_cov``)
+    agree: 1 while their Mahalanobis distance m^2 stays within ``PRIOR_CONSISTENT_CHI2``,
+    else sqrt(m^2 / 4) (Birge's ratio: two independent estimates that differ by more than
+    their sigmas allow claim too little uncertainty between them). Only the prior's sigma
+    grows: the board views' covariance is cluster-robust per view (``_view_robust``),
+    while the prior's (the active-camera solve) can miss a model error of that solve."""
+    d = board - prior
+    S = board_cov + np.diag(prior_sigma ** 2)
+    m2 = float(d @ np.linalg.solve(S, d))
+    if not np.isfinite(m2) or m2 <= PRIOR_CONSISTENT_CHI2:
+        return 1.0
+    # the smallest factor k with d^T (board_cov + k^2 P)^-1 d = 4, by bisection on log k
+    lo, hi = 0.0, 12.0
+    for _ in range(60):
+        mid = (lo + hi) / 2
+        S = board_cov + np.diag((np.exp(mid) * prior_sigma) ** 2)
+        if float(d @ np.linalg.solve(S, d)) > len(d):
+            lo = mid
+        else:
+            hi = mid
+    return float(np.exp(hi))
+
+
 def refine_with_camera(ref: RefineResult, meas: Measurements, prior_sigma: dict[str, float],
                        mask=None, max_nfev: int = 40) -> tuple[RefineResult, CameraRefinement]:
     """The joint refinement of ``refine`` (pixel residuals of every capture) with the
@@ -498,8 +531,10 @@ def refine_with_camera(ref: RefineResult, meas: Measurements, prior_sigma: dict[
     refinement started from (the active-camera result) enter as a prior with their
     1-sigma ``prior_sigma``; distortion has no prior, the board views determine it. The
     prior's rows are scaled by the pixel noise of ``ref`` so that both weigh as they
-    should. Returns the refinement (sigma now includes the camera's uncertainty) and
-    the camera model with its sigma."""
+    should. The board views' own estimate (no prior) is solved first: a prior that
+    disagrees with it beyond its sigmas has its sigma inflated (``prior_inflation``).
+    Returns the refinement (sigma now includes the camera's uncertainty) and the camera
+    model with its sigma."""
     mask = mask or identifiable_mask(ref.model, absorb=True)
     p_arm, names = _pack(ref.model, ref.X, ref.W, mask, True)
     n_arm = len(p_arm)
@@ -513,16 +548,27 @@ def refine_with_camera(ref: RefineResult, meas: Measurements, prior_sigma: dict[
         c = p[n_arm:]
         return camera_matrix(*c[:4]), c[4:]
 
-    def fun(p):
+    def pixels(p):
         model, X, W = _unpack(p[:n_arm], ref.model, ref.X, ref.W, mask, True)
-        K, dist = camera(p)
-        return np.r_[residuals(model, X, W, meas, K, dist),
-                     (p[n_arm:n_arm + 4] - prior) / sig * scale]
+        return residuals(model, X, W, meas, *camera(p))
 
-    sol = least_squares(fun, np.r_[p_arm, prior, dist0], x_scale="jac", max_nfev=max_nfev)
+    def solve(x0, sigma):
+        def fun(p):
+            return np.r_[pixels(p), (p[n_arm:n_arm + 4] - prior) / sigma * scale]
+        return least_squares(fun, x0, x_scale="jac", max_nfev=max_nfev)
+
+    x0 = np.r_[p_arm, prior, dist0]
+    board = least_squares(pixels, x0, x_scale="jac", max_nfev=max_nfev)
+    n_px = len(board.fun)
+    s2_board = float(np.sum(board.fun ** 2) / max(n_px - len(board.x), 1))
+    board_cov = _view_robust(board.jac, board.fun, len(meas.q),
+                             np.zeros((len(board.x), len(board.x))), s2_board)
+    inflation = prior_inflation(board.x[n_arm:n_arm + 4],
+                                board_cov[n_arm:n_arm + 4, n_arm:n_arm + 4], prior, sig)
+    sig = sig * inflation
+    sol = solve(board.x, sig)
     model, X, W = _unpack(sol.x[:n_arm], ref.model, ref.X, ref.W, mask, True)
     K, dist = camera(sol.x)
-    n_px = len(sol.fun) - 4
     J = sol.jac
     J_prior = J[n_px:]
     s2 = float(np.sum(sol.fun[:n_px] ** 2) / max(n_px - len(sol.x), 1))
@@ -537,7 +583,10 @@ def refine_with_camera(ref: RefineResult, meas: Measurements, prior_sigma: dict[
     cam = CameraRefinement(K, dist, dict(zip(CAMERA_KEYS + DIST_KEYS,
                                              sigma[n_arm:].tolist(), strict=True)),
                            dict(zip(CAMERA_KEYS, prior.tolist(), strict=True)),
-                           dict(zip(CAMERA_KEYS, sig.tolist(), strict=True)))
+                           dict(zip(CAMERA_KEYS, sig.tolist(), strict=True)),
+                           prior_inflation=inflation,
+                           board_only=dict(zip(CAMERA_KEYS, board.x[n_arm:n_arm + 4].tolist(),
+                                               strict=True)))
     return result, cam
 
 
