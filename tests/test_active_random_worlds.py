@@ -43,3 +43,20 @@ def test_default_plan_meets_the_truth_of_an_unseen_world(seed):
     assert max(abs(z) for z in row["z"].values()) < 4.0, row["z"]
     # the arm's move measured the scene's depths, so the parallax was estimated
     assert row["parallax"]["estimated"], row["parallax"]
+
+
+# a hang guard, as above
+@pytest.mark.timeout(900)
+def test_an_offset_that_one_contour_carries_is_reported_uncertain():
+    """Seed 62019 (a UR10e, 1545 px lens): 25 of the 26 contours whose depth the arm's
+    move measured lie on a board filling the view at 0.56 m, one at 1.9 m, so that one
+    contour carries the centre of projection's offset, and a small model error pulls it.
+    The focal length comes out 0.11 % low and the centre 2.2 px off; the per-motion
+    clusters reported sigmas 7 times too small (z 6.8). The delete-one-contour jackknife
+    sees that one contour carries the offset: |z| < 3. (The error itself is a known
+    limitation; the bounds on it catch a regression.)"""
+    row = world_trial((62019, None, 0.010))
+    assert "error" not in row, row.get("error")
+    assert row["focal_pct"] < 0.3 and row["centre_px"] < 5.0, row
+    assert max(abs(z) for z in row["z"].values()) < 3.0, row["z"]
+
