@@ -574,21 +574,29 @@ def board_views(world, X, n, rng, distance=0.45, tilt_deg=35.0, spread=0.1):
     return qs
 
 
-def test_camera_free_in_the_bundle_adjustment_recovers_biased_intrinsics():
-    """Board corners from the simulator's camera (true K, distortion DIST) in 60 views;
-    the solve starts from intrinsics 0.2 % / 2 px off (an active-camera result within its
-    3 px sigma) and no distortion. Held fixed, the bias goes into the arm model; free
-    with that prior, the board views pull the camera back and the arm model with it."""
+def biased_camera_views(fy_scale: float):
+    """60 board views of ``ur_truth(5)`` (corner noise 0.2 px) measured with intrinsics
+    0.2 % / 2 px off the truth (fx +0.2 %, fy times ``fy_scale``, cx +2, cy -1.5 px) and
+    no distortion, and the refinement with that camera held: (world, X, rng, meas,
+    held)."""
     nominal, world, X, W, rng = ur_truth(5)
     qs = board_views(world, X, 60, rng, tilt_deg=45.0, spread=0.3)
     corners = [view(world, T_cam_target(world, q), noise=0.2, rng=rng) for q in qs]
     K_off = K.copy()
     K_off[0, 0] *= 1.002
-    K_off[1, 1] *= 0.998
+    K_off[1, 1] *= fy_scale
     K_off[0, 2] += 2.0
     K_off[1, 2] -= 1.5
     meas = robot.Measurements(qs, corners=corners, obj=OBJ, K=K_off, dist=np.zeros(5))
-    held = robot.refine(nominal, X, W, meas)
+    return world, X, rng, meas, robot.refine(nominal, X, W, meas)
+
+
+def test_camera_free_in_the_bundle_adjustment_recovers_biased_intrinsics():
+    """Board corners from the simulator's camera (true K, distortion DIST) in 60 views;
+    the solve starts from intrinsics 0.2 % / 2 px off (an active-camera result within its
+    3 px sigma) and no distortion. Held fixed, the bias goes into the arm model; free
+    with that prior, the board views pull the camera back and the arm model with it."""
+    world, X, rng, meas, held = biased_camera_views(0.998)
     free, cam = robot.refine_with_camera(held, meas, {"fx": 3.0, "fy": 3.0, "cx": 3.0,
                                                       "cy": 3.0})
     test_q = board_views(world, X, 20, rng)
@@ -603,7 +611,7 @@ def test_camera_free_in_the_bundle_adjustment_recovers_biased_intrinsics():
     # k2 and k3 trade off against each other on these views; k1 is pinned
     assert abs(got["distortion"][0] - DIST[0]) < 0.005
     assert abs(got["distortion"][1] - DIST[1]) < 3 * cam.sigma["k2"]
-    assert cam.moved()["cx"] == pytest.approx(got["cx"] - K_off[0, 2])
+    assert cam.moved()["cx"] == pytest.approx(got["cx"] - meas.K[0, 2])
     assert free.covariance.shape == (len(free.names) + 9, len(free.names) + 9)
     # the predicted camera-position sigma over the test views covers the actual errors
     sigma = robot.camera_position_sigma(free.model, free.X, free.W, free.names,
@@ -620,16 +628,7 @@ def test_an_overconfident_prior_is_inflated_until_it_agrees_with_the_board_views
     world 62019's active-camera result was 12 sigma off). The board views' own estimate
     disagrees with it far beyond both sigmas, so the prior's sigma grows until they agree
     (Birge's ratio), and the camera's error falls within its sigma."""
-    nominal, world, X, W, rng = ur_truth(5)
-    qs = board_views(world, X, 60, rng, tilt_deg=45.0, spread=0.3)
-    corners = [view(world, T_cam_target(world, q), noise=0.2, rng=rng) for q in qs]
-    K_off = K.copy()
-    K_off[0, 0] *= 1.002
-    K_off[1, 1] *= 1.002
-    K_off[0, 2] += 2.0
-    K_off[1, 2] -= 1.5
-    meas = robot.Measurements(qs, corners=corners, obj=OBJ, K=K_off, dist=np.zeros(5))
-    held = robot.refine(nominal, X, W, meas)
+    world, X, rng, meas, held = biased_camera_views(1.002)
     free, cam = robot.refine_with_camera(held, meas, dict.fromkeys(robot.CAMERA_KEYS, 0.1))
     assert cam.prior_inflation > 5
     got = cam.intrinsics()
