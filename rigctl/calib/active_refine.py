@@ -414,11 +414,11 @@ def _contour_clusters(motions: list[Motion], masks: list[np.ndarray]) -> np.ndar
 
 
 def _covariance(J: np.ndarray, r: np.ndarray, clusters: np.ndarray,
-                prior: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                prior: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Cluster-robust (sandwich) covariance ``A^-1 (sum_c g_c g_c^T + P) A^-1`` with
     ``A = J^T J + P``, ``g_c = J_c^T r_c`` and ``P`` the prior information, scaled for
-    the number of clusters; never smaller than the classical ``s^2 A^-1``. Returns it
-    and ``A^-1``."""
+    the number of clusters; never smaller than the classical ``s^2 A^-1``. Returns it,
+    ``A^-1`` and ``A``."""
     n_params = J.shape[1]
     P = np.diag(1.0 / prior ** 2)
     A = J.T @ J + P
@@ -429,7 +429,7 @@ def _covariance(J: np.ndarray, r: np.ndarray, clusters: np.ndarray,
     s2 = float(np.sum(r ** 2) / max(len(r) - n_params, 1))
     classical = A_inv @ (J.T @ J * s2 + P) @ A_inv
     sandwich = A_inv @ (cluster_meat(J, r, clusters) + P) @ A_inv
-    return larger_variances(sandwich, classical), A_inv
+    return larger_variances(sandwich, classical), A_inv, A
 
 
 def _reject_outliers(r: np.ndarray, motions: list[Motion], masks: list[np.ndarray],
@@ -652,15 +652,14 @@ def _result(pb: _Problem, final, r: np.ndarray, assoc, parallax_sigma: float) ->
     J = final.jac[:len(r)]
     J = J.toarray() if hasattr(J, "toarray") else np.asarray(J)
     prior = pb.prior_sigma[pb.free]
-    cov, A_inv = _covariance(J, r, _clusters(pb.motions, pb.masks), prior)
+    cov, A_inv, A = _covariance(J, r, _clusters(pb.motions, pb.masks), prior)
     if pb.groups is not None:
         # with depths the centre of projection's offset is told by how contours at
         # different depths move apart; when few contours lie off the others' depth, each
         # carries it. The delete-one-contour jackknife sees that, the per-motion clusters
         # above do not (random world 62019: one contour at 1.9 m against 25 on a board at
         # 0.56 m; the focal length came out 12 sigma off)
-        jack = jackknife_covariance(J, r, _contour_clusters(pb.motions, pb.masks),
-                                    J.T @ J + np.diag(1.0 / prior ** 2))
+        jack = jackknife_covariance(J, r, _contour_clusters(pb.motions, pb.masks), A)
         cov = larger_variances(cov, jack + A_inv @ np.diag(1.0 / prior ** 2) @ A_inv)
     # the consider parameters: the parallax when it is held (no depths); measured inverse
     # depths are held too, but as known values, not as consider parameters

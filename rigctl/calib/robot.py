@@ -34,7 +34,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import least_squares
+from scipy.optimize import brentq, least_squares
 
 from rigctl.calib.covariance import robust_covariance, view_clusters
 from rigctl.errors import SolveError
@@ -502,25 +502,22 @@ def prior_inflation(board: np.ndarray, board_cov: np.ndarray, prior: np.ndarray,
     """The factor by which the prior's sigma must grow so that the prior and the board
     views' own estimate of the same intrinsics (``board``, covariance ``board_cov``)
     agree: 1 while their Mahalanobis distance m^2 stays within ``PRIOR_CONSISTENT_CHI2``,
-    else sqrt(m^2 / 4) (Birge's ratio: two independent estimates that differ by more than
+    else the factor k at which ``d^T (board_cov + k^2 diag(prior_sigma^2))^-1 d`` equals
+    its expectation, 4 (Birge's ratio: two independent estimates that differ by more than
     their sigmas allow claim too little uncertainty between them). Only the prior's sigma
     grows: the board views' covariance is cluster-robust per view (``_view_robust``),
     while the prior's (the active-camera solve) can miss a model error of that solve."""
     d = board - prior
-    S = board_cov + np.diag(prior_sigma ** 2)
-    m2 = float(d @ np.linalg.solve(S, d))
+
+    def excess(log_k: float) -> float:
+        S = board_cov + np.diag((np.exp(log_k) * prior_sigma) ** 2)
+        return float(d @ np.linalg.solve(S, d)) - len(d)
+
+    m2 = excess(0.0) + len(d)
     if not np.isfinite(m2) or m2 <= PRIOR_CONSISTENT_CHI2:
         return 1.0
-    # the smallest factor k with d^T (board_cov + k^2 P)^-1 d = 4, by bisection on log k
-    lo, hi = 0.0, 12.0
-    for _ in range(60):
-        mid = (lo + hi) / 2
-        S = board_cov + np.diag((np.exp(mid) * prior_sigma) ** 2)
-        if float(d @ np.linalg.solve(S, d)) > len(d):
-            lo = mid
-        else:
-            hi = mid
-    return float(np.exp(hi))
+    top = 12.0  # a factor of 1.6e5: beyond it the prior carries no weight anyway
+    return float(np.exp(brentq(excess, 0.0, top, xtol=1e-9) if excess(top) < 0 else top))
 
 
 def refine_with_camera(ref: RefineResult, meas: Measurements, prior_sigma: dict[str, float],
@@ -552,13 +549,8 @@ def refine_with_camera(ref: RefineResult, meas: Measurements, prior_sigma: dict[
         model, X, W = _unpack(p[:n_arm], ref.model, ref.X, ref.W, mask, True)
         return residuals(model, X, W, meas, *camera(p))
 
-    def solve(x0, sigma):
-        def fun(p):
-            return np.r_[pixels(p), (p[n_arm:n_arm + 4] - prior) / sigma * scale]
-        return least_squares(fun, x0, x_scale="jac", max_nfev=max_nfev)
-
-    x0 = np.r_[p_arm, prior, dist0]
-    board = least_squares(pixels, x0, x_scale="jac", max_nfev=max_nfev)
+    board = least_squares(pixels, np.r_[p_arm, prior, dist0], x_scale="jac",
+                          max_nfev=max_nfev)
     n_px = len(board.fun)
     s2_board = float(np.sum(board.fun ** 2) / max(n_px - len(board.x), 1))
     board_cov = _view_robust(board.jac, board.fun, len(meas.q),
@@ -566,7 +558,11 @@ def refine_with_camera(ref: RefineResult, meas: Measurements, prior_sigma: dict[
     inflation = prior_inflation(board.x[n_arm:n_arm + 4],
                                 board_cov[n_arm:n_arm + 4, n_arm:n_arm + 4], prior, sig)
     sig = sig * inflation
-    sol = solve(board.x, sig)
+
+    def fun(p):
+        return np.r_[pixels(p), (p[n_arm:n_arm + 4] - prior) / sig * scale]
+
+    sol = least_squares(fun, board.x, x_scale="jac", max_nfev=max_nfev)
     model, X, W = _unpack(sol.x[:n_arm], ref.model, ref.X, ref.W, mask, True)
     K, dist = camera(sol.x)
     J = sol.jac
