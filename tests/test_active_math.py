@@ -353,3 +353,24 @@ def test_centre_identifiability_is_the_conditional_sigma_given_the_tangential_te
     assert "note" not in centre_identifiability(names, corr * np.outer(sigma, sigma))
     two = centre_identifiability(names[:3], np.diag(sigma[:3] ** 2))
     assert "sigma_if_tangential_known_px" not in two["cx"]
+
+
+def test_a_contour_carrying_the_intrinsics_is_named_with_its_depth():
+    """``_carried_by`` names the contour that holds most of the delete-one-contour
+    jackknife's variance of the intrinsics (with its depth against the others'), and
+    nothing when the variance is shared or the jackknife adds little."""
+    from rigctl.calib.active_depth import SceneDepths
+    from rigctl.calib.active_pipeline import CARRIED_RATIO, CARRIED_SHARE, _carried_by
+
+    depths = SceneDepths(1.0 / np.array([0.56, 0.57, 1.9, 0.55, 0.58]), np.zeros(3), 0.0)
+    heavy = {"contour": 2, "share": 0.97, "sigma_ratio": 6.0}
+    influence = {"fx": heavy, "fy": heavy,
+                 "cx": {"contour": 2, "share": CARRIED_SHARE - 0.1, "sigma_ratio": 6.0},
+                 "cy": {"contour": 0, "share": 0.9, "sigma_ratio": CARRIED_RATIO - 0.5}}
+    carried = _carried_by(influence, depths)
+    assert carried["contour"] == 2 and carried["parameters"] == ["fx", "fy"]
+    assert carried["depth_m"] == pytest.approx(1.9)
+    assert carried["others_median_depth_m"] == pytest.approx(0.565, rel=1e-3)
+    assert "contour 2" in carried["note"]
+    shared = {k: {**v, "share": CARRIED_SHARE - 0.01} for k, v in influence.items()}
+    assert _carried_by(shared, depths) == {}

@@ -55,9 +55,14 @@ def test_an_offset_that_one_contour_carries_is_reported_uncertain():
     The focal length comes out 0.11 % low and the centre 2.2 px off; the per-motion
     clusters reported sigmas 7 times too small (z 6.8). The delete-one-contour jackknife
     sees that one contour carries the offset: |z| < 3. (The error itself is a known
-    limitation; the bounds on it catch a regression.)"""
+    limitation; the bounds on it catch a regression.) The result names that contour, the
+    far one, for the operator."""
     row = world_trial((62019, None, 0.010))
     assert "error" not in row, row.get("error")
     assert row["focal_pct"] < 0.3 and row["centre_px"] < 5.0, row
     assert max(abs(z) for z in row["z"].values()) < 3.0, row["z"]
+    carried = row["parallax"].get("carried_by")
+    assert carried, row["parallax"]["influence"]
+    assert {"fx", "fy"} <= set(carried["parameters"]), carried
+    assert carried["depth_m"] > 1.5 and carried["others_median_depth_m"] < 0.7, carried
 

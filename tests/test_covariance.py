@@ -12,6 +12,7 @@ from rigctl.bench.truth import identified_value
 from rigctl.calib import handeye, robot
 from rigctl.calib.covariance import (
     cluster_meat,
+    jackknife_changes,
     jackknife_covariance,
     larger_variances,
     view_clusters,
@@ -27,6 +28,30 @@ from tests.test_robot_math import (
     ur_truth,
     view,
 )
+
+
+def test_jackknife_changes_are_the_leave_one_cluster_out_refits_of_a_linear_fit():
+    """For a linear least-squares fit (residual = model - data) the first-order change
+    ``(A - J_c^T J_c)^-1 J_c^T r_c`` is exact: each row equals the refit without that
+    cluster minus the full fit. One far cluster (x = 8 against the others within +-1)
+    nearly sets the slope, so the fit passes close to it: its own score ``A^-1 g_c``
+    (the sandwich's) is 16 times smaller than what leaving it out changes."""
+    rng = np.random.default_rng(5)
+    groups, per = 12, 10
+    x = np.repeat(np.r_[rng.uniform(-1, 1, groups - 1), 8.0], per)
+    J = np.c_[np.ones_like(x), x]
+    y = J @ np.array([0.5, 2.0]) + np.repeat(rng.normal(0, 0.3, groups), per) \
+        + rng.normal(0, 0.05, len(x))
+    beta = np.linalg.lstsq(J, y, rcond=None)[0]
+    clusters = view_clusters(groups, per)
+    changes = jackknife_changes(J, J @ beta - y, clusters, J.T @ J)
+    for c in range(groups):
+        keep = clusters != c
+        refit = np.linalg.lstsq(J[keep], y[keep], rcond=None)[0]
+        assert np.allclose(changes[c], refit - beta, atol=1e-10), c
+    far = clusters == groups - 1
+    naive = np.linalg.solve(J.T @ J, J[far].T @ (J @ beta - y)[far])
+    assert abs(changes[-1, 1]) > 5 * abs(naive[1])
 
 
 def test_cluster_robust_sigma_matches_the_spread_of_a_clustered_regression():

@@ -39,7 +39,12 @@ from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
 from rigctl.calib.active_jacobian import N_BASE, distort, pixel_jacobian
-from rigctl.calib.covariance import cluster_meat, jackknife_covariance, larger_variances
+from rigctl.calib.covariance import (
+    cluster_meat,
+    jackknife_changes,
+    jackknife_spread,
+    larger_variances,
+)
 from rigctl.calib.synthetic import rot_axis, rot_x, rot_y
 from rigctl.errors import SolveError
 
@@ -294,6 +299,8 @@ class RefineResult:
     # starts (every point, outliers included, soft-L1 at 1 px, plus the priors)
     robust_cost: float = float("nan")
     with_depths: bool = False  # the parallax is the offset o (m), each contour's s = rho o
+    # with contour ids: which contour carries fx, fy, cx, cy most (``_influence``)
+    influence: dict = field(default_factory=dict)
 
     def predictor(self, angles0, angles1, inv_depth: float | None = None):
         """Where reference pixels land after the head moves from ``angles0`` to
@@ -402,15 +409,40 @@ def _clusters(motions: list[Motion], masks: list[np.ndarray]) -> np.ndarray:
     return np.concatenate(ids)
 
 
-def _contour_clusters(motions: list[Motion], masks: list[np.ndarray]) -> np.ndarray:
+def _contour_clusters(motions: list[Motion], masks: list[np.ndarray]
+                      ) -> tuple[np.ndarray, np.ndarray]:
     """A cluster id per residual row: one per contour over every motion (its points
     share the contour's depth and its place in the scene), for motions whose points carry
-    contour ids."""
+    contour ids. Returns the contour of each cluster and the rows' cluster ids."""
     ids = []
     for motion, mask in zip(motions, masks, strict=True):
         groups = motion.groups[mask]
         ids.append(groups if motion.curve_mode else np.repeat(groups, 2))
-    return np.unique(np.concatenate(ids), return_inverse=True)[1]
+    return np.unique(np.concatenate(ids), return_inverse=True)
+
+
+def _influence(changes: np.ndarray, contours: np.ndarray, names: list[str],
+               sandwich: np.ndarray) -> dict:
+    """For fx, fy, cx, cy: the contour whose leaving out moves the estimate most, its
+    share of the delete-one-contour jackknife's variance, and the jackknife's sigma over
+    the per-motion sandwich's. A share near 1 with a large ratio: one contour carries
+    that parameter (in practice the centre of projection's offset, told only by contours
+    off the others' depth)."""
+    out = {}
+    for key in ("fx", "fy", "cx", "cy"):
+        if key not in names:
+            continue
+        j = names.index(key)
+        spread = changes[:, j] ** 2
+        total = float(spread.sum())
+        if total <= 0.0:
+            continue
+        top = int(np.argmax(spread))
+        n = len(changes)
+        out[key] = {"contour": int(contours[top]), "share": float(spread[top] / total),
+                    "sigma_ratio": float(np.sqrt(total * (n - 1) / max(n, 1)
+                                                 / max(sandwich[j, j], 1e-300)))}
+    return out
 
 
 def _covariance(J: np.ndarray, r: np.ndarray, clusters: np.ndarray,
@@ -653,14 +685,19 @@ def _result(pb: _Problem, final, r: np.ndarray, assoc, parallax_sigma: float) ->
     J = J.toarray() if hasattr(J, "toarray") else np.asarray(J)
     prior = pb.prior_sigma[pb.free]
     cov, A_inv, A = _covariance(J, r, _clusters(pb.motions, pb.masks), prior)
+    influence: dict = {}
     if pb.groups is not None:
         # with depths the centre of projection's offset is told by how contours at
         # different depths move apart; when few contours lie off the others' depth, each
         # carries it. The delete-one-contour jackknife sees that, the per-motion clusters
         # above do not (random world 62019: one contour at 1.9 m against 25 on a board at
         # 0.56 m; the focal length came out 12 sigma off)
-        jack = jackknife_covariance(J, r, _contour_clusters(pb.motions, pb.masks), A)
-        cov = larger_variances(cov, jack + A_inv @ np.diag(1.0 / prior ** 2) @ A_inv)
+        contours, clusters = _contour_clusters(pb.motions, pb.masks)
+        changes = jackknife_changes(J, r, clusters, A)
+        free_names = [n for n, f in zip(_all_names(pb), pb.free, strict=True) if f]
+        influence = _influence(changes, contours, free_names, cov)
+        cov = larger_variances(cov, jackknife_spread(changes)
+                               + A_inv @ np.diag(1.0 / prior ** 2) @ A_inv)
     # the consider parameters: the parallax when it is held (no depths); measured inverse
     # depths are held too, but as known values, not as consider parameters
     held = np.flatnonzero(~pb.free[:pb.n_cam])
@@ -671,7 +708,7 @@ def _result(pb: _Problem, final, r: np.ndarray, assoc, parallax_sigma: float) ->
     full[held, held] = parallax_sigma ** 2
     sig = np.sqrt(np.clip(np.diag(full), 0, None))
     fx, fy, cx, cy, _, a, parallax, k = _unpack(x, n_dist)
-    names = param_names(n_dist) + [f"rho{i}" for i in range(len(x) - pb.n_cam)]
+    names = _all_names(pb)
     total = sum(len(m.ref_points) for m in pb.motions)
     inliers = int(sum(mk.sum() for mk in pb.masks))
     return RefineResult(float(fx), float(fy), float(cx), float(cy), float(k[0]), float(k[1]),
@@ -679,7 +716,14 @@ def _result(pb: _Problem, final, r: np.ndarray, assoc, parallax_sigma: float) ->
                         a, {name: float(s) for name, s in zip(names, sig, strict=True)},
                         float(np.sqrt(np.mean(r ** 2))), inliers, total - inliers,
                         _rms_by_motion(r, pb.motions, pb.masks), parallax.copy(), float(k[4]),
-                        x[:pb.n_cam].copy(), n_dist, full[:pb.n_cam, :pb.n_cam])
+                        x[:pb.n_cam].copy(), n_dist, full[:pb.n_cam, :pb.n_cam],
+                        influence=influence)
+
+
+def _all_names(pb: _Problem) -> list[str]:
+    """The names of the refinement's parameters: the camera's, then each contour's
+    inverse depth."""
+    return param_names(pb.n_dist) + [f"rho{i}" for i in range(len(pb.x) - pb.n_cam)]
 
 
 def _jacobian_columns(residuals, x: np.ndarray, columns, r0: np.ndarray,

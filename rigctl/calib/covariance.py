@@ -52,14 +52,11 @@ def view_clusters(n_views: int, rows_per_view: int | list[int]) -> np.ndarray:
     return np.repeat(np.arange(n_views), rows_per_view)
 
 
-def jackknife_covariance(J: np.ndarray, r: np.ndarray, clusters: np.ndarray,
-                         A: np.ndarray) -> np.ndarray:
-    """The delete-one-cluster jackknife covariance (CR3) of a least-squares estimate with
-    normal matrix ``A`` (``J^T J`` plus any prior information): ``(G-1)/G sum_c d_c
-    d_c^T`` over the G clusters, with ``d_c = (A - J_c^T J_c)^-1 J_c^T r_c`` the
-    estimate's change, to first order, when cluster ``c`` is left out. It is the
-    sandwich with each cluster's score scaled up by its leverage, ``A (A - J_c^T J_c)^-1
-    g_c``; a pseudo-inverse keeps gauge directions at zero."""
+def jackknife_changes(J: np.ndarray, r: np.ndarray, clusters: np.ndarray,
+                      A: np.ndarray) -> np.ndarray:
+    """The estimate's change, to first order, when one cluster is left out, a row per
+    cluster: ``d_c = (A - J_c^T J_c)^-1 J_c^T r_c`` with ``A`` the normal matrix (``J^T
+    J`` plus any prior information); a pseudo-inverse keeps gauge directions at zero."""
     n_clusters = int(clusters.max()) + 1
     scores = np.zeros((n_clusters, J.shape[1]))
     np.add.at(scores, clusters, J * r[:, None])
@@ -67,7 +64,22 @@ def jackknife_covariance(J: np.ndarray, r: np.ndarray, clusters: np.ndarray,
     for c in range(n_clusters):
         Jc = J[clusters == c]
         changes[c] = np.linalg.pinv(A - Jc.T @ Jc) @ scores[c]
+    return changes
+
+
+def jackknife_spread(changes: np.ndarray) -> np.ndarray:
+    """The delete-one-cluster jackknife covariance (CR3) from the G clusters'
+    ``jackknife_changes`` ``d_c``: ``(G-1)/G sum_c d_c d_c^T``."""
+    n_clusters = len(changes)
     return changes.T @ changes * (n_clusters - 1) / max(n_clusters, 1)
+
+
+def jackknife_covariance(J: np.ndarray, r: np.ndarray, clusters: np.ndarray,
+                         A: np.ndarray) -> np.ndarray:
+    """The delete-one-cluster jackknife covariance (CR3) of a least-squares estimate with
+    normal matrix ``A``: the sandwich with each cluster's score scaled up by its
+    leverage, ``A (A - J_c^T J_c)^-1 g_c`` (``jackknife_changes``, ``jackknife_spread``)."""
+    return jackknife_spread(jackknife_changes(J, r, clusters, A))
 
 
 def robust_covariance(J: np.ndarray, r: np.ndarray, clusters: np.ndarray,
