@@ -357,8 +357,9 @@ def test_centre_identifiability_is_the_conditional_sigma_given_the_tangential_te
 
 def test_a_contour_carrying_the_intrinsics_is_named_with_its_depth():
     """``_carried_by`` names the contour that holds most of the delete-one-contour
-    jackknife's variance of the intrinsics (with its depth against the others'), and
-    nothing when the variance is shared or the jackknife adds little."""
+    jackknife's variance of the intrinsics (with its depth against the others'), credits
+    it only with the parameters it carries itself, and names nothing when the variance
+    is shared or the jackknife adds little."""
     from rigctl.calib.active_depth import SceneDepths
     from rigctl.calib.active_pipeline import CARRIED_RATIO, CARRIED_SHARE, _carried_by
 
@@ -366,11 +367,37 @@ def test_a_contour_carrying_the_intrinsics_is_named_with_its_depth():
     heavy = {"contour": 2, "share": 0.97, "sigma_ratio": 6.0}
     influence = {"fx": heavy, "fy": heavy,
                  "cx": {"contour": 2, "share": CARRIED_SHARE - 0.1, "sigma_ratio": 6.0},
-                 "cy": {"contour": 0, "share": 0.9, "sigma_ratio": CARRIED_RATIO - 0.5}}
+                 "cy": {"contour": 0, "share": 0.9, "sigma_ratio": CARRIED_RATIO + 1.0}}
     carried = _carried_by(influence, depths)
     assert carried["contour"] == 2 and carried["parameters"] == ["fx", "fy"]
     assert carried["depth_m"] == pytest.approx(1.9)
     assert carried["others_median_depth_m"] == pytest.approx(0.565, rel=1e-3)
-    assert "contour 2" in carried["note"]
+    assert "contour 2 at 1.90 m" in carried["note"] and len(carried["summary"]) < 80
     shared = {k: {**v, "share": CARRIED_SHARE - 0.01} for k, v in influence.items()}
     assert _carried_by(shared, depths) == {}
+    weak = {k: {**v, "sigma_ratio": CARRIED_RATIO - 0.01} for k, v in influence.items()}
+    assert _carried_by(weak, depths) == {}
+
+
+def test_influence_names_the_contour_that_moves_each_parameter():
+    """``_influence`` reads each parameter's column of the jackknife's changes and
+    names the row's contour id (ids need not be 0..G-1: contours lost in every motion
+    leave gaps); the ratio is the jackknife's sigma over the given covariance's."""
+    from rigctl.calib.active_refine import _influence
+
+    names = ["fx", "fy", "cx", "cy", "k1"]
+    contours = np.array([3, 7, 12])
+    changes = np.zeros((3, 5))
+    changes[:, 0] = [0.1, 0.1, 2.0]   # fx: contour 12
+    changes[:, 2] = [0.0, 1.0, 0.0]   # cx: contour 7 alone
+    changes[:, 3] = [1.0, 1.0, 1.0]   # cy: shared
+    changes[:, 4] = [9.0, 0.0, 0.0]   # not an intrinsic reported
+    covariance = np.diag([0.01, 1.0, 0.04, 1.0, 1.0])
+    out = _influence(changes, contours, names, covariance)
+    assert set(out) == {"fx", "cx", "cy"}  # fy moves with no contour
+    assert out["fx"]["contour"] == 12
+    assert out["fx"]["share"] == pytest.approx(4.0 / 4.02)
+    assert out["fx"]["sigma_ratio"] == pytest.approx(np.sqrt(4.02 * 2 / 3) / 0.1)
+    assert out["cx"] == {"contour": 7, "share": 1.0,
+                         "sigma_ratio": pytest.approx(np.sqrt(2 / 3) / 0.2)}
+    assert out["cy"]["share"] == pytest.approx(1 / 3)

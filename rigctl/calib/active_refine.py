@@ -422,10 +422,12 @@ def _contour_clusters(motions: list[Motion], masks: list[np.ndarray]
 
 
 def _influence(changes: np.ndarray, contours: np.ndarray, names: list[str],
-               sandwich: np.ndarray) -> dict:
-    """For fx, fy, cx, cy: the contour whose leaving out moves the estimate most, its
-    share of the delete-one-contour jackknife's variance, and the jackknife's sigma over
-    the per-motion sandwich's. A share near 1 with a large ratio: one contour carries
+               covariance: np.ndarray) -> dict:
+    """For fx, fy, cx, cy: the contour whose leaving out moves the estimate most (the
+    contour ids of ``changes``' rows are ``contours``), its share of the
+    delete-one-contour jackknife's variance, and the jackknife's sigma (without the
+    prior's part) over ``covariance``'s (the refinement's own: the per-motion sandwich or
+    the classical, the larger). A share near 1 with a large ratio: one contour carries
     that parameter (in practice the centre of projection's offset, told only by contours
     off the others' depth)."""
     out = {}
@@ -441,7 +443,7 @@ def _influence(changes: np.ndarray, contours: np.ndarray, names: list[str],
         n = len(changes)
         out[key] = {"contour": int(contours[top]), "share": float(spread[top] / total),
                     "sigma_ratio": float(np.sqrt(total * (n - 1) / max(n, 1)
-                                                 / max(sandwich[j, j], 1e-300)))}
+                                                 / max(covariance[j, j], 1e-300)))}
     return out
 
 
