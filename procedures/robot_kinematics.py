@@ -59,6 +59,7 @@ from .planning import (
     plan_target_views,
     planning_arm,
     planning_K,
+    visible_views,
 )
 from .robot_common import board_observations, controller_model, export_model
 
@@ -196,6 +197,24 @@ def _sweep_bases(config, params: RobotKinematicsParams, model, q_base) -> list:
     return bases
 
 
+def _whole_board_views(config, params: RobotKinematicsParams, kind: str, n: int, seed: int,
+                       model, K: np.ndarray) -> tuple[list[np.ndarray], list[str]]:
+    """``n`` random views (held-out, or training without pose selection), each with the
+    whole board in view (``visible_views``: never nearer than the board fits, farther or
+    nearer when too few are). Planned at ``view_distance_m`` with no such check, the
+    held-out views of 15 of 40 random worlds (61000-61019, 62000-62019) cut the board in
+    some views, in 4 in all six: no held-out error was reported there. Held-out views
+    too few to plan are noted, not refused: they check the result, they do not make it."""
+    try:
+        label = "held-out view" if kind == "heldout" else "training view"
+        return visible_views(config, n, params.view_distance_m, params.max_tilt_deg, seed,
+                             label, K, model)
+    except SolveError as exc:
+        if kind != "heldout":
+            raise
+        return [], [f"no held-out views: {exc}"]
+
+
 class RobotKinematics(Procedure):
     name = "robot-kinematics"
     summary = "UR kinematic calibration: sweeps (link-by-link) + joint refinement."
@@ -250,8 +269,7 @@ class RobotKinematics(Procedure):
             if kind == "train" and params.pose_selection == "d-optimal":
                 poses, more = informative_views(config, params, K, sweep_q, n, seed, model)
             else:
-                poses, more = plan_target_views(config, n, params.view_distance_m,
-                                                params.max_tilt_deg, seed, model=model)
+                poses, more = _whole_board_views(config, params, kind, n, seed, model, K)
             steps += [Note(m) for m in more]
             for k, q in enumerate(poses):
                 steps.append(MoveArmJoints(tuple(float(v) for v in q), f"{kind} {k + 1}"))

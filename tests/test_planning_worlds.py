@@ -122,3 +122,27 @@ def test_a_long_lens_on_a_large_board_gets_its_sweeps_farther_than_asked():
         _scaled_to_reach(rig_for(data), RobotKinematicsParams(), None,
                          np.array([[cam["fx"], 0, cam["cx"]], [0, cam["fy"], cam["cy"]],
                                    [0, 0, 1.0]]))
+
+
+def test_held_out_views_show_the_whole_board():
+    """Random world 61004 (a UR10e whose sweeps are planned farther than asked): the
+    held-out views were planned at the scaled view distance without checking that the
+    board fits, and all six cut it (no held-out error was reported). Now every held-out
+    view shows every corner of the board in the true world, inside the image."""
+    data = random_world(61004)
+    world = World(WorldFile.model_validate(data))
+    config = rig_for(data)
+    given = {k: data["camera"][k] for k in ("fx", "fy", "cx", "cy")}
+    proc = get_procedure("robot-kinematics")
+    steps = proc.plan(proc.params_model(intrinsics=given), config)
+    assert not check_plan(config, steps, proc.devices)
+    held, q = [], None
+    for step in steps:
+        if type(step).__name__ == "MoveArmJoints":
+            q = step.q
+        if type(step).__name__ == "CaptureStep" and step.extra.get("kind") == "heldout":
+            held.append(world.target_corner_pixels(world.T_base_cam(q, (0.0, 0.0, 0.0))))
+    assert len(held) == RobotKinematicsParams().heldout_poses
+    w, h = data["camera"]["width"], data["camera"]["height"]
+    for px in held:
+        assert np.all((px > 0) & (px < [w - 1, h - 1])), px
