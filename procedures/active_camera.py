@@ -17,12 +17,34 @@ from __future__ import annotations
 import math
 from typing import Annotated, Any, Literal
 
+import numpy as np
 from pydantic import Field
 
-from rigctl.calib.active_pipeline import SHIFT, ActiveSettings, solve_active
+from rigctl.calib.active_pipeline import SHIFT, STATION_PREFIX, ActiveSettings, solve_active
+from rigctl.errors import SolveError
 
-from .base import CaptureStep, MoveArmJoints, MoveHead, Params, Procedure, Settle, SolveContext
+from .base import (
+    CaptureStep,
+    MoveArmJoints,
+    MoveHead,
+    Note,
+    Params,
+    Procedure,
+    Settle,
+    SolveContext,
+)
 from .camera_settings import settings_of_run
+
+# The head's rotations repeated at the second station (``second_station_mm``): the
+# pans and tilts the centre of projection's offset shifts (its component along the axis
+# trades with the focal length) and the rolls it swings (its component across trades
+# with the centre). Synthetic correspondences of random world 62019's rig (25 contours
+# on a board at 0.56 m, one at 1.9 m; 0.16 m closer at the second station): sigma of
+# fx 0.62 -> 0.11 px, cx 1.11 -> 0.33 px; with every pose repeated 0.08 / 0.26 px.
+SECOND_STATION_POSES = {"pan+8": (8.0, 0.0, 0.0), "pan-8": (-8.0, 0.0, 0.0),
+                        "tilt+8": (0.0, 8.0, 0.0), "tilt-8": (0.0, -8.0, 0.0),
+                        "roll+90": (0.0, 0.0, 90.0), "roll-180": (0.0, 0.0, -180.0),
+                        "roll-90": (0.0, 0.0, -90.0)}
 
 
 class ActiveCameraParams(Params):
@@ -77,6 +99,13 @@ class ActiveCameraParams(Params):
         "(head at home) for one more capture, which measures each contour's depth so that "
         "the centre of projection's offset from the head's axes is estimated instead of "
         "only bounded; 0 skips it")
+    second_station_mm: float = Field(
+        0.0, ge=0, le=500, description="with an arm: after the head's rotations, move the "
+        "camera this far back along its optical axis (away from the scene) and repeat a "
+        "few of them there, with their own sideways move: the scene's depths then differ "
+        "between the two stations, which tells the centre of projection's offset apart "
+        "from the centre and focal length where one station's scene lies at one depth "
+        "(e.g. a board filling the view); 0 skips it")
 
 
 class ActiveCamera(Procedure):
@@ -97,6 +126,8 @@ class ActiveCamera(Procedure):
                       CaptureStep(label)]
             if label == "ref" and home is not None and params.shift_mm > 0:
                 steps += _shift_steps(config, home, params)
+        if home is not None and params.second_station_mm > 0 and params.shift_mm > 0:
+            steps += _second_station_steps(config, home, params)
         steps.append(MoveHead(0.0, 0.0, 0.0, "home"))
         return steps
 
@@ -159,6 +190,67 @@ def _shift_steps(config, home: tuple, params: ActiveCameraParams) -> list:
                             nominal_flange_cam(config), params.shift_mm / 1000.0)
     return [MoveArmJoints(tuple(float(v) for v in q), f"arm {params.shift_mm:g} mm sideways"),
             Settle(params.settle_s), CaptureStep(SHIFT), MoveArmJoints(home, "arm home")]
+
+
+def second_station_joints(model, home, T_flange_cam: np.ndarray, back_mm: float,
+                          shift_mm: float, joint_limits: list[tuple[float, float]]):
+    """The second station's joints: the camera ``back_mm`` back along its (nominal)
+    optical axis, and from there ``shift_mm`` sideways; 3/4 or 1/2 as far back when out
+    of reach or ``joint_limits``. ``(back_mm, q_far, q_shift)``, or None when none is."""
+    from rigctl.calib.active_depth import camera_shift_joints
+
+    def inside(q) -> bool:
+        return all(lo <= v <= hi for v, (lo, hi) in zip(q, joint_limits, strict=True))
+
+    for back in (back_mm * f for f in (1.0, 0.75, 0.5)):
+        try:
+            q_far = camera_shift_joints(model, home, T_flange_cam, -back / 1000.0, axis=2)
+            q_shift = camera_shift_joints(model, q_far, T_flange_cam, shift_mm / 1000.0)
+        except SolveError:
+            continue
+        if inside(q_far) and inside(q_shift):
+            return back, q_far, q_shift
+    return None
+
+
+def _second_station_steps(config, home: tuple, params: ActiveCameraParams) -> list:
+    """The arm moves the camera ``second_station_mm`` back along its (nominal) optical
+    axis (or 3/4 or 1/2 of that when out of reach or the soft limits; none, noted, when
+    all are); there a reference capture, the sideways move's capture, and the head at
+    ``SECOND_STATION_POSES`` (within the head's soft limits), each labelled with
+    ``STATION_PREFIX``; then the head and the arm home."""
+    from procedures.planning import nominal_flange_cam
+    from rigctl.geometry.kinematics import nominal_ur
+
+    plan = second_station_joints(nominal_ur(config.devices.arm.model), home,
+                                 nominal_flange_cam(config), params.second_station_mm,
+                                 params.shift_mm, config.devices.arm.joint_limits_rad())
+    if plan is None:
+        return [Note(f"second station: the camera {params.second_station_mm:g} mm back (or "
+                     f"3/4 or 1/2 of that) is out of the {config.devices.arm.model}'s reach "
+                     "or soft limits; skipped")]
+    back_mm, q_far, q_shift = plan
+    notes = [] if back_mm == params.second_station_mm else [Note(
+        f"second station: {back_mm:g} mm back instead of {params.second_station_mm:g} mm "
+        "(out of reach or the soft limits)")]
+    limits = config.devices.head.limits_rad()
+    far = tuple(float(v) for v in q_far)
+    steps: list = [*notes, MoveHead(0.0, 0.0, 0.0, "home"),
+                   MoveArmJoints(far, f"arm {back_mm:g} mm back"),
+                   Settle(params.settle_s), CaptureStep(STATION_PREFIX + "ref"),
+                   MoveArmJoints(tuple(float(v) for v in q_shift),
+                                 f"arm {params.shift_mm:g} mm sideways"),
+                   Settle(params.settle_s), CaptureStep(STATION_PREFIX + SHIFT),
+                   MoveArmJoints(far, f"arm {back_mm:g} mm back")]
+    for label, deg in SECOND_STATION_POSES.items():
+        pan, tilt, roll = (math.radians(v) for v in deg)
+        lo_p, hi_p = limits.get("pan", (-math.inf, math.inf))
+        lo_t, hi_t = limits.get("tilt", (-math.inf, math.inf))
+        if not (lo_p <= pan <= hi_p and lo_t <= tilt <= hi_t):
+            continue
+        steps += [MoveHead(pan, tilt, roll, STATION_PREFIX + label), Settle(params.settle_s),
+                  CaptureStep(STATION_PREFIX + label)]
+    return [*steps, MoveHead(0.0, 0.0, 0.0, "home"), MoveArmJoints(home, "arm home")]
 
 
 def _plots(ctx: SolveContext, images, contours, matches, refined, order) -> None:

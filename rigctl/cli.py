@@ -590,6 +590,10 @@ def bench_active_worlds(as_json: bool = typer.Option(False, "--json"),
                         shift_mm: float = typer.Option(
                             10.0, "--shift-mm", min=0, max=50,
                             help="the arm's sideways move for scene depths (0: none)"),
+                        second_station_mm: float = typer.Option(
+                            0.0, "--second-station-mm", min=0, max=500,
+                            help="the active-camera procedure's second_station_mm: the "
+                            "camera moved this far back, some rotations repeated (0: none)"),
                         ) -> None:
     """The active-camera pipeline on N random worlds (rendered directly, no stand-ins):
     focal and centre error against truth, and error / sigma of each intrinsic."""
@@ -600,7 +604,7 @@ def bench_active_worlds(as_json: bool = typer.Option(False, "--json"),
         _fail(ConfigError(f"--distortion-terms: -1 (automatic) or 0 to 5, got "
                           f"{distortion_terms}"), as_json)
     result = active_worlds.run(n, first_seed, None if distortion_terms < 0 else distortion_terms,
-                               workers, shift_mm / 1000.0)
+                               workers, shift_mm / 1000.0, second_station_mm / 1000.0)
     if as_json:
         _print_json(result)
         return

@@ -21,9 +21,14 @@ import numpy as np
 
 from mocks.random_world import random_world
 from mocks.world import World, WorldFile
-from procedures.active_camera import ActiveCameraParams, head_poses
+from procedures.active_camera import (
+    SECOND_STATION_POSES,
+    ActiveCameraParams,
+    head_poses,
+    second_station_joints,
+)
 from rigctl.calib.active_depth import camera_shift_joints
-from rigctl.calib.active_pipeline import SHIFT, ActiveSettings, solve_active
+from rigctl.calib.active_pipeline import SHIFT, STATION_PREFIX, ActiveSettings, solve_active
 from rigctl.errors import SolveError
 from rigctl.geometry.kinematics import nominal_ur
 from rigctl.geometry.transforms import xyz_rpy_to_T
@@ -32,6 +37,8 @@ from rigctl.geometry.transforms import xyz_rpy_to_T
 POSES_DEG = {label: tuple(math.degrees(a) for a in angles)
              for label, *angles in head_poses(ActiveCameraParams())}
 KEYS = ("fx", "fy", "cx", "cy")
+# the soft limits of the rig file ``rigctl sim up`` writes (the config's default)
+SIM_RIG_JOINT_LIMITS = [(-2 * math.pi, 2 * math.pi)] * 6
 
 
 def _delivered(image: np.ndarray, quality: int) -> np.ndarray:
@@ -53,21 +60,49 @@ def render_views(world: World, poses_deg: dict) -> tuple[dict, dict]:
     return images, angles
 
 
-def render_shift(world: World, shift_m: float) -> tuple:
+def _nominal_flange_cam(world: World) -> np.ndarray:
+    """The head mount as ``rigctl sim up`` writes it into the rig file (rounded)."""
+    he = world.spec.hand_eye
+    return xyz_rpy_to_T([round(v, -1) for v in he.xyz_mm], [round(v) for v in he.rpy_deg])
+
+
+def render_shift(world: World, shift_m: float, q_from=None, frame_index: int = 99) -> tuple:
     """The procedure's sideways move: planned, as on the simulated rig, with the nominal
     arm and the head mount rounded as ``rigctl sim up`` writes it; rendered with the
     true arm."""
-    he = world.spec.hand_eye
-    T_flange_cam = xyz_rpy_to_T([round(v, -1) for v in he.xyz_mm],
-                                [round(v) for v in he.rpy_deg])
-    q = camera_shift_joints(nominal_ur(world.spec.arm.model), world.home_q, T_flange_cam,
-                            shift_m)
-    img = world.render(world.T_base_cam(q, (0.0, 0.0, 0.0)), frame_index=99)
+    q_from = world.home_q if q_from is None else q_from
+    q = camera_shift_joints(nominal_ur(world.spec.arm.model), q_from,
+                            _nominal_flange_cam(world), shift_m)
+    img = world.render(world.T_base_cam(q, (0.0, 0.0, 0.0)), frame_index=frame_index)
     return _delivered(img, world.spec.camera.jpeg_quality), (0.0, 0.0, 0.0)
 
 
+def render_second_station(world: World, back_m: float, shift_m: float) -> tuple[dict, dict]:
+    """The procedure's second station (``second_station_mm``, planned as the procedure
+    plans it: ``second_station_joints``): the reference, the sideways move from there and
+    ``SECOND_STATION_POSES``, rendered with the true arm; labels with ``STATION_PREFIX``.
+    Empty when no station is within reach."""
+    plan = second_station_joints(nominal_ur(world.spec.arm.model), world.home_q,
+                                 _nominal_flange_cam(world), 1000.0 * back_m,
+                                 1000.0 * shift_m, SIM_RIG_JOINT_LIMITS)
+    if plan is None:
+        return {}, {}
+    _, q_far, q_shift = plan
+    quality = world.spec.camera.jpeg_quality
+    views = {"ref": (q_far, (0.0, 0.0, 0.0)), SHIFT: (q_shift, (0.0, 0.0, 0.0)),
+             **{label: (q_far, tuple(math.radians(v) for v in deg))
+                for label, deg in SECOND_STATION_POSES.items()}}
+    images, angles = {}, {}
+    for k, (label, (q, a)) in enumerate(views.items()):
+        img = world.render(world.T_base_cam(q, a), frame_index=200 + k)
+        images[STATION_PREFIX + label], angles[STATION_PREFIX + label] = \
+            _delivered(img, quality), a
+    return images, angles
+
+
 def world_trial(args) -> dict:
-    seed, distortion_terms, shift_m = args
+    seed, distortion_terms, shift_m, *rest = args
+    back_m = rest[0] if rest else 0.0
     spec = WorldFile.model_validate(random_world(seed))
     world = World(spec)
     cam = spec.camera
@@ -76,6 +111,12 @@ def world_trial(args) -> dict:
     images, angles = render_views(world, POSES_DEG)
     if shift_m > 0:
         images[SHIFT], angles[SHIFT] = render_shift(world, shift_m)
+    if back_m > 0 and shift_m > 0:
+        far, far_angles = render_second_station(world, back_m, shift_m)
+        images.update(far)
+        angles.update(far_angles)
+        if not far:
+            row["second_station"] = "not planned: out of reach"
     try:
         sol = solve_active(images, angles, ActiveSettings(distortion_terms=distortion_terms,
                                                           shift_m=shift_m))
@@ -90,6 +131,13 @@ def world_trial(args) -> dict:
     row["sigma"] = res["sigma"]
     row["rms_px"] = res["summary"]["rms_px"]
     row["parallax"] = res["parallax"]
+    station = res["tracking"].get("second_station")
+    if isinstance(station, dict):
+        row["second_station"] = {"contours": station["contours"],
+                                 "tracked": {k: v["tracked"]
+                                             for k, v in station["motions"].items()}}
+    elif station is not None:
+        row["second_station"] = station
     row["scene_depth"] = res["tracking"].get("scene_depth")
     row["timings_s"] = sol.timings_s
     return row
@@ -116,8 +164,8 @@ def summarise(rows: list[dict]) -> dict:
 
 
 def run(n: int = 20, first_seed: int = 0, distortion_terms: int | None = None,
-        workers: int = 1, shift_m: float = 0.010) -> dict:
-    jobs = [(first_seed + i, distortion_terms, shift_m) for i in range(n)]
+        workers: int = 1, shift_m: float = 0.010, second_station_m: float = 0.0) -> dict:
+    jobs = [(first_seed + i, distortion_terms, shift_m, second_station_m) for i in range(n)]
     if workers > 1:
         with ProcessPoolExecutor(workers) as pool:
             rows = list(pool.map(world_trial, jobs))

@@ -35,14 +35,15 @@ NONRIGID_RATIO = 3.0
 NONRIGID_FLOOR_PX = 0.3
 
 
-def camera_shift_joints(model, q_home, T_flange_cam: np.ndarray, distance_m: float
-                        ) -> np.ndarray:
-    """Joints that move the camera ``distance_m`` along its own (nominal) x axis with the
-    flange's orientation unchanged (nominal model and IK). Between two nearby
-    configurations the model's errors barely turn the flange, so the true move is a
-    translation of nearly ``distance_m``."""
+def camera_shift_joints(model, q_home, T_flange_cam: np.ndarray, distance_m: float,
+                        axis: int = 0) -> np.ndarray:
+    """Joints that move the camera ``distance_m`` along its own (nominal) x axis (or
+    ``axis``: 2 along its optical axis) with the flange's orientation unchanged (nominal
+    model and IK; ``SolveError`` if out of reach). Between two nearby configurations the
+    model's errors barely turn the flange, so the true move is a translation of nearly
+    ``distance_m``."""
     T = np.array(model.fk(q_home), float)
-    direction = (T @ T_flange_cam)[:3, 0]
+    direction = (T @ T_flange_cam)[:3, axis]
     target = T.copy()
     target[:3, 3] += distance_m * direction
     return np.asarray(model.ik(target, list(q_home)), float)

@@ -19,14 +19,21 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
 from rigctl.calib import active
 from rigctl.calib.active_depth import SceneDepths, contour_shift, fit_depths, rigid_shifts
-from rigctl.calib.active_refine import RefineResult, _undistort, param_names, refine
+from rigctl.calib.active_refine import (
+    DepthPrior,
+    Motion,
+    RefineResult,
+    _undistort,
+    param_names,
+    refine,
+)
 from rigctl.calib.active_tracking import SHIFT, WIDE_WINDOW, Tracker, roll_tiers, tier_key, tiers
 from rigctl.calib.blas_threads import with_one_blas_thread
 from rigctl.errors import SolveError
@@ -61,6 +68,12 @@ ROLL_JOINT_WINDOW_PX = 80.0
 # random world 62019, whose one far contour carries the offset, 0.98 and 6.1.
 CARRIED_SHARE = 0.75
 CARRIED_RATIO = 3.0
+# The captures of a second station (the arm moved the camera along its optical axis, the
+# head's rotations repeated there) carry this prefix; its own SHIFT capture measures the
+# depths there. The scene's depths then differ between the stations even where they do
+# not within one (a board filling the view), which tells the centre of projection's
+# offset apart from the centre and the focal length.
+STATION_PREFIX = "far:"
 
 
 @dataclass
@@ -373,6 +386,80 @@ def _carried_by(influence: dict, depths: SceneDepths) -> dict:
     return entry
 
 
+def split_stations(images: dict, angles: dict) -> tuple[dict, dict, dict, dict]:
+    """The first station's captures and the second's (``STATION_PREFIX``, removed)."""
+    first = {k: v for k, v in images.items() if not k.startswith(STATION_PREFIX)}
+    second = {k.removeprefix(STATION_PREFIX): v for k, v in images.items()
+              if k.startswith(STATION_PREFIX)}
+    return (first, {k: angles[k] for k in first}, second,
+            {k: angles[STATION_PREFIX + k] for k in second})
+
+
+@dataclass
+class SecondStation:
+    """The second station's motions (contour ids after the first station's) and the
+    depths of its contours."""
+
+    motions: list[Motion]
+    prior: DepthPrior
+    report: dict[str, Any]
+
+
+def second_station(images: dict, angles: dict, K: RefineResult, settings: ActiveSettings,
+                   first_ids: int) -> SecondStation:
+    """The second station's contours, their depths from its own SHIFT capture, and every
+    other capture there tracked by prediction from ``K`` (a refinement with the first
+    station's depths: the head's geometry is the same at both). ``SolveError`` when it
+    has no reference, no depths or too few tracked motions."""
+    if "ref" not in images or SHIFT not in images:
+        raise SolveError("no reference or no shift capture")
+    tr = Tracker(images, angles, settings.window, settings.min_points, settings.assumed_centre)
+    depths = _measured_depths(tr, K, settings, images)
+    if depths is None:
+        raise SolveError(f"no depths measured ({tr.report.get('scene_depth')})")
+    labels = sorted((k for k in images if k not in ("ref", SHIFT)),
+                    key=lambda k: (k.startswith("roll"), abs(math.degrees(tr.rel[k][2]))))
+    for label in labels:
+        tr.track(label, K, TIER_WINDOW_PX,
+                 ROLL_JOINT_WINDOW_PX if label.startswith("roll") else 0.0)
+    motions = [replace(m, label=STATION_PREFIX + m.label, groups=m.groups + first_ids)
+               for m in (tr.motion(lb, REFINE_STRIDE) for lb in labels) if m is not None]
+    if len(motions) < 2:
+        raise SolveError(f"{len(motions)} motions tracked (need 2)")
+    return SecondStation(motions, depths.prior(), tr.report)
+
+
+def _second_station_if_any(images: dict, angles: dict, K: dict | RefineResult,
+                           depths: SceneDepths | None, settings: ActiveSettings,
+                           tr: Tracker, timings: dict) -> SecondStation | None:
+    """``second_station`` when there are its captures and the first station's depths;
+    its report (or why it was not used) goes into the first station's."""
+    if not images:
+        return None
+    if depths is None or not isinstance(K, RefineResult):
+        tr.report["second_station"] = "not used: the first station measured no depths"
+        return None
+    t0 = time.perf_counter()
+    try:
+        second = second_station(images, angles, K, settings, len(tr.contours))
+    except SolveError as exc:
+        tr.report["second_station"] = f"not used: {exc}"
+        return None
+    finally:
+        timings["second_station"] = time.perf_counter() - t0
+    tr.report["second_station"] = second.report
+    return second
+
+
+def _with_second_station(motions: list[Motion], prior: DepthPrior | None,
+                         second: SecondStation | None) -> tuple[list[Motion], DepthPrior | None]:
+    """The refinement's motions and depth prior with the second station's appended."""
+    if second is None or prior is None:
+        return motions, prior
+    return motions + second.motions, DepthPrior(np.r_[prior.mean, second.prior.mean],
+                                                np.r_[prior.sigma, second.prior.sigma])
+
+
 @with_one_blas_thread
 def solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, float, float]],
                  settings: ActiveSettings | None = None) -> ActiveSolution:
@@ -380,6 +467,7 @@ def solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, f
     ``pan+``, ``pan-``, ``tilt+``, ``tilt-``, ``roll...``): thesis chapter 3 with the
     refinement beyond it. Raises ``SolveError`` with the stage that failed."""
     settings = settings or ActiveSettings()
+    images, angles, images_far, angles_far = split_stations(images, angles)
     if "ref" not in images:
         raise SolveError("active-camera: no reference capture recorded")
     missing = [m for m in ("pan+", "tilt+") if m not in images]
@@ -433,13 +521,16 @@ def solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, f
     strategies = _strategies(tr, roll_labels)
     start = _final_start(K_pans, strategies, K0)
 
+    second = _second_station_if_any(images_far, angles_far, K1, depths, settings, tr, timings)
+
     t0 = time.perf_counter()
-    motions = [m for m in (tr.motion(lb, REFINE_STRIDE) for lb in order) if m is not None]
+    motions, prior = _with_second_station(
+        [m for m in (tr.motion(lb, REFINE_STRIDE) for lb in order) if m is not None],
+        None if depths is None else depths.prior(), second)
     refined, tr.report["final_starts"] = _refine_from_starts(
         motions, _starts(start, K_pans, K0),
         dict(n_dist=_distortion_terms(settings, depths), parallax_sigma=settings.parallax_sigma,
-             depths=None if depths is None else depths.prior(),
-             offset_sigma_m=settings.nodal_offset_mm / 1000.0))
+             depths=prior, offset_sigma_m=settings.nodal_offset_mm / 1000.0))
     timings["refinement"] = time.perf_counter() - t0
     strategies["refined"] = refined.as_dict()
     result = _result(tr, refined, depths, settings, strategies)
