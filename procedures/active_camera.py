@@ -126,8 +126,12 @@ class ActiveCamera(Procedure):
                       CaptureStep(label)]
             if label == "ref" and home is not None and params.shift_mm > 0:
                 steps += _shift_steps(config, home, params)
-        if home is not None and params.second_station_mm > 0 and params.shift_mm > 0:
-            steps += _second_station_steps(config, home, params)
+        if params.second_station_mm > 0:
+            if home is not None and params.shift_mm > 0:
+                steps += _second_station_steps(config, home, params)
+            else:
+                steps.append(Note("second station: skipped, it needs an arm and its sideways "
+                                  "move (shift_mm > 0) for the depths there"))
         steps.append(MoveHead(0.0, 0.0, 0.0, "home"))
         return steps
 
@@ -243,11 +247,15 @@ def _second_station_steps(config, home: tuple, params: ActiveCameraParams) -> li
                    Settle(params.settle_s), CaptureStep(STATION_PREFIX + SHIFT),
                    MoveArmJoints(far, f"arm {back_mm:g} mm back")]
     for label, deg in SECOND_STATION_POSES.items():
-        pan, tilt, roll = (math.radians(v) for v in deg)
-        lo_p, hi_p = limits.get("pan", (-math.inf, math.inf))
-        lo_t, hi_t = limits.get("tilt", (-math.inf, math.inf))
-        if not (lo_p <= pan <= hi_p and lo_t <= tilt <= hi_t):
+        angles = dict(zip(("pan", "tilt", "roll"), (math.radians(v) for v in deg), strict=True))
+        outside = [axis for axis, a in angles.items()
+                   if not limits.get(axis, (-math.inf, math.inf))[0] <= a
+                   <= limits.get(axis, (-math.inf, math.inf))[1]]
+        if outside:
+            steps.append(Note(f"second station: {label} left out (beyond the head's soft "
+                              f"limits in {', '.join(outside)})"))
             continue
+        pan, tilt, roll = angles["pan"], angles["tilt"], angles["roll"]
         steps += [MoveHead(pan, tilt, roll, STATION_PREFIX + label), Settle(params.settle_s),
                   CaptureStep(STATION_PREFIX + label)]
     return [*steps, MoveHead(0.0, 0.0, 0.0, "home"), MoveArmJoints(home, "arm home")]

@@ -360,23 +360,25 @@ def test_a_contour_carrying_the_intrinsics_is_named_with_its_depth():
     jackknife's variance of the intrinsics (with its depth against the others'), credits
     it only with the parameters it carries itself, and names nothing when the variance
     is shared or the jackknife adds little."""
-    from rigctl.calib.active_depth import SceneDepths
     from rigctl.calib.active_pipeline import CARRIED_RATIO, CARRIED_SHARE, _carried_by
 
-    depths = SceneDepths(1.0 / np.array([0.56, 0.57, 1.9, 0.55, 0.58]), np.zeros(3), 0.0)
+    inv_depth = 1.0 / np.array([0.56, 0.57, 1.9, 0.55, 0.58])
     heavy = {"contour": 2, "share": 0.97, "sigma_ratio": 6.0}
     influence = {"fx": heavy, "fy": heavy,
                  "cx": {"contour": 2, "share": CARRIED_SHARE - 0.1, "sigma_ratio": 6.0},
                  "cy": {"contour": 0, "share": 0.9, "sigma_ratio": CARRIED_RATIO + 1.0}}
-    carried = _carried_by(influence, depths)
+    carried = _carried_by(influence, inv_depth, 5)
     assert carried["contour"] == 2 and carried["parameters"] == ["fx", "fy"]
     assert carried["depth_m"] == pytest.approx(1.9)
     assert carried["others_median_depth_m"] == pytest.approx(0.565, rel=1e-3)
     assert "contour 2 at 1.90 m" in carried["note"] and len(carried["summary"]) < 80
+    # ids from the first station's count on are the second station's contours
+    far = _carried_by(influence, inv_depth, 2)
+    assert far["name"] == "far: contour 0" and far["summary"].startswith("far: contour 0 (1.90")
     shared = {k: {**v, "share": CARRIED_SHARE - 0.01} for k, v in influence.items()}
-    assert _carried_by(shared, depths) == {}
+    assert _carried_by(shared, inv_depth, 5) == {}
     weak = {k: {**v, "sigma_ratio": CARRIED_RATIO - 0.01} for k, v in influence.items()}
-    assert _carried_by(weak, depths) == {}
+    assert _carried_by(weak, inv_depth, 5) == {}
 
 
 def test_influence_names_the_contour_that_moves_each_parameter():

@@ -46,7 +46,10 @@ def test_a_station_out_of_the_soft_limits_is_shortened_or_none():
                                  [FREE[0], (q2[0] - 0.6 * (q2[1] - q2[0]),
                                             q2[1] - 0.4 * (q2[1] - q2[0])), *FREE[2:]])
     still = [FREE[0], (home[1] - 1e-6, home[1] + 1e-6), *FREE[2:]]
-    assert half is not None and half[0] in (150.0, 100.0)
+    assert half is not None and half[0] == 150.0
+    narrow = [FREE[0], (q2[0] - 0.4 * (q2[1] - q2[0]), q2[1] - 0.6 * (q2[1] - q2[0])),
+              *FREE[2:]]
+    assert second_station_joints(model, home, X, 200.0, 10.0, narrow)[0] == 100.0
     assert second_station_joints(model, home, X, 200.0, 10.0, still) is None
 
 
@@ -63,6 +66,12 @@ def test_the_plan_captures_the_second_station_inside_the_limits():
     assert far == ["far:ref", "far:shift", *("far:" + k for k in SECOND_STATION_POSES)]
     last_arm = [s for s in steps if type(s).__name__ == "MoveArmJoints"][-1]
     assert np.allclose(last_arm.q, config.devices.arm.home_rad())
+    head = (0.0, 0.0, 0.0)  # the arm never moves with the head turned
+    for step in steps:
+        if type(step).__name__ == "MoveHead":
+            head = (step.pan, step.tilt, step.roll)
+        if type(step).__name__ == "MoveArmJoints":
+            assert head == (0.0, 0.0, 0.0), step
     plain = proc.plan(proc.params_model(), config)
     assert not any(type(s).__name__ == "CaptureStep" and s.label.startswith("far:")
                    for s in plain)
@@ -80,3 +89,34 @@ def test_a_second_station_pins_the_offset_one_far_contour_carried():
     assert sum(n > 0 for n in row["second_station"]["tracked"].values()) >= 6
     assert row["focal_pct"] < 0.08 and row["centre_px"] < 1.0, row
     assert max(abs(z) for z in row["z"].values()) < 3.0, row["z"]
+
+
+def test_the_second_stations_motions_follow_the_first_stations_contours():
+    """``split_stations`` strips the prefix; ``_with_second_station`` appends the second
+    station's motions (ids already after the first station's) and its depths' prior after
+    the first's, so contour id i has prior i."""
+    from rigctl.calib.active_depth import SceneDepths
+    from rigctl.calib.active_pipeline import (
+        STATION_PREFIX,
+        SecondStation,
+        _with_second_station,
+        split_stations,
+    )
+    from rigctl.calib.active_refine import DepthPrior, Motion
+
+    images = {"ref": 1, "pan+": 2, STATION_PREFIX + "ref": 3, STATION_PREFIX + "roll+90": 4}
+    angles = {k: (float(v), 0.0, 0.0) for k, v in images.items()}
+    first, first_angles, second, second_angles = split_stations(images, angles)
+    assert first == {"ref": 1, "pan+": 2} and second == {"ref": 3, "roll+90": 4}
+    assert second_angles["roll+90"] == (4.0, 0.0, 0.0) and set(first_angles) == set(first)
+    points = np.zeros((4, 2))
+    near = [Motion((0, 0, 0), (0.1, 0, 0), points, points, groups=np.array([0, 0, 1, 1]))]
+    far = [Motion((0, 0, 0), (0.1, 0, 0), points, points, groups=np.array([2, 2, 3, 3]))]
+    station = SecondStation(far, SceneDepths(np.array([1.5, np.nan]), np.zeros(3), 0.0), {})
+    prior = DepthPrior(np.array([2.0, 0.5]), np.zeros(2))
+    motions, both = _with_second_station(near, prior, station)
+    assert motions == near + far
+    assert np.allclose(both.mean[:3], [2.0, 0.5, 1.5]) and both.sigma[2] == 0.0
+    assert both.sigma[3] > 0.0  # unmeasured there: free within its prior
+    assert _with_second_station(near, prior, None) == (near, prior)
+

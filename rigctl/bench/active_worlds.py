@@ -66,14 +66,13 @@ def _nominal_flange_cam(world: World) -> np.ndarray:
     return xyz_rpy_to_T([round(v, -1) for v in he.xyz_mm], [round(v) for v in he.rpy_deg])
 
 
-def render_shift(world: World, shift_m: float, q_from=None, frame_index: int = 99) -> tuple:
+def render_shift(world: World, shift_m: float) -> tuple:
     """The procedure's sideways move: planned, as on the simulated rig, with the nominal
     arm and the head mount rounded as ``rigctl sim up`` writes it; rendered with the
     true arm."""
-    q_from = world.home_q if q_from is None else q_from
-    q = camera_shift_joints(nominal_ur(world.spec.arm.model), q_from,
+    q = camera_shift_joints(nominal_ur(world.spec.arm.model), world.home_q,
                             _nominal_flange_cam(world), shift_m)
-    img = world.render(world.T_base_cam(q, (0.0, 0.0, 0.0)), frame_index=frame_index)
+    img = world.render(world.T_base_cam(q, (0.0, 0.0, 0.0)), frame_index=99)
     return _delivered(img, world.spec.camera.jpeg_quality), (0.0, 0.0, 0.0)
 
 

@@ -325,7 +325,7 @@ def centre_identifiability(names: list[str], cov: np.ndarray) -> dict:
 
 
 def _parallax_report(refined: RefineResult, depths: SceneDepths | None,
-                     settings: ActiveSettings) -> dict:
+                     settings: ActiveSettings, second: SecondStation | None = None) -> dict:
     """What the result says about the centre of projection off the head's axes."""
     names = ("s_x", "s_y", "s_z")
     if depths is None:
@@ -339,18 +339,23 @@ def _parallax_report(refined: RefineResult, depths: SceneDepths | None,
            "centre_offset_mm": (1000 * refined.parallax).tolist(),
            "sigma_mm": [1000 * refined.sigma[n] for n in names],
            "influence": refined.influence}
-    carried = _carried_by(refined.influence, depths)
+    inv = depths.inv_depth if second is None else \
+        np.r_[depths.inv_depth, second.depths.inv_depth]
+    carried = _carried_by(refined.influence, inv, len(depths.inv_depth))
     if carried:
         out["carried_by"] = carried
     return out
 
 
-def _carried_by(influence: dict, depths: SceneDepths) -> dict:
+def _carried_by(influence: dict, inv_depth: np.ndarray, first_station: int) -> dict:
     """The one contour that carries the intrinsics, if there is one: over fx, fy, cx,
     cy, the largest share of the delete-one-contour jackknife's variance, when it is at
     least ``CARRIED_SHARE`` and the jackknife's sigma at least ``CARRIED_RATIO`` times
     the refinement's own (sandwich or classical, the larger); with the parameters that
-    contour carries so and its measured depth against the others'. The centre of
+    contour carries so and its measured depth (``inv_depth``, indexed by contour id)
+    against the others'. Ids from ``first_station`` on are the second station's,
+    named ``far: contour k`` (its own reference image's contour k); one object seen at
+    both stations is two contours, each its own jackknife cluster. The centre of
     projection's offset is told by how contours at different depths move apart, so a
     scene with one contour off the others' depth rests on that contour (random world
     62019: one at 1.9 m, 25 on a board at 0.56 m)."""
@@ -360,11 +365,12 @@ def _carried_by(influence: dict, depths: SceneDepths) -> dict:
         return {}
     key = max(heavy, key=lambda k: heavy[k]["share"])
     contour = heavy[key]["contour"]
-    inv = depths.inv_depth
-    own = float(inv[contour]) if contour < len(inv) else float("nan")
-    others = np.delete(inv, contour) if contour < len(inv) else inv
+    own = float(inv_depth[contour]) if contour < len(inv_depth) else float("nan")
+    others = np.delete(inv_depth, contour) if contour < len(inv_depth) else inv_depth
     others = others[np.isfinite(others)]
-    entry = {"contour": contour,
+    name = f"contour {contour}" if contour < first_station else \
+        f"far: contour {contour - first_station}"
+    entry = {"contour": contour, "name": name,
              "parameters": sorted(k for k, v in heavy.items() if v["contour"] == contour),
              "share": heavy[key]["share"], "sigma_ratio": heavy[key]["sigma_ratio"],
              "depth_m": 1.0 / own if np.isfinite(own) and own > 0 else None,
@@ -374,15 +380,15 @@ def _carried_by(influence: dict, depths: SceneDepths) -> dict:
         "" if others_m is None else f" (the others' median {others_m:.2f} m)")
     short = "" if own_m is None else f" ({own_m:.2f} m" + (
         ")" if others_m is None else f"; others {others_m:.2f} m)")
-    entry["summary"] = (f"contour {contour}{short} carries {', '.join(entry['parameters'])}: "
-                        "see parallax")
-    entry["note"] = (f"contour {contour}{where} carries {', '.join(entry['parameters'])}: "
+    entry["summary"] = f"{name}{short} carries {', '.join(entry['parameters'])}: see parallax"
+    entry["note"] = (f"{name}{where} carries {', '.join(entry['parameters'])}: "
                      f"{100 * entry['share']:.0f} % of the delete-one-contour jackknife's "
                      f"variance, whose sigma is {entry['sigma_ratio']:.1f} times the "
                      "refinement's own; the reported sigma includes it. The centre of "
                      "projection's offset from the head's axes is told by how contours at "
                      "different depths move apart, here mostly by this one: objects in view "
-                     "nearer or farther than the rest would firm it up.")
+                     "nearer or farther than the rest, or a second station "
+                     "(second_station_mm), would firm it up.")
     return entry
 
 
@@ -401,7 +407,7 @@ class SecondStation:
     depths of its contours."""
 
     motions: list[Motion]
-    prior: DepthPrior
+    depths: SceneDepths
     report: dict[str, Any]
 
 
@@ -426,7 +432,7 @@ def second_station(images: dict, angles: dict, K: RefineResult, settings: Active
                for m in (tr.motion(lb, REFINE_STRIDE) for lb in labels) if m is not None]
     if len(motions) < 2:
         raise SolveError(f"{len(motions)} motions tracked (need 2)")
-    return SecondStation(motions, depths.prior(), tr.report)
+    return SecondStation(motions, depths, tr.report)
 
 
 def _second_station_if_any(images: dict, angles: dict, K: dict | RefineResult,
@@ -436,8 +442,12 @@ def _second_station_if_any(images: dict, angles: dict, K: dict | RefineResult,
     its report (or why it was not used) goes into the first station's."""
     if not images:
         return None
-    if depths is None or not isinstance(K, RefineResult):
+    if depths is None:
         tr.report["second_station"] = "not used: the first station measured no depths"
+        return None
+    if not isinstance(K, RefineResult):
+        tr.report["second_station"] = ("not used: no refinement of the first station to "
+                                       "predict it from (no wide or roll captures)")
         return None
     t0 = time.perf_counter()
     try:
@@ -456,16 +466,18 @@ def _with_second_station(motions: list[Motion], prior: DepthPrior | None,
     """The refinement's motions and depth prior with the second station's appended."""
     if second is None or prior is None:
         return motions, prior
-    return motions + second.motions, DepthPrior(np.r_[prior.mean, second.prior.mean],
-                                                np.r_[prior.sigma, second.prior.sigma])
+    far = second.depths.prior()
+    return motions + second.motions, DepthPrior(np.r_[prior.mean, far.mean],
+                                                np.r_[prior.sigma, far.sigma])
 
 
 @with_one_blas_thread
 def solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, float, float]],
                  settings: ActiveSettings | None = None) -> ActiveSolution:
     """Intrinsics from images taken at known head angles (radians; labels ``ref``,
-    ``pan+``, ``pan-``, ``tilt+``, ``tilt-``, ``roll...``): thesis chapter 3 with the
-    refinement beyond it. Raises ``SolveError`` with the stage that failed."""
+    ``pan+``, ``pan-``, ``tilt+``, ``tilt-``, ``roll...``, ``SHIFT``; those with
+    ``STATION_PREFIX`` are a second station's, ``second_station``): thesis chapter 3 with
+    the refinement beyond it. Raises ``SolveError`` with the stage that failed."""
     settings = settings or ActiveSettings()
     images, angles, images_far, angles_far = split_stations(images, angles)
     if "ref" not in images:
@@ -533,23 +545,26 @@ def solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, f
              depths=prior, offset_sigma_m=settings.nodal_offset_mm / 1000.0))
     timings["refinement"] = time.perf_counter() - t0
     strategies["refined"] = refined.as_dict()
-    result = _result(tr, refined, depths, settings, strategies)
+    result = _result(tr, refined, depths, settings, strategies, second)
     return ActiveSolution(result, refined, tr.contours, tr.matches, order, timings)
 
 
 def _result(tr: Tracker, refined: RefineResult, depths: SceneDepths | None,
-            settings: ActiveSettings, strategies: dict) -> dict[str, Any]:
+            settings: ActiveSettings, strategies: dict,
+            second: SecondStation | None = None) -> dict[str, Any]:
     """``result.json`` of the active-camera solve: the refined intrinsics with their
     covariance (the model error added), what limits the centre and the parallax, and
     the strategies and tracking behind them."""
     w, h = tr.size
     names, cov = _with_model_error(refined)
     sigma = dict(zip(names, np.sqrt(np.diag(cov)).tolist(), strict=True))
-    parallax = _parallax_report(refined, depths, settings)
+    parallax = _parallax_report(refined, depths, settings, second)
     summary = {"fx": refined.fx, "fy": refined.fy, "cx": refined.cx, "cy": refined.cy,
                "rms_px": refined.rms_px, "contours": len(tr.contours)}
     if "carried_by" in parallax:  # the operator sees it where the run ends
         summary["warning"] = parallax["carried_by"]["summary"]
+    if isinstance(tr.report.get("second_station"), str):  # asked for, and not used
+        summary["second_station"] = tr.report["second_station"]
     return {
         "fx": refined.fx, "fy": refined.fy, "cx": refined.cx, "cy": refined.cy,
         "sigma": {k: sigma[k] for k in ("fx", "fy", "cx", "cy")},
