@@ -54,6 +54,13 @@ def _child(name: str, args: list[str]) -> ChildProcess:
         raise DeviceError(f"sim: {name} stand-in did not start: {exc}") from None
 
 
+def rig_mount(world) -> dict:
+    """The head mount the rig file states: the world's hand-eye rounded as an operator
+    would measure it (10 mm, 1 deg), so that hand-eye has something to find."""
+    he = world.spec.hand_eye
+    return {"xyz_mm": [round(v, -1) for v in he.xyz_mm], "rpy_deg": [round(v) for v in he.rpy_deg]}
+
+
 def rig_text(world_path: Path, host: str, workdir: Path, camera_url: str, records: str,
              world) -> dict:
     cam = world.spec.camera
@@ -65,8 +72,7 @@ def rig_text(world_path: Path, host: str, workdir: Path, camera_url: str, record
                      "limits": {"pan": [-45, 45], "tilt": [-30, 30], "roll": [-180, 180]},
                      "speed_cap_dps": 120, "accel_cap_dps2": 600, "settle_s": 0.1,
                      **STAND_IN_TIMING["head"], "park": {"policy": "home"},
-                     "mount": {"xyz_mm": [round(v, -1) for v in world.spec.hand_eye.xyz_mm],
-                               "rpy_deg": [round(v) for v in world.spec.hand_eye.rpy_deg]}},
+                     "mount": rig_mount(world)},
             "arm": {"host": host, "model": world.spec.arm.model,
                     "home_deg": list(world.spec.arm.home_deg),
                     "speed_cap_dps": 170, "accel_cap_dps2": 720, "settle_s": 0.1,

@@ -176,16 +176,19 @@ def head_poses(params: ActiveCameraParams, limits_rad: dict | None = None
     poses = [("ref", 0.0, 0.0, 0.0), ("pan+", p, 0.0, 0.0), ("pan-", -p, 0.0, 0.0),
              ("tilt+", 0.0, t, 0.0), ("tilt-", 0.0, -t, 0.0)]
 
-    def within(axis: str, angle: float) -> bool:
-        lo, hi = (limits_rad or {}).get(axis, (-math.inf, math.inf))
-        return lo <= angle <= hi
-
     for w in params.wide_deg:
         a = math.radians(w)
-        poses += [(f"pan{s * w:+g}", s * a, 0.0, 0.0) for s in (1, -1) if within("pan", s * a)]
+        poses += [(f"pan{s * w:+g}", s * a, 0.0, 0.0) for s in (1, -1)
+                  if _within(limits_rad, "pan", s * a)]
         poses += [(f"tilt{s * w:+g}", 0.0, s * a, 0.0) for s in (1, -1)
-                  if within("tilt", s * a)]
+                  if _within(limits_rad, "tilt", s * a)]
     return poses + [(f"roll{r:+g}", 0.0, 0.0, math.radians(r)) for r in params.rolls_deg]
+
+
+def _within(limits_rad: dict | None, axis: str, angle: float) -> bool:
+    """Is the head ``angle`` (rad) on ``axis`` inside its soft limits (none: any)?"""
+    lo, hi = (limits_rad or {}).get(axis, (-math.inf, math.inf))
+    return lo <= angle <= hi
 
 
 def _shift_steps(config, home: tuple, params: ActiveCameraParams) -> list:
@@ -253,9 +256,7 @@ def _second_station_steps(config, home: tuple, params: ActiveCameraParams) -> li
                    MoveArmJoints(far, f"arm {back_mm:g} mm back")]
     for label, deg in SECOND_STATION_POSES.items():
         angles = dict(zip(("pan", "tilt", "roll"), (math.radians(v) for v in deg), strict=True))
-        outside = [axis for axis, a in angles.items()
-                   if not limits.get(axis, (-math.inf, math.inf))[0] <= a
-                   <= limits.get(axis, (-math.inf, math.inf))[1]]
+        outside = [axis for axis, a in angles.items() if not _within(limits, axis, a)]
         if outside:
             steps.append(Note(f"second station: {label} left out (beyond the head's soft "
                               f"limits in {', '.join(outside)})"))

@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 
 from mocks.random_world import random_world
+from mocks.sim import rig_mount
 from mocks.world import World, WorldFile
 from procedures.active_camera import (
     SECOND_STATION_POSES,
@@ -61,9 +62,9 @@ def render_views(world: World, poses_deg: dict) -> tuple[dict, dict]:
 
 
 def _nominal_flange_cam(world: World) -> np.ndarray:
-    """The head mount as ``rigctl sim up`` writes it into the rig file (rounded)."""
-    he = world.spec.hand_eye
-    return xyz_rpy_to_T([round(v, -1) for v in he.xyz_mm], [round(v) for v in he.rpy_deg])
+    """The head mount as ``rigctl sim up`` writes it into the rig file."""
+    mount = rig_mount(world)
+    return xyz_rpy_to_T(mount["xyz_mm"], mount["rpy_deg"])
 
 
 def render_shift(world: World, shift_m: float) -> tuple:

@@ -463,8 +463,10 @@ def _second_station_if_any(images: dict, angles: dict, K: dict | RefineResult,
 
 def _with_second_station(motions: list[Motion], prior: DepthPrior | None,
                          second: SecondStation | None) -> tuple[list[Motion], DepthPrior | None]:
-    """The refinement's motions and depth prior with the second station's appended."""
-    if second is None or prior is None:
+    """The refinement's motions and depth prior with the second station's appended (a
+    second station is used only with the first station's depths, so ``prior`` then
+    exists)."""
+    if second is None:
         return motions, prior
     far = second.depths.prior()
     return motions + second.motions, DepthPrior(np.r_[prior.mean, far.mean],
