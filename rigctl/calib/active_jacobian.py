@@ -52,82 +52,87 @@ def _inverse_2x2(J: np.ndarray) -> np.ndarray:
     return inv
 
 
-def _mul(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """Point-wise matrix products of small stacks: (N, i, k) x (N, k, j) -> (N, i, j)."""
-    return (A[:, :, :, None] * B[:, None, :, :]).sum(axis=2)
+def residual_jacobian(x: np.ndarray, n_dist: int, dist_slots: tuple, und_unique: np.ndarray,
+                      point: np.ndarray, normals: np.ndarray, rotations: list[np.ndarray],
+                      d_rotations: list[np.ndarray], counts: list[int], s: np.ndarray,
+                      rho: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
+    """d residual / d x over the camera parameters (rows, N_BASE + n_dist), and with
+    depths d residual / d rho of each row's own inverse depth (rows,). A residual is the
+    predicted pixel's distance along ``normals`` (rows, 2) from its target (thesis eq. 3.3
+    with the parallax, module docstring); a point correspondence is two rows, with the
+    normals (1, 0) and (0, 1).
 
-
-def pixel_jacobian(x: np.ndarray, n_dist: int, dist_slots: tuple, und: np.ndarray,
-                   rotations: list[np.ndarray], d_rotations: list[np.ndarray],
-                   counts: list[int], s: np.ndarray, rho: np.ndarray | None
-                   ) -> tuple[np.ndarray, np.ndarray | None]:
-    """d pixel / d x over the camera parameters (N, 2, N_BASE + n_dist) at every reference
-    point, and with depths ``d pixel / d rho`` of each point's own inverse depth (N, 2).
-    ``und``: the points' undistorted normalised coordinates (N, 2); ``rotations``,
-    ``d_rotations``, ``counts``: per motion, its rotation, that rotation's derivatives
-    (``active_refine.rotation_derivatives``) and how many consecutive points it owns; ``s``: the
-    parallax per point (N, 3) or shared (3,); ``rho``: per point, or None when ``s`` is
-    held (then x[9:12] is that ``s``). Rays are rows: a motion maps ``ray`` to
-    ``ray @ R - s``."""
+    ``und_unique``: the distinct reference points' undistorted normalised coordinates,
+    ``point`` each row's index into them (every motion re-uses the reference image's
+    contour points, so the undistortion's derivatives are taken once per point);
+    ``rotations``, ``d_rotations``, ``counts``: per motion, its rotation, that rotation's
+    derivatives (``active_refine.rotation_derivatives``) and how many consecutive rows it
+    owns; ``s``: the parallax per row (rows, 3) or shared (3,); ``rho``: per row, or None
+    when ``s`` is held (then x[9:12] is that ``s``). Rays are rows: a motion maps ``ray``
+    to ``ray @ R - s``. Only the products with each motion's own rotation go motion by
+    motion."""
     fx, fy = x[0], x[1]
     F = np.array([fx, fy])
     k = np.zeros(5)
     k[list(dist_slots)] = x[N_BASE:N_BASE + n_dist]
+    und = und_unique[point]
     n = len(und)
     rays = np.column_stack([und, np.ones(n)]) + s
-    s_pt = s if s.ndim == 2 else np.broadcast_to(s, (n, 3))
-    out = np.zeros((n, 2, N_BASE + n_dist))
-    dp_dm = np.empty((n, 2, 3))
-    dp_du = np.empty((n, 2, 2))
-    dp_ds = np.empty((n, 2, 3))
-    xn = np.empty((n, 2))
-    start = 0
-    for R, dR, count in zip(rotations, d_rotations, counts, strict=True):
-        blk = slice(start, start + count)
-        start += count
-        m = rays[blk] @ R - s_pt[blk]
-        mz = np.maximum(m[:, 2], 1e-3)
-        xn[blk] = m[:, :2] / mz[:, None]
-        # d xn / d m = [[1/mz, 0, -xn/mz], [0, 1/mz, -yn/mz]], then the distortion at xn
-        Jd = distortion_jacobians(xn[blk], k)[0] if n_dist else np.broadcast_to(
-            np.eye(2), (count, 2, 2))
-        inv_z = 1 / mz
-        d = dp_dm[blk]
-        for i in range(2):
-            d[:, i, 0] = F[i] * Jd[:, i, 0] * inv_z
-            d[:, i, 1] = F[i] * Jd[:, i, 1] * inv_z
-            d[:, i, 2] = -F[i] * (Jd[:, i, 0] * xn[blk, 0] + Jd[:, i, 1] * xn[blk, 1]) * inv_z
-        flat = d.reshape(-1, 3)
-        dp_du[blk] = (flat @ R[:2, :].T).reshape(count, 2, 2)
-        dp_ds[blk] = (flat @ (R - np.eye(3)).T).reshape(count, 2, 3)
-        dm_dq = (rays[blk] @ dR.transpose(1, 0, 2).reshape(3, 15)).reshape(count, 5, 3)
-        out[blk, :, 4:9] = (d[:, :, None, :] * dm_dq[:, None, :, :]).sum(axis=3)
+    bounds = np.cumsum([0, *counts])
+    m = np.empty((n, 3))
+    for R, a, b in zip(rotations, bounds[:-1], bounds[1:], strict=True):
+        m[a:b] = rays[a:b] @ R
+    m -= s
+    inv_z = 1 / np.maximum(m[:, 2], 1e-3)
+    xn = m[:, :2] * inv_z[:, None]
+    # d residual / d xn = n^T F Jd (Jd: the distortion's Jacobian at xn), then through
+    # xn = m_xy / m_z
+    nf = normals * F
     if n_dist:
-        Jd_in, Jk_in = distortion_jacobians(und, k)
-        du_du0 = _inverse_2x2(Jd_in)
+        Jd, Jk_out = distortion_jacobians(xn, k)
+        g = nf[:, 0, None] * Jd[:, 0, :] + nf[:, 1, None] * Jd[:, 1, :]
     else:
-        du_du0 = np.broadcast_to(np.eye(2), (n, 2, 2))
-    dp_du0 = _mul(dp_du, du_du0)
+        g = nf
+    dr_dm = np.empty((n, 3))
+    dr_dm[:, 0] = g[:, 0] * inv_z
+    dr_dm[:, 1] = g[:, 1] * inv_z
+    dr_dm[:, 2] = -(g[:, 0] * xn[:, 0] + g[:, 1] * xn[:, 1]) * inv_z
+    # per motion: d / d und (R's first two rows), d / d s (R - I), and d / d q for the
+    # rotation's parameters q, sum over j, c of ray_j dr_dm_c dR_q[j, c]
+    outer = (rays[:, :, None] * dr_dm[:, None, :]).reshape(n, 9)
+    dr_du = np.empty((n, 2))
+    dr_ds = np.empty((n, 3))
+    out = np.zeros((n, N_BASE + n_dist))
+    eye = np.eye(3)
+    for R, dR, a, b in zip(rotations, d_rotations, bounds[:-1], bounds[1:], strict=True):
+        dr_du[a:b] = dr_dm[a:b] @ R[:2, :].T
+        dr_ds[a:b] = dr_dm[a:b] @ (R - eye).T
+        out[a:b, 4:9] = outer[a:b] @ dR.reshape(5, 9).T
+    # back through the undistortion u = D^-1(u0): du / du0 = Jd(u)^-1, at each distinct
+    # reference point once
+    if n_dist:
+        Jd_in, Jk_in = distortion_jacobians(und_unique, k)
+        inv = _inverse_2x2(Jd_in)[point]
+        dr_du0 = dr_du[:, 0, None] * inv[:, 0, :] + dr_du[:, 1, None] * inv[:, 1, :]
+        u0 = distort(und_unique, k)[point]
+        xd = distort(xn, k)
+    else:
+        dr_du0, u0, xd = dr_du, und, xn
     # intrinsics: the direct term of pixel = f xd + c, and u0 = (p - c) / f before
-    xd = distort(xn, k) if n_dist else xn
-    u0 = distort(und, k) if n_dist else und
-    out[:, 0, 0] = xd[:, 0]
-    out[:, 1, 1] = xd[:, 1]
-    out[:, :, 0] -= dp_du0[:, :, 0] * (u0[:, 0] / fx)[:, None]
-    out[:, :, 1] -= dp_du0[:, :, 1] * (u0[:, 1] / fy)[:, None]
-    out[:, 0, 2] = 1.0
-    out[:, 1, 3] = 1.0
-    out[:, :, 2] -= dp_du0[:, :, 0] / fx
-    out[:, :, 3] -= dp_du0[:, :, 1] / fy
+    out[:, 0] = normals[:, 0] * xd[:, 0] - dr_du0[:, 0] * u0[:, 0] / fx
+    out[:, 1] = normals[:, 1] * xd[:, 1] - dr_du0[:, 1] * u0[:, 1] / fy
+    out[:, 2] = normals[:, 0] - dr_du0[:, 0] / fx
+    out[:, 3] = normals[:, 1] - dr_du0[:, 1] / fy
     # the parallax: s = rho o (depths), or s itself when held
-    o = x[9:12]
-    out[:, :, 9:12] = dp_ds * (rho[:, None, None] if rho is not None else 1.0)
-    d_rho = dp_ds @ o if rho is not None else None
+    out[:, 9:12] = dr_ds * (rho[:, None] if rho is not None else 1.0)
+    d_rho = dr_ds @ x[9:12] if rho is not None else None
     # distortion: at the output point, and through the undistortion of the input
     if n_dist:
-        Jk_out = distortion_jacobians(xn, k)[1]
-        dp_dk = F[None, :, None] * Jk_out - _mul(dp_du0, Jk_in)
-        out[:, :, N_BASE:] = dp_dk[:, :, list(dist_slots)]
+        slots = list(dist_slots)
+        Jk_in = Jk_in[:, :, slots][point]
+        out[:, N_BASE:] = nf[:, 0, None] * Jk_out[:, 0, slots] \
+            + nf[:, 1, None] * Jk_out[:, 1, slots] \
+            - dr_du0[:, 0, None] * Jk_in[:, 0] - dr_du0[:, 1, None] * Jk_in[:, 1]
     return out, d_rho
 
 

@@ -38,7 +38,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
-from rigctl.calib.active_jacobian import N_BASE, distort, pixel_jacobian
+from rigctl.calib.active_jacobian import N_BASE, distort, residual_jacobian
 from rigctl.calib.covariance import (
     cluster_meat,
     jackknife_changes,
@@ -141,6 +141,7 @@ class PredictionCache:
         self._undistorted: dict[tuple, np.ndarray] = {}
         self._rotations: dict[tuple, list[np.ndarray]] = {}
         self._points: np.ndarray | None = None   # what the entries were computed for
+        self._distinct: tuple[np.ndarray, np.ndarray] | None = None
         self._motions: list[Motion] | None = None
 
     def _lookup(self, entries: dict, key: tuple, make):
@@ -152,13 +153,27 @@ class PredictionCache:
         entries[key] = hit  # most recently used last
         return hit
 
-    def undistort(self, pts, fx, fy, cx, cy, k) -> np.ndarray:
+    def distinct(self, pts) -> tuple[np.ndarray, np.ndarray]:
+        """The distinct rows of ``pts`` and each row's index into them: every motion
+        re-uses the reference image's contour points (random world 99100: 48,698 rows,
+        2,071 points)."""
         if pts is not self._points:  # another point set: nothing cached applies
             self._undistorted.clear()
             self._points = pts
+            self._distinct = np.unique(pts, axis=0, return_inverse=True)
+        unique, inverse = self._distinct
+        return unique, inverse.ravel()
+
+    def undistort_distinct(self, pts, fx, fy, cx, cy, k) -> np.ndarray:
+        """``_undistort`` of ``distinct(pts)``'s points."""
+        unique, _ = self.distinct(pts)
         key = (float(fx), float(fy), float(cx), float(cy), *map(float, k))
         return self._lookup(self._undistorted, key,
-                            lambda: _undistort(pts, fx, fy, cx, cy, k))
+                            lambda: _undistort(unique, fx, fy, cx, cy, k))
+
+    def undistort(self, pts, fx, fy, cx, cy, k) -> np.ndarray:
+        """``_undistort(pts, ...)``, each distinct point once."""
+        return self.undistort_distinct(pts, fx, fy, cx, cy, k)[self.distinct(pts)[1]]
 
     def rotations(self, motions: list[Motion], N: np.ndarray, a: np.ndarray
                   ) -> list[np.ndarray]:
@@ -572,43 +587,57 @@ class _Problem:
         return np.concatenate([self.residuals(xv, assoc, targets), prior_rows])
 
     def jac(self, xf: np.ndarray, assoc, targets) -> np.ndarray:
-        """The analytic Jacobian of ``fun`` (``active_jacobian``)."""
+        """The analytic Jacobian of ``fun`` (``active_jacobian``): the camera's free
+        columns, then each free inverse depth's column, which only its contour's rows
+        touch."""
         xv = self.full(xf)
         cam = xv[:self.n_cam]
         fx, fy, cx, cy, N, a, o, k = _unpack(cam, self.n_dist)
+        point, normals, counts = self._row_layout(assoc, targets)
+        _, inverse = self.cache.distinct(self.refs)
+        und = self.cache.undistort_distinct(self.refs, fx, fy, cx, cy, k)
         rho = self.rho(xv)
-        und = self.cache.undistort(self.refs, fx, fy, cx, cy, k)
-        rotations = self.cache.rotations(self.motions, N, a)
-        d_rot = rotation_derivatives(self.motions, cam)
-        s = o if rho is None else rho[:, None] * o
-        P, d_rho = pixel_jacobian(cam, self.n_dist, DIST_SLOTS[self.n_dist], und, rotations,
-                                  d_rot, [len(m.ref_points) for m in self.motions], s, rho)
-        n_rho = len(xv) - self.n_cam
-        if n_rho:  # each point's inverse depth is its contour's parameter
-            full = np.zeros((len(und), 2, len(xv)))
-            full[:, :, :self.n_cam] = P
-            full[np.arange(len(und)), :, self.n_cam + self.groups] = d_rho
-            P = full
-        J = self._rows(P[:, :, self.free], assoc, targets)
+        rho_rows = None if rho is None else rho[point]
+        s = o if rho is None else rho_rows[:, None] * o
+        J_cam, d_rho = residual_jacobian(
+            cam, self.n_dist, DIST_SLOTS[self.n_dist], und, inverse[point], normals,
+            self.cache.rotations(self.motions, N, a), rotation_derivatives(self.motions, cam),
+            counts, s, rho_rows)
+        free_cam = self.free[:self.n_cam]
+        free_rho = self.free[self.n_cam:]
+        J = J_cam if free_cam.all() else np.take(J_cam, np.flatnonzero(free_cam), axis=1)
+        if free_rho.any():  # each point's inverse depth is its contour's parameter
+            column = np.full(len(free_rho), -1)
+            column[free_rho] = int(free_cam.sum()) + np.arange(int(free_rho.sum()))
+            row_column = column[self.groups[point]]
+            has = np.flatnonzero(row_column >= 0)
+            J = np.hstack([J, np.zeros((len(J), int(free_rho.sum())))])
+            J[has, row_column[has]] = d_rho[has]
         has = np.flatnonzero(np.isfinite(self.prior_sigma[self.free]))
         prior_rows = np.zeros((len(has), J.shape[1]))
         prior_rows[np.arange(len(has)), has] = 1.0 / self.prior_sigma[self.free][has]
         return np.vstack([J, prior_rows])
 
-    def _rows(self, P: np.ndarray, assoc, targets) -> np.ndarray:
-        """Pixel derivatives (points, 2, params) as residual rows: along the associated
-        contour normal (curve mode) or both coordinates (correspondences)."""
+    def _row_layout(self, assoc, targets) -> tuple[np.ndarray, np.ndarray, list[int]]:
+        """For each residual row, in ``_residuals``' order: its reference point (row of
+        ``refs``) and the direction it is measured along (the associated contour's
+        normal, or (1, 0) and (0, 1) for a point correspondence's two rows); and how many
+        rows each motion has."""
+        counts = [int(mask.sum()) * (1 if motion.curve_mode else 2)
+                  for motion, mask in zip(self.motions, self.masks, strict=True)]
         if targets is not None:
-            return np.einsum("ni,nij->nj", targets.normals, P[targets.rows])
-        out, start = [], 0
+            return targets.rows, targets.normals, counts
+        points, normals, start = [], [], 0
         for m, motion in enumerate(self.motions):
-            block = P[start:start + len(motion.ref_points)][self.masks[m]]
+            idx = start + np.flatnonzero(self.masks[m])
             start += len(motion.ref_points)
             if motion.curve_mode:
-                out.append(np.einsum("ni,nij->nj", motion.moved_normals[assoc[m]], block))
+                points.append(idx)
+                normals.append(motion.moved_normals[assoc[m]])
             else:
-                out.append(block.reshape(-1, block.shape[2]))
-        return np.concatenate(out)
+                points.append(np.repeat(idx, 2))
+                normals.append(np.tile(np.eye(2), (len(idx), 1)))
+        return np.concatenate(points), np.concatenate(normals), counts
 
     def solve(self, assoc, loss: str, max_nfev: int):
         targets = CurveTargets.build(self.motions, self.masks, assoc)

@@ -1,0 +1,77 @@
+"""The active-camera refinement's analytic Jacobian (``active_jacobian``, ``_Problem.jac``)
+against central differences of its own residuals: every camera column, and every free
+inverse depth's column, in curve mode and with point correspondences. Pure math, no
+mocks."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from rigctl.calib.active_refine import N_BASE, DepthPrior, Motion, _Problem
+
+
+def _motions(rng, curve: bool, n_contours: int) -> list[Motion]:
+    """Four motions (pans, tilts, rolls) of random reference points on contours."""
+    out = []
+    for m, angles in enumerate([(0.06, 0.0, 0.0), (0.0, -0.05, 0.0), (0.02, 0.03, 0.8),
+                                (0.0, 0.0, -3.1)]):
+        ref = rng.uniform([80, 60], [1200, 660], (150, 2))
+        groups = rng.integers(0, n_contours, 150)
+        if curve:
+            moved = rng.uniform([50, 40], [1230, 680], (120, 2))
+            normals = rng.normal(size=(120, 2))
+            normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        else:
+            moved, normals = ref + rng.normal(0, 5, ref.shape), None
+        out.append(Motion((0.01, -0.02, 0.0), angles, ref, moved, normals, label=f"m{m}",
+                          groups=groups))
+    return out
+
+
+def _problem(curve: bool, depths: bool, n_dist: int) -> tuple[_Problem, list]:
+    rng = np.random.default_rng(11 + curve + 2 * depths + n_dist)
+    n_contours = 7
+    motions = _motions(rng, curve, n_contours)
+    initial = {"fx": 910.0, "fy": 902.0, "cx": 645.0, "cy": 364.0,
+               "distortion": [-0.21, 0.07, 4e-4, -3e-4, 0.02], "mount_rotvec": [0.01, -0.02, 0.004]}
+    prior = None
+    if depths:  # three contours measured (held), four free about their prior
+        sigma = np.array([0.0, 0.3, 0.0, 0.2, 0.0, 0.25, 0.4])
+        prior = DepthPrior(rng.uniform(0.8, 3.0, n_contours), sigma)
+    pb = _Problem(motions, initial, n_dist, 5.0, 0.003, prior, 0.003)
+    pb.x[7:9] = [0.003, -0.002]  # a tilted roll axis
+    if depths:
+        pb.x[9:12] = [0.002, -0.001, 0.003]  # the centre of projection off the axes
+    for mask in pb.masks:  # some points rejected as outliers
+        mask[rng.random(len(mask)) < 0.15] = False
+    assoc = [rng.integers(0, len(m.moved_points), int(mask.sum())) if curve else None
+             for m, mask in zip(motions, pb.masks, strict=True)]
+    return pb, assoc
+
+
+@pytest.mark.parametrize(("curve", "depths", "n_dist"),
+                         [(True, True, 5), (True, False, 2), (False, True, 4), (False, False, 0)])
+def test_analytic_jacobian_equals_central_differences(curve, depths, n_dist):
+    from rigctl.calib.active_refine import CurveTargets
+
+    pb, assoc = _problem(curve, depths, n_dist)
+    targets = CurveTargets.build(pb.motions, pb.masks, assoc)
+    xf = pb.x[pb.free].copy()
+    J = pb.jac(xf, assoc, targets)
+    assert J.shape == (len(pb.fun(xf, assoc, targets)), int(pb.free.sum()))
+    if depths:  # free inverse depths are columns of their own
+        assert J.shape[1] == N_BASE + n_dist + 4
+    numeric = np.empty_like(J)
+    for j in range(len(xf)):
+        h = 1e-6 * max(1.0, abs(xf[j]))
+        up, down = xf.copy(), xf.copy()
+        up[j] += h
+        down[j] -= h
+        numeric[:, j] = (pb.fun(up, assoc, targets) - pb.fun(down, assoc, targets)) / (2 * h)
+    scale = np.abs(numeric).max(axis=0) + 1e-9
+    worst = np.max(np.abs(J - numeric) / scale, axis=0)
+    assert worst.max() < 1e-5, f"columns off: {np.flatnonzero(worst >= 1e-5)} ({worst.max():.2e})"
+    # the rows of a contour whose depth is held carry nothing in the free depths' columns
+    if depths:
+        assert np.any(J[:, N_BASE + n_dist:] != 0)
