@@ -157,7 +157,7 @@ def _print_plan(plan) -> None:
 @app.command("procedures")
 def list_procedures(as_json: bool = typer.Option(False, "--json")) -> None:
     """List the procedures with their parameters."""
-    import procedures
+    from rigctl import procedures
 
     rows = []
     for name in procedures.procedure_names():
@@ -318,7 +318,7 @@ def doctor(rig: Path = typer.Option(..., "--rig"),
                   add_help_option=False)
 def mock_head(ctx: typer.Context) -> None:
     """Dynamixel Protocol 2.0 bus on a pty (see `rigctl mock head --help`)."""
-    from mocks import dynamixel_bus
+    from rigctl.mocks import dynamixel_bus
 
     raise typer.Exit(dynamixel_bus.main(ctx.args))
 
@@ -352,7 +352,7 @@ def bench_head(as_json: bool = typer.Option(False, "--json"),
                   add_help_option=False)
 def mock_arm(ctx: typer.Context) -> None:
     """UR controller stand-in: RTDE, dashboard, script port (see `rigctl mock arm --help`)."""
-    from mocks import ur_controller
+    from rigctl.mocks import ur_controller
 
     raise typer.Exit(ur_controller.main(ctx.args))
 
@@ -364,7 +364,7 @@ app.add_typer(arm_app, name="arm")
 @arm_app.command("unlock")
 def arm_unlock(rig: Path = typer.Option(..., "--rig")) -> None:
     """Unlock a protective stop (after inspecting its cause) and restart the control script."""
-    from drivers.ur import URArm
+    from rigctl.drivers.ur import URArm
 
     try:
         config = load_rig(rig)
@@ -412,11 +412,12 @@ def bench_arm(as_json: bool = typer.Option(False, "--json"),
 
 
 sim_app = typer.Typer(no_args_is_help=True, help="The whole rig on stand-ins.")
+WORLD_HELP = "a world file's path, or the name of a shipped world (default, ideal, drift, thesis)"
 app.add_typer(sim_app, name="sim")
 
 
 @sim_app.command("up")
-def sim_up(world: Path = typer.Option(Path("mocks/worlds/default.yaml"), "--world"),
+def sim_up(world: str = typer.Option("default", "--world", help=WORLD_HELP),
            rig_out: Path = typer.Option(Path("sim-rig.yaml"), "--rig-out"),
            host: str = typer.Option("127.0.0.1", "--host"),
            records: str = typer.Option("records", "--records"),
@@ -427,10 +428,10 @@ def sim_up(world: Path = typer.Option(Path("mocks/worlds/default.yaml"), "--worl
            ) -> None:
     """Start head bus, arm controller and camera on one world; write a rig file; run
     until SIGTERM (or `rigctl sim down`)."""
-    from mocks import sim
+    from rigctl.mocks import sim
 
     try:
-        raise typer.Exit(sim.up(str(world), str(rig_out), host, records, port,
+        raise typer.Exit(sim.up(world, str(rig_out), host, records, port,
                                 workdir=str(workdir) if workdir else None))
     except RigError as exc:
         _fail(exc, False)
@@ -439,7 +440,7 @@ def sim_up(world: Path = typer.Option(Path("mocks/worlds/default.yaml"), "--worl
 @sim_app.command("down")
 def sim_down(host: str = typer.Option("127.0.0.1", "--host")) -> None:
     """Stop the simulated rig running on HOST."""
-    from mocks import sim
+    from rigctl.mocks import sim
 
     try:
         _print_json(sim.down(host))
@@ -448,10 +449,10 @@ def sim_down(host: str = typer.Option("127.0.0.1", "--host")) -> None:
 
 
 @sim_app.command("truth")
-def sim_truth(world: Path = typer.Option(Path("mocks/worlds/default.yaml"), "--world"),
+def sim_truth(world: str = typer.Option("default", "--world", help=WORLD_HELP),
               as_json: bool = typer.Option(False, "--json")) -> None:
     """The ground truth of a world file."""
-    from mocks.world import load_world
+    from rigctl.mocks.world import load_world
 
     try:
         truth = load_world(world).truth()
@@ -470,7 +471,7 @@ def sim_world(seed: int = typer.Option(..., "--random", min=0,
                                                    help="write the world file here")) -> None:
     """A random plausible world (camera, head, arm model and errors, hand-eye, target)
     as a world file: for judging solvers on rigs nobody tuned them for."""
-    from mocks.random_world import random_world
+    from rigctl.mocks.random_world import random_world
 
     text = f"# rigctl sim world --random {seed}\n" + \
         yaml.safe_dump(random_world(seed), sort_keys=False, default_flow_style=None)

@@ -1,6 +1,6 @@
 """``make demo``: the main job on the simulated rig.
 
-Starts the whole simulated rig (`rigctl sim up` on ``mocks/worlds/default.yaml``: lens
+Starts the whole simulated rig (`rigctl sim up` on ``rigctl/mocks/worlds/default.yaml``: lens
 distortion, 0.5 px noise, a 0.3 deg roll-axis tilt, mm-level arm errors), then runs
 through the runner, recorded under ``demo-records/``:
 
@@ -25,11 +25,11 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from mocks.world import WORLDS, load_world
 from rigctl.bench.truth import model_against_truth
 from rigctl.config import load_rig
 from rigctl.errors import RigError
 from rigctl.exports import SUFFIXES, export_result
+from rigctl.mocks.world import WORLDS, load_world
 from rigctl.records import RunDirectory
 from rigctl.runner import Runner
 from rigctl.simrig import SimulatedRig

@@ -6,8 +6,8 @@ import logging
 from collections.abc import Callable
 from typing import Any
 
-from drivers.base import Device
 from rigctl.config import RigConfig
+from rigctl.drivers.base import Device
 from rigctl.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -16,19 +16,19 @@ DeviceFactory = Callable[[Any], Device]
 
 
 def _head(cfg) -> Device:
-    from drivers.dynamixel import DynamixelHead
+    from rigctl.drivers.dynamixel import DynamixelHead
 
     return DynamixelHead(cfg)
 
 
 def _arm(cfg) -> Device:
-    from drivers.ur import URArm
+    from rigctl.drivers.ur import URArm
 
     return URArm(cfg)
 
 
 def _camera(cfg) -> Device:
-    from drivers.camera import OpenCVCamera
+    from rigctl.drivers.camera import OpenCVCamera
 
     return OpenCVCamera(cfg)
 

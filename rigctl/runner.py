@@ -41,10 +41,14 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
-import procedures
-from drivers.base import check_axis_limit
-from drivers.camera import mean_change
-from procedures.base import (
+from rigctl import __version__, procedures
+from rigctl.calib.blas_threads import one_blas_thread
+from rigctl.config import HEAD_AXES, RigConfig, parse_rig
+from rigctl.drivers.base import check_axis_limit
+from rigctl.drivers.camera import mean_change
+from rigctl.errors import AbortedError, ConfigError, RigError, SafetyError
+from rigctl.locks import rig_lock
+from rigctl.procedures.base import (
     CaptureStep,
     MoveArmJoint,
     MoveArmJoints,
@@ -56,11 +60,6 @@ from procedures.base import (
     SolveContext,
     Step,
 )
-from rigctl import __version__
-from rigctl.calib.blas_threads import one_blas_thread
-from rigctl.config import HEAD_AXES, RigConfig, parse_rig
-from rigctl.errors import AbortedError, ConfigError, RigError, SafetyError
-from rigctl.locks import rig_lock
 from rigctl.records import (
     RecordIndex,
     RunDirectory,

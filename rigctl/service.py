@@ -31,8 +31,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse, StreamingResponse
 from pydantic import BaseModel, Field
 
-import procedures
-from rigctl import __version__, drift
+from rigctl import __version__, drift, procedures
 from rigctl.config import RigConfig, parse_duration
 from rigctl.console.pages import console_routes, mount_static
 from rigctl.errors import BusyError, ConfigError, RigError, SafetyError

@@ -11,17 +11,9 @@ from __future__ import annotations
 import tempfile
 from pathlib import Path
 
-from mocks.world import WORLDS
 from rigctl.childproc import ChildProcess
 from rigctl.loopback import free_host
-
-
-def world_path(world: str | Path) -> Path:
-    """A world file: a path, or the name of one in ``mocks/worlds`` ("default", "ideal")."""
-    path = Path(world)
-    if path.suffix in (".yaml", ".yml"):
-        return path.resolve()
-    return WORLDS / f"{world}.yaml"
+from rigctl.mocks.world import world_file
 
 
 class SimulatedRig:
@@ -43,7 +35,7 @@ class SimulatedRig:
         self.crash: str | None = None
         self.rig_path = Path(rig_out) if rig_out else tmp / "sim-rig.yaml"
         records = Path(records).resolve() if records else tmp / "records"
-        args = ["-m", "rigctl.cli", "sim", "up", "--world", str(world_path(world)),
+        args = ["-m", "rigctl.cli", "sim", "up", "--world", str(world_file(world)),
                 "--rig-out", str(self.rig_path), "--host", self.host, "--records",
                 str(records), "--camera-port", str(camera_port)]
         if workdir:

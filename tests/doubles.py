@@ -11,7 +11,7 @@ import time
 
 import numpy as np
 
-from drivers.base import Camera, DeviceError, Frame, Head, HeadAngles, Status
+from rigctl.drivers.base import Camera, DeviceError, Frame, Head, HeadAngles, Status
 
 
 class DoubleHead(Head):

@@ -1,7 +1,7 @@
 """Forward models for the math tests, written from first principles.
 
-The math tests generate their data with the simulator's own models (``mocks.world``,
-``mocks.ur_kinematics``). What those lack is written out here, without importing
+The math tests generate their data with the simulator's own models (``rigctl.mocks.world``,
+``rigctl.mocks.ur_kinematics``). What those lack is written out here, without importing
 anything from ``rigctl``: a bug shared by the solvers and their test data would pass
 every test, so no line of the solvers' helpers (``rigctl.calib.synthetic``,
 ``rigctl.geometry``) may produce a test's data or judge its result.

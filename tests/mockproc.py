@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from mocks.jsonlines import ask_once
 from rigctl.childproc import ROOT, ChildProcess
+from rigctl.mocks.jsonlines import ask_once
 
 __all__ = ["ROOT", "MockProcess", "control"]
 
@@ -16,5 +16,5 @@ class MockProcess(ChildProcess):
 
 
 def control(path: str, request: dict, timeout: float = 5.0) -> dict:
-    """One request on a stand-in's control socket (``mocks.jsonlines``)."""
+    """One request on a stand-in's control socket (``rigctl.mocks.jsonlines``)."""
     return ask_once(path, request, timeout)

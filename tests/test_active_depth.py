@@ -1,6 +1,6 @@
 """Scene depths from the arm's sideways move, and the centre of projection off the head's
 axes recovered with them. Data come from OpenCV's projection and from the simulator's own
-renderer (``mocks.world`` through ``rigctl.bench.active_worlds``), not from the solver's
+renderer (``rigctl.mocks.world`` through ``rigctl.bench.active_worlds``), not from the solver's
 helpers."""
 
 from __future__ import annotations

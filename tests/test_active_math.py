@@ -1,5 +1,5 @@
 """Active calibration math (thesis ch. 3) on data from the simulator's own camera and
-head model (``mocks.world``: ``T_head_cam = Ry(pan) Rx(tilt) R_axis(roll)``, OpenCV
+head model (``rigctl.mocks.world``: ``T_head_cam = Ry(pan) Rx(tilt) R_axis(roll)``, OpenCV
 projection) - the model the camera stand-in renders with - and scenes from
 ``tests.forward``. Nothing from the solvers' helpers makes or judges the data."""
 
@@ -11,12 +11,12 @@ import math
 import numpy as np
 import pytest
 
-from mocks.world import CameraTruth, HeadTruth, SceneTruth, World, WorldFile
 from rigctl.calib import active, synthetic
 from rigctl.calib.active import ContourStats
 from rigctl.calib.active_pipeline import centre_identifiability
 from rigctl.calib.active_refine import PARAM_NAMES, Motion, predict, refine
 from rigctl.errors import SolveError
+from rigctl.mocks.world import CameraTruth, HeadTruth, SceneTruth, World, WorldFile
 from tests.forward import brown_project, ellipse_contours
 
 FX, FY, CX, CY = 900.0, 905.0, 652.3, 371.8

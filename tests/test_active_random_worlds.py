@@ -1,5 +1,5 @@
 """The active-camera solve on random worlds nobody tuned it for, with the procedure's
-default plan: each world's own renderer (``mocks.world``: OpenCV's projection with its
+default plan: each world's own renderer (``rigctl.mocks.world``: OpenCV's projection with its
 k1 k2 k3 p1 p2, blur, noise, JPEG) draws what the camera sees at the planned head angles,
 the arm's sideways move included, and ``rigctl.calib.active_pipeline`` solves it, as
 ``rigctl bench active-worlds`` does on many more (seeds 5000-7019 there).

@@ -13,9 +13,9 @@ import math
 import numpy as np
 import pytest
 
-from mocks.world import WORLDS, load_world
 from rigctl.calib.board import detect_board, refine_corners
 from rigctl.geometry.transforms import look_at
+from rigctl.mocks.world import WORLDS, load_world
 
 pytestmark = pytest.mark.timeout(120)
 

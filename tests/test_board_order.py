@@ -50,8 +50,8 @@ def _board_view(seed, board=None, distortion=None, fx=None, spin=0.0, right=0.0)
     """A random world's own rendering of its board (optionally another board, lens or
     focal length): turned a little, spun ``spin`` rad about the optical axis, and moved
     ``right`` (a fraction of the half width) towards the image's right edge."""
-    from mocks.random_world import random_world
-    from mocks.world import World, WorldFile, transform
+    from rigctl.mocks.random_world import random_world
+    from rigctl.mocks.world import World, WorldFile, transform
 
     spec = random_world(seed)
     if board:

@@ -13,11 +13,11 @@ import cv2
 import numpy as np
 import pytest
 
-import drivers.camera as camera_driver
-from drivers.v4l2_controls import V4L2Controls
-from procedures.camera_settings import check_settings, settings_of_run
+import rigctl.drivers.camera as camera_driver
 from rigctl.config import load_rig, parse_rig
+from rigctl.drivers.v4l2_controls import V4L2Controls
 from rigctl.errors import ConfigError, DeviceError
+from rigctl.procedures.camera_settings import check_settings, settings_of_run
 from rigctl.records import RecordIndex, RunDirectory
 from rigctl.runner import Runner
 from tests.doubles import DoubleHead
@@ -73,8 +73,8 @@ def test_cli_refuses_with_exit_2_before_anything_is_recorded(tmp_path):
 # -- settings recorded the way a real run records them ----------------------------------
 #
 # A head-sweep through the runner opens the rig's camera with the real driver
-# (drivers.camera.OpenCVCamera): cv2.VideoCapture is replaced by a capture that keeps what
-# is set, and the V4L2 controls go through drivers.v4l2_controls to the fake UVC device of
+# (rigctl.drivers.camera.OpenCVCamera): cv2.VideoCapture is replaced by a capture that keeps what
+# is set, and the V4L2 controls go through rigctl.drivers.v4l2_controls to the fake UVC device of
 # tests/test_v4l2_controls.py, which has autofocus. versions.json, settings_of_run (what
 # active-camera stores as camera_settings) and the check then run unchanged.
 

@@ -7,8 +7,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from drivers.camera import mean_change
 from rigctl.config import CameraConfig
+from rigctl.drivers.camera import mean_change
 
 
 def scene(rng, shift: float = 0.0) -> np.ndarray:

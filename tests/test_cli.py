@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 import yaml
 
-from mocks.sim import STAND_IN_TIMING
 from rigctl.errors import RigError
 from rigctl.exports import export_result
+from rigctl.mocks.sim import STAND_IN_TIMING
 from tests.conftest import ROOT
 from tests.mockproc import MockProcess
 
@@ -63,7 +63,7 @@ def test_bad_param_syntax(rig_file):
 
 def test_run_list_show_solve_export_against_stand_in(tmp_path):
     link = tmp_path / "dxl"
-    proc = MockProcess(["-m", "mocks.dynamixel_bus", "--link", str(link)])
+    proc = MockProcess(["-m", "rigctl.mocks.dynamixel_bus", "--link", str(link)])
     try:
         rig = tmp_path / "rig.yaml"
         # The stand-in's timing, as `sim up` writes it: the hardware default (34 ms a try)

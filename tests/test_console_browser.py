@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import yaml
 
+from rigctl.mocks.world import WORLDS
 from tests.mockproc import ROOT
 from tests.service_stack import TOKEN, Stack, get, post, wait_for
 from tests.waiting import wait_until
@@ -100,7 +101,7 @@ def _run_ids(page) -> list[str]:
 
 
 def _truth_camera(world: str) -> dict:
-    return yaml.safe_load((ROOT / "mocks" / "worlds" / f"{world}.yaml").read_text())["camera"]
+    return yaml.safe_load((WORLDS / f"{world}.yaml").read_text())["camera"]
 
 
 def _pinhole_difference_px(new: dict, old: dict, cols: int = 48, rows: int = 27) -> np.ndarray:
@@ -431,7 +432,7 @@ def test_console_compares_arm_models(page, stack, artifacts, tmp_path):
     _decided(stack, first)
     assert post(stack, f"/calibrations/{first}/accept", {}).status_code == 200
 
-    world = yaml.safe_load((ROOT / "mocks" / "worlds" / "ideal.yaml").read_text())
+    world = yaml.safe_load((WORLDS / "ideal.yaml").read_text())
     world["hand_eye"]["xyz_mm"][2] += CAMERA_MOVED_MM
     moved = tmp_path / "camera-moved.yaml"
     moved.write_text(yaml.safe_dump(world))

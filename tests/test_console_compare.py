@@ -169,8 +169,8 @@ def test_times_in_utc_whatever_the_servers_zone_and_missing_numbers(monkeypatch)
 
 
 def test_form_fields_follow_the_schema_and_the_rig_file():
-    from procedures.capture_survey import CaptureSurveyParams
-    from procedures.hand_eye import HandEyeParams
+    from rigctl.procedures.capture_survey import CaptureSurveyParams
+    from rigctl.procedures.hand_eye import HandEyeParams
 
     fields = {f["name"]: f for f in form_fields(CaptureSurveyParams.model_json_schema(),
                                                 {"views": 7})}

@@ -6,7 +6,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mocks.dxl_codec import BadPacket, Packet, PacketParser, crc16, encode, stuff, unstuff
+from rigctl.mocks.dxl_codec import BadPacket, Packet, PacketParser, crc16, encode, stuff, unstuff
 
 # Example packets from the ROBOTIS e-Manual, Protocol 2.0 page (ID 1).
 EMANUAL_VECTORS = [

@@ -13,10 +13,10 @@ import dynamixel_sdk as sdk
 import pytest
 import yaml
 
-from drivers.dynamixel import DynamixelHead, TimedPortHandler
-from mocks.sim import STAND_IN_TIMING
 from rigctl.config import load_rig, parse_rig
+from rigctl.drivers.dynamixel import DynamixelHead, TimedPortHandler
 from rigctl.errors import DeviceError, ProtocolError
+from rigctl.mocks.sim import STAND_IN_TIMING
 from rigctl.records import RunDirectory
 from rigctl.runner import Runner
 from tests.mockproc import MockProcess, control
@@ -28,7 +28,7 @@ pytestmark = pytest.mark.integration
 def bus(tmp_path):
     """A stand-in bus with servos 1, 2, 3; stopped by PID in teardown."""
     link, sock = tmp_path / "dxl", tmp_path / "dxl.sock"
-    proc = MockProcess(["-m", "mocks.dynamixel_bus", "--link", str(link),
+    proc = MockProcess(["-m", "rigctl.mocks.dynamixel_bus", "--link", str(link),
                         "--control", str(sock)])
     yield proc
     assert proc.stop() == 0
@@ -244,7 +244,7 @@ def test_latency_timer_emulation_holds_every_reply(tmp_path):
     """--latency-timer-ms 16: no reply reaches the host sooner than 16 ms after its
     request (a lower bound: a busy host only makes it later)."""
     link = tmp_path / "dxl-lt"
-    proc = MockProcess(["-m", "mocks.dynamixel_bus", "--link", str(link),
+    proc = MockProcess(["-m", "rigctl.mocks.dynamixel_bus", "--link", str(link),
                         "--latency-timer-ms", "16"])
     try:
         handler = TimedPortHandler(proc.ready["link"], 500.0)
@@ -320,7 +320,7 @@ def test_driver_reconnects_after_port_vanishes(bus, tmp_path):
     head.open()
     try:
         bus.stop()
-        replacement = MockProcess(["-m", "mocks.dynamixel_bus", "--link", link])
+        replacement = MockProcess(["-m", "rigctl.mocks.dynamixel_bus", "--link", link])
         try:
             angles = head.read_angles()  # EIO on the old pty, reopened on the new one
             assert angles.pan == pytest.approx(0.0, abs=1e-9)

@@ -20,11 +20,11 @@ import numpy as np
 import pytest
 import yaml
 
-from mocks.ur_primary import VERSION as UR_VERSION
-from mocks.world import load_world
 from rigctl.bench.truth import model_against_truth
 from rigctl.config import load_rig
 from rigctl.geometry.kinematics import nominal_ur
+from rigctl.mocks.ur_primary import VERSION as UR_VERSION
+from rigctl.mocks.world import load_world
 from rigctl.simrig import SimulatedRig
 from tests.mockproc import ROOT
 from tests.resolve_check import assert_resolves_alone
@@ -65,7 +65,7 @@ def test_active_camera_on_default_world(camera_run):
     result = camera_run.result
     assert result.returncode == 0, result.stderr[-3000:]
     out = json.loads(result.stdout)  # stdout is JSON and nothing else
-    truth = load_world(ROOT / "mocks/worlds/default.yaml").truth()
+    truth = load_world(ROOT / "rigctl/mocks/worlds/default.yaml").truth()
     assert abs(out["fx"] / truth["fx"] - 1) < 0.0005
     assert abs(out["fy"] / truth["fy"] - 1) < 0.0005
     assert abs(out["cx"] - truth["cx"]) < 1.2 and abs(out["cy"] - truth["cy"]) < 1.2
@@ -129,7 +129,7 @@ def test_robot_kinematics_end_to_end(tmp_path, camera_run):
     assert summary["heldout_mm_axis_based"] < 0.5 * summary["heldout_mm_before"]
     assert summary["heldout_mm_link_by_link"] < summary["heldout_mm_before"]
     # the controller's factory model lies between nominal and the truth in this world
-    # (mocks/worlds/default.yaml): the calibration improves on it, not only on nominal
+    # (rigctl/mocks/worlds/default.yaml): the calibration improves on it, not only on nominal
     assert summary["heldout_mm_after"] < summary["heldout_mm_factory"] \
         < summary["heldout_mm_before"]
     # ... and it was a start of the joint refinement; the summary names the one that won
@@ -140,7 +140,7 @@ def test_robot_kinematics_end_to_end(tmp_path, camera_run):
     assert min(out["uncertainty"]["plain_dh_smallest_singular_values"]) < 1e-3
 
     # the independent intrinsics check (Zhang on the same board views) against the truth
-    world = load_world(ROOT / "mocks/worlds/default.yaml")
+    world = load_world(ROOT / "rigctl/mocks/worlds/default.yaml")
     truth = world.truth()
     check = out["intrinsics_check"]
     assert check["views"] >= 20 and abs(check["board"]["fx"] / truth["fx"] - 1) < 0.003

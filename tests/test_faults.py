@@ -13,10 +13,10 @@ from pathlib import Path
 import pytest
 import yaml
 
-from drivers.dynamixel import DynamixelHead
-from mocks.sim import STAND_IN_TIMING
 from rigctl.config import load_rig
+from rigctl.drivers.dynamixel import DynamixelHead
 from rigctl.errors import DeviceError
+from rigctl.mocks.sim import STAND_IN_TIMING
 from rigctl.runner import Runner
 from tests.mockproc import ROOT, control
 from tests.test_dynamixel import bus, head_config  # noqa: F401 (the bus fixture)
@@ -56,7 +56,7 @@ def test_input_voltage_out_of_range_stops_the_move_and_names_the_servo(bus):  # 
 
 DROP_SCRIPT = """
 import json, sys, time
-from drivers.ur import URArm
+from rigctl.drivers.ur import URArm
 from rigctl.config import parse_rig
 from rigctl.errors import DeviceError
 from tests.mockproc import ROOT, control

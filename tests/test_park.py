@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.dynamixel import DynamixelHead
-from drivers.ur import URArm
 from rigctl.config import load_rig
+from rigctl.drivers.dynamixel import DynamixelHead
+from rigctl.drivers.ur import URArm
 from rigctl.records import RunDirectory
 from rigctl.runner import Runner
 from tests.mockproc import ROOT, control

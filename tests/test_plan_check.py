@@ -9,18 +9,18 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from mocks.sim import rig_text
-from mocks.ur_kinematics import ArmModel, matrix_to_pose
-from mocks.world import load_world
-from procedures.base import MoveArmJoints, MoveArmLinear
 from rigctl.config import parse_rig
+from rigctl.mocks.sim import rig_text
+from rigctl.mocks.ur_kinematics import ArmModel, matrix_to_pose
+from rigctl.mocks.world import load_world
+from rigctl.procedures.base import MoveArmJoints, MoveArmLinear
 from rigctl.runner import check_plan
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def config_with(joint_limits_deg=None):
-    world = load_world(ROOT / "mocks/worlds/default.yaml")
+    world = load_world(ROOT / "rigctl/mocks/worlds/default.yaml")
     rig = rig_text(Path("world.yaml"), "127.0.0.1", Path("/nonexistent"),
                    "http://127.0.0.1:9/", "records", world)
     if joint_limits_deg is not None:

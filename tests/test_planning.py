@@ -9,9 +9,11 @@ import numpy as np
 import pytest
 import yaml
 
-from mocks.sim import rig_text
-from mocks.world import WORLDS, load_world
-from procedures.planning import (
+from rigctl.config import load_rig
+from rigctl.geometry.kinematics import nominal_ur
+from rigctl.mocks.sim import rig_text
+from rigctl.mocks.world import WORLDS, load_world
+from rigctl.procedures.planning import (
     MIN_CLEARANCE_M,
     board_visible,
     clearance_m,
@@ -19,8 +21,6 @@ from procedures.planning import (
     plan_target_views,
     spread_offsets,
 )
-from rigctl.config import load_rig
-from rigctl.geometry.kinematics import nominal_ur
 
 
 @pytest.fixture

@@ -10,23 +10,23 @@ import numpy as np
 import pytest
 import yaml
 
-from drivers.ur_primary import ControllerVersion, KinematicsInfo, PrimaryInfo
-from mocks.sim import rig_text
-from mocks.ur_kinematics import ArmModel
-from mocks.ur_primary import dh_table
-from mocks.world import WORLDS, load_world
-from procedures import get_procedure, planning
-from procedures.planning import nominal_flange_cam, planning_arm, target_centre
 from rigctl.config import load_rig
+from rigctl.drivers.ur_primary import ControllerVersion, KinematicsInfo, PrimaryInfo
 from rigctl.errors import DeviceError
 from rigctl.geometry.kinematics import nominal_ur
+from rigctl.mocks.sim import rig_text
+from rigctl.mocks.ur_kinematics import ArmModel
+from rigctl.mocks.ur_primary import dh_table
+from rigctl.mocks.world import WORLDS, load_world
+from rigctl.procedures import get_procedure, planning
+from rigctl.procedures.planning import nominal_flange_cam, planning_arm, target_centre
 
 VERSION = ControllerVersion("URControl", 5, 11, 1, 108318, "01-01-2024, 00:00:00")
 
 
 def controller_info(arm: dict, status: int = 1) -> PrimaryInfo:
     """What the stand-in reports for a world's ``arm`` section: its factory model's DH
-    table (nominal when the world has no ``factory_errors``), as ``mocks.ur_controller``
+    table (nominal when the world has no ``factory_errors``), as ``rigctl.mocks.ur_controller``
     builds it."""
     model = ArmModel.nominal(arm["model"])
     if arm.get("factory_errors"):

@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 import yaml
 
-from mocks.random_world import random_world
-from mocks.sim import rig_text
-from mocks.world import World, WorldFile
-from procedures import get_procedure
-from procedures.robot_kinematics import RobotKinematicsParams, _scaled_to_reach
 from rigctl.config import parse_rig
 from rigctl.errors import SolveError
+from rigctl.mocks.random_world import random_world
+from rigctl.mocks.sim import rig_text
+from rigctl.mocks.world import World, WorldFile
+from rigctl.procedures import get_procedure
+from rigctl.procedures.robot_kinematics import RobotKinematicsParams, _scaled_to_reach
 from rigctl.runner import check_plan
 
 

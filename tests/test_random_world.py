@@ -10,8 +10,8 @@ import sys
 
 import numpy as np
 
-from mocks.random_world import REACH_M, random_world
-from mocks.world import World, WorldFile, load_world
+from rigctl.mocks.random_world import REACH_M, random_world
+from rigctl.mocks.world import World, WorldFile, load_world
 
 SEEDS = range(60)
 

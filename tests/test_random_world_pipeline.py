@@ -14,12 +14,12 @@ import math
 import numpy as np
 import pytest
 
-from mocks.random_world import random_world
-from mocks.world import World, WorldFile
 from rigctl.calib.board import board_points
 from rigctl.calib.extrinsic import estimate_pose
 from rigctl.calib.robot_pipeline import BoardView, solve_robot
 from rigctl.geometry.kinematics import nominal_ur
+from rigctl.mocks.random_world import random_world
+from rigctl.mocks.world import World, WorldFile
 
 inv = np.linalg.inv
 

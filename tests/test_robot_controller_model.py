@@ -13,9 +13,6 @@ import numpy as np
 import pytest
 import yaml
 
-from mocks.world import WORLDS
-from procedures import get_procedure, hand_eye, robot_kinematics
-from procedures.base import SolveContext
 from rigctl.calib import handeye, robot
 from rigctl.calib.extrinsic import estimate_pose
 from rigctl.calib.robot_pipeline import (
@@ -25,6 +22,9 @@ from rigctl.calib.robot_pipeline import (
     solve_robot,
 )
 from rigctl.geometry.kinematics import KinematicModel
+from rigctl.mocks.world import WORLDS
+from rigctl.procedures import get_procedure, hand_eye, robot_kinematics
+from rigctl.procedures.base import SolveContext
 from tests.test_planning_controller import rig_for
 from tests.test_robot_math import DIST, OBJ, K, T_cam_target, board_views, ur_truth, view
 

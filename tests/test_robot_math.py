@@ -1,6 +1,6 @@
 """Extrinsics, hand-eye and robot calibration math against known truth, on data from the
 simulator's own forward models: the camera stand-in's projection and the simulated arm
-(``mocks.world``, ``mocks.ur_kinematics``), with ``tests.forward`` where mocks has no
+(``rigctl.mocks.world``, ``rigctl.mocks.ur_kinematics``), with ``tests.forward`` where mocks has no
 model (chains other than a UR, error measures). The solvers' helpers in
 ``rigctl.geometry`` make no data and judge no result here; the convention tests below
 compare them with the simulator's."""
@@ -12,9 +12,15 @@ import math
 import numpy as np
 import pytest
 
-from mocks.ur_kinematics import ArmModel, matrix_to_rotvec, pose_to_matrix
-from mocks.ur_kinematics import rotvec_to_matrix as rotvec
-from mocks.world import (
+from rigctl.calib import handeye, robot
+from rigctl.calib.board import board_points
+from rigctl.calib.extrinsic import estimate_pose, tsai_planar
+from rigctl.errors import SolveError
+from rigctl.geometry import transforms
+from rigctl.geometry.kinematics import KinematicModel, nominal_ur
+from rigctl.mocks.ur_kinematics import ArmModel, matrix_to_rotvec, pose_to_matrix
+from rigctl.mocks.ur_kinematics import rotvec_to_matrix as rotvec
+from rigctl.mocks.world import (
     ArmErrors,
     ArmTruth,
     CameraTruth,
@@ -27,12 +33,6 @@ from mocks.world import (
     rpy_matrix,
     transform,
 )
-from rigctl.calib import handeye, robot
-from rigctl.calib.board import board_points
-from rigctl.calib.extrinsic import estimate_pose, tsai_planar
-from rigctl.errors import SolveError
-from rigctl.geometry import transforms
-from rigctl.geometry.kinematics import KinematicModel, nominal_ur
 from tests.forward import (
     Rx,
     Ry,

@@ -64,7 +64,7 @@ def test_run_records_captures_index_and_result(rig_config):
 
 def test_deferred_plots_run_after_the_result_is_recorded_and_cannot_fail_it(rig_config,
                                                                             monkeypatch):
-    from procedures import head_sweep
+    from rigctl.procedures import head_sweep
 
     seen = {}
     solve = head_sweep.PROCEDURE.solve
@@ -112,7 +112,7 @@ def test_resolve_reads_relative_paths_against_the_recorded_rig_file(rig_config, 
     """The rig file's relative records directory resolves as it did when the run was
     planned, whatever the current directory, for the run directory and a copy of it;
     a run recorded without its rig file's place resolves against its own directory."""
-    from procedures import head_sweep
+    from rigctl.procedures import head_sweep
 
     outcome = make_runner(rig_config)[0].run("head-sweep", SMALL)
     params = json.loads((RunDirectory(outcome.run_dir).path / "params.json").read_text())
@@ -262,7 +262,7 @@ class ReplayCamera(DoubleCamera):
         self.images, self.calls = list(images), 0
 
     def capture(self, not_before=None):
-        from drivers.base import Frame
+        from rigctl.drivers.base import Frame
 
         self.calls += 1
         return Frame(self.images.pop(0), time.time(), self.calls, {})

@@ -11,12 +11,12 @@ import math
 import numpy as np
 import pytest
 
-from mocks.random_world import random_world
-from procedures import get_procedure
-from procedures.active_camera import SECOND_STATION_POSES, second_station_joints
 from rigctl.bench.active_worlds import world_trial
 from rigctl.geometry.kinematics import nominal_ur
 from rigctl.geometry.transforms import xyz_rpy_to_T
+from rigctl.mocks.random_world import random_world
+from rigctl.procedures import get_procedure
+from rigctl.procedures.active_camera import SECOND_STATION_POSES, second_station_joints
 from rigctl.runner import check_plan
 from tests.test_planning_worlds import rig_for
 

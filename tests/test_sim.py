@@ -14,11 +14,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mocks.world import load_world
-from procedures.planning import plan_target_views
 from rigctl.calib.board import detect_board
 from rigctl.config import load_rig
 from rigctl.errors import DeviceError
+from rigctl.mocks.world import load_world
+from rigctl.procedures.planning import plan_target_views
 from rigctl.records import RunDirectory
 from rigctl.rig import Rig
 from rigctl.runner import Runner
@@ -152,7 +152,7 @@ def test_child_process_stop_stops_the_children_it_reported_in_other_sessions():
 
 def test_sim_truth_json():
     result = subprocess.run([sys.executable, "-m", "rigctl.cli", "sim", "truth", "--world",
-                             str(ROOT / "mocks/worlds/default.yaml"), "--json"],
+                             str(ROOT / "rigctl/mocks/worlds/default.yaml"), "--json"],
                             capture_output=True, text=True, timeout=60, cwd=ROOT)
     truth = json.loads(result.stdout)
     assert (truth["fx"], truth["cy"]) == (900.0, 371.8)

@@ -73,7 +73,7 @@ def _first(steps: list[str], word: str, after: int = 0) -> int:
 
 @pytest.mark.timeout(240)
 def test_each_stand_in_paused_300ms_mid_run_and_the_run_succeeds(start_sim, caplog):
-    caplog.set_level(logging.INFO, logger="drivers.dynamixel")
+    caplog.set_level(logging.INFO, logger="rigctl.drivers.dynamixel")
     sim = start_sim(world="ideal")
     config = load_rig(sim.rig_path)
     steps, _ = _survey_steps(config)
@@ -91,7 +91,8 @@ def test_each_stand_in_paused_300ms_mid_run_and_the_run_succeeds(start_sim, capl
     assert sorted(pid for _, pid in staller.done) == sorted(pids.values())
     assert outcome.status == "succeeded", outcome.reason
     # the head's stall was felt: transactions timed out and were retried
-    assert any("(try " in r.getMessage() for r in caplog.records if r.name == "drivers.dynamixel")
+    assert any("(try " in r.getMessage() for r in caplog.records
+               if r.name == "rigctl.drivers.dynamixel")
     assert outcome.result["captures"] == len([s for s in steps if "capture" in s.lower()])
 
 

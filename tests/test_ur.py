@@ -8,8 +8,8 @@ import time
 import numpy as np
 import pytest
 
-from drivers.ur import URArm
 from rigctl.config import load_rig, parse_rig
+from rigctl.drivers.ur import URArm
 from rigctl.errors import DeviceError, SafetyError
 from rigctl.loopback import free_host
 from rigctl.records import RunDirectory
@@ -25,7 +25,7 @@ HOME = np.radians([0.0, -90.0, 90.0, -90.0, -90.0, 0.0])
 def start_arm(tmp_path, host=None, extra=()):
     host = host or free_host()
     sock = tmp_path / f"ur-{host}.sock"
-    return MockProcess(["-m", "mocks.ur_controller", "--host", host, "--control", str(sock),
+    return MockProcess(["-m", "rigctl.mocks.ur_controller", "--host", host, "--control", str(sock),
                         *extra])
 
 

@@ -14,7 +14,8 @@ import sys
 import numpy as np
 import pytest
 
-from drivers.ur_primary import (
+from rigctl.config import load_rig
+from rigctl.drivers.ur_primary import (
     KinematicsInfo,
     libstdcxx_hash_bytes,
     parse_kinematics_info,
@@ -23,9 +24,8 @@ from drivers.ur_primary import (
     split_packages,
     sub_packages,
 )
-from procedures.planning import planning_arm
-from rigctl.config import load_rig
 from rigctl.errors import ProtocolError
+from rigctl.procedures.planning import planning_arm
 
 # ur5e factory-style DH (radians, metres), written out for these tests
 THETA = [1e-4, -2e-4, 3e-4, -1e-4, 2e-4, -5e-5]
@@ -147,7 +147,7 @@ int main() {
 
 @pytest.mark.skipif(shutil.which("g++") is None, reason="no C++ compiler to ask libstdc++")
 def test_hash_matches_libstdcxx(tmp_path):
-    from drivers.ur_primary import cpp_stream_double
+    from rigctl.drivers.ur_primary import cpp_stream_double
 
     source = tmp_path / "h.cpp"
     source.write_text(CPP)
@@ -181,15 +181,15 @@ def test_stand_in_reports_its_factory_kinematics_and_moves_by_them(tmp_path):
     truth), and the TCP pose ur_rtde reads is that model's forward kinematics."""
     import rtde_receive
 
-    from mocks.ur_kinematics import ArmModel
     from rigctl.loopback import free_host
+    from rigctl.mocks.ur_kinematics import ArmModel
     from tests.mockproc import MockProcess
 
     world = tmp_path / "world.yaml"
     world.write_text("arm:\n  model: ur10e\n  errors:\n    d_mm: [2, 0, 0, 0, 0, 0]\n"
                      "  factory_errors:\n    d_mm: [1.5, 0, 0, 0.4, 0, 0]\n"
                      "    theta_deg: [0, 0.1, 0, 0, 0, 0]\n")
-    proc = MockProcess(["-m", "mocks.ur_controller", "--host", free_host(), "--world",
+    proc = MockProcess(["-m", "rigctl.mocks.ur_controller", "--host", free_host(), "--world",
                         str(world)])
     try:
         host = proc.ready["host"]

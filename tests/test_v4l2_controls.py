@@ -8,7 +8,7 @@ import errno
 
 import pytest
 
-from drivers.v4l2_controls import (
+from rigctl.drivers.v4l2_controls import (
     CONTROL,
     FLAG_INACTIVE,
     FLAG_NEXT_CTRL,

@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from mocks.view_clip import clip_to_view
-from mocks.world import WORLDS, World, load_world, transform
+from rigctl.mocks.view_clip import clip_to_view
+from rigctl.mocks.world import WORLDS, World, load_world, transform
 
 
 def _square(x0, x1, y0, y1, z, n=8):

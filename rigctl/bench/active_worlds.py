@@ -1,7 +1,7 @@
 """``rigctl bench active-worlds``: the active-camera pipeline on random worlds.
 
-For each seed, ``mocks.random_world`` draws a rig; the world's own renderer
-(``mocks.world``, OpenCV's projection and distortion, then JPEG at the world's quality)
+For each seed, ``rigctl.mocks.random_world`` draws a rig; the world's own renderer
+(``rigctl.mocks.world``, OpenCV's projection and distortion, then JPEG at the world's quality)
 draws what the camera sees at the procedure's head angles, with the arm at home; the
 same pipeline the procedure runs (``rigctl.calib.active_pipeline``) solves it. No stand-in
 processes: this judges the solver, fast, on many rigs. ``rigctl bench worlds`` runs the
@@ -19,20 +19,20 @@ from concurrent.futures import ProcessPoolExecutor
 import cv2
 import numpy as np
 
-from mocks.random_world import random_world
-from mocks.sim import rig_mount
-from mocks.world import World, WorldFile
-from procedures.active_camera import (
-    SECOND_STATION_POSES,
-    ActiveCameraParams,
-    head_poses,
-    second_station_joints,
-)
 from rigctl.calib.active_depth import camera_shift_joints
 from rigctl.calib.active_pipeline import SHIFT, STATION_PREFIX, ActiveSettings, solve_active
 from rigctl.errors import SolveError
 from rigctl.geometry.kinematics import nominal_ur
 from rigctl.geometry.transforms import xyz_rpy_to_T
+from rigctl.mocks.random_world import random_world
+from rigctl.mocks.sim import rig_mount
+from rigctl.mocks.world import World, WorldFile
+from rigctl.procedures.active_camera import (
+    SECOND_STATION_POSES,
+    ActiveCameraParams,
+    head_poses,
+    second_station_joints,
+)
 
 # the procedure's own default plan, so the bench judges what an operator runs
 POSES_DEG = {label: tuple(math.degrees(a) for a in angles)

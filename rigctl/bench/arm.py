@@ -26,7 +26,7 @@ def run(stream_seconds: float = 5.0, zero_moves: int = 100) -> dict:
     import rtde_receive
 
     out: dict = {}
-    with StandIn(["-m", "mocks.ur_controller", "--host", HOST]):
+    with StandIn(["-m", "rigctl.mocks.ur_controller", "--host", HOST]):
         t0 = time.perf_counter()
         receive = rtde_receive.RTDEReceiveInterface(HOST)
         out["connect_receive_s"] = time.perf_counter() - t0

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import cv2
 
-from mocks.world import WORLDS, load_world
 from rigctl.config import load_rig
+from rigctl.mocks.world import WORLDS, load_world
 from rigctl.rig import Rig
 from rigctl.runner import Runner
 from rigctl.simrig import SimulatedRig

@@ -32,7 +32,7 @@ def _transactions(port, ph):
 
 def bench_baud(baud: int, samples: int, workdir: Path, latency_timer_ms: float = 0.0) -> dict:
     link = workdir / f"dxl-{baud}-{latency_timer_ms:g}"
-    with StandIn(["-m", "mocks.dynamixel_bus", "--link", str(link), "--baud", str(baud),
+    with StandIn(["-m", "rigctl.mocks.dynamixel_bus", "--link", str(link), "--baud", str(baud),
                   "--wire-timing", "--latency-timer-ms", str(latency_timer_ms)]):
         port = sdk.PortHandler(str(link))
         port.openPort()
@@ -70,7 +70,7 @@ def bench_latency_timer(samples: int, workdir: Path) -> dict:
 
 def bench_failures(n: int, workdir: Path) -> dict:
     link = workdir / "dxl-fail"
-    with StandIn(["-m", "mocks.dynamixel_bus", "--link", str(link), "--wire-timing"]):
+    with StandIn(["-m", "rigctl.mocks.dynamixel_bus", "--link", str(link), "--wire-timing"]):
         port = sdk.PortHandler(str(link))
         port.openPort()
         port.setBaudRate(1_000_000)
@@ -83,11 +83,11 @@ def bench_failures(n: int, workdir: Path) -> dict:
 
 
 def bench_settle(workdir: Path) -> dict:
-    from drivers.dynamixel import DynamixelHead
     from rigctl.config import parse_rig
+    from rigctl.drivers.dynamixel import DynamixelHead
 
     link = workdir / "dxl-move"
-    with StandIn(["-m", "mocks.dynamixel_bus", "--link", str(link), "--wire-timing"]):
+    with StandIn(["-m", "rigctl.mocks.dynamixel_bus", "--link", str(link), "--wire-timing"]):
         cfg = parse_rig(f"devices:\n  head: {{port: {link}, park: {{policy: hold}}}}\n"
                         ).devices.head
         with DynamixelHead(cfg) as head:

@@ -17,7 +17,7 @@ import tempfile
 import time
 from pathlib import Path
 
-import procedures
+from rigctl import procedures
 from rigctl.errors import ConfigError
 from rigctl.runner import solve_recorded
 

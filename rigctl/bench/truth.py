@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from procedures.planning import reachable_views
 from rigctl.geometry.kinematics import KinematicModel
 from rigctl.geometry.transforms import inv_T
+from rigctl.procedures.planning import reachable_views
 
 INTRINSICS = ("fx", "fy", "cx", "cy")
 

@@ -1,7 +1,7 @@
 """``rigctl bench worlds``: the whole calibration chain through the stand-ins, on random
 worlds, against each world's truth.
 
-For each seed, ``mocks.random_world`` draws a rig; `sim up` serves it (head bus over a
+For each seed, ``rigctl.mocks.random_world`` draws a rig; `sim up` serves it (head bus over a
 pty, UR controller over TCP, camera over HTTP); the runner drives the real clients
 through ``active-camera``, ``hand-eye``, ``robot-kinematics`` and ``validate-arm`` with
 their default parameters, exactly as an operator would. Reports per world and as a
@@ -31,12 +31,12 @@ import numpy as np
 import yaml
 from rich.console import Console
 
-from mocks.random_world import random_world
-from mocks.world import World, WorldFile
 from rigctl.bench.truth import intrinsics_errors, link_z, model_against_truth, position_z
 from rigctl.config import load_rig, parse_rig
 from rigctl.errors import AbortedError, RigError
 from rigctl.geometry.kinematics import nominal_ur
+from rigctl.mocks.random_world import random_world
+from rigctl.mocks.world import World, WorldFile
 from rigctl.runner import Runner
 from rigctl.simrig import SimulatedRig
 

@@ -1,6 +1,6 @@
 """The robot-kinematics solve as a pure pipeline: board views in, arm model out.
 
-The procedure (``procedures/robot_kinematics.py``) reads the run's captures into
+The procedure (``rigctl/procedures/robot_kinematics.py``) reads the run's captures into
 ``BoardView``s and calls ``solve_robot``; benchmarks can call it on views of their own,
 or call one stage's function to measure that stage alone. Stages (thesis 4.3,
 generalised; ``rigctl.calib.robot``):

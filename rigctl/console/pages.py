@@ -19,8 +19,7 @@ from fastapi.staticfiles import StaticFiles
 from fastapi.templating import Jinja2Templates
 from pydantic import ValidationError
 
-import procedures
-from rigctl import __version__, drift
+from rigctl import __version__, drift, procedures
 from rigctl.console import compare, plots, views
 from rigctl.console.forms import form_fields
 from rigctl.console.history import series

@@ -5,7 +5,7 @@ Link transform (thesis 1.2.1, D-H with Hayati's beta for parallel axes)::
 
     A_i = Rz(theta_i + theta_offset_i) Tz(d_i) Tx(a_i) Rx(alpha_i) Ry(beta_i)
 
-Written independently of the simulator's ``mocks.ur_kinematics``.
+Written independently of the simulator's ``rigctl.mocks.ur_kinematics``.
 """
 
 from __future__ import annotations

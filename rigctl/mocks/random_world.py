@@ -25,7 +25,7 @@ import math
 
 import numpy as np
 
-from mocks.world import WorldFile, rpy_matrix
+from rigctl.mocks.world import WorldFile, rpy_matrix
 
 REACH_M = {"ur3e": 0.50, "ur5e": 0.85, "ur10e": 1.30}
 SIZES = ((1280, 720), (1280, 720), (1024, 768), (1280, 960))

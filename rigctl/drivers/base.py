@@ -1,8 +1,9 @@
 """Device interfaces: the only surface procedures and the runner see.
 
 Like python-can's ``BusABC``, each interface is abstract and has one backend per
-hardware family (``drivers.dynamixel``, ``drivers.ur``, ``drivers.camera``). All
-angles are radians, lengths metres, times seconds (``time.time()`` epoch).
+hardware family (``rigctl.drivers.dynamixel``, ``rigctl.drivers.ur``,
+``rigctl.drivers.camera``). All angles are radians, lengths metres, times seconds
+(``time.time()`` epoch).
 """
 
 from __future__ import annotations

@@ -22,8 +22,8 @@ import threading
 import time
 from typing import Any
 
-from drivers.base import Arm, ArmState, DeviceError, SafetyError, Status, load_note
-from drivers.ur_primary import PrimaryInfo, read_primary_info
+from rigctl.drivers.base import Arm, ArmState, DeviceError, SafetyError, Status, load_note
+from rigctl.drivers.ur_primary import PrimaryInfo, read_primary_info
 
 log = logging.getLogger(__name__)
 

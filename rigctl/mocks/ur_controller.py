@@ -33,10 +33,10 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from mocks.jsonlines import listen, serve_stream
-from mocks.ur_kinematics import ArmModel, matrix_to_pose, pose_to_matrix
-from mocks.ur_motion import JointMove, LinearMove, ServoMove, SpeedMove, StopMove
-from mocks.ur_primary import dh_table, robot_state, version_message
+from rigctl.mocks.jsonlines import listen, serve_stream
+from rigctl.mocks.ur_kinematics import ArmModel, matrix_to_pose, pose_to_matrix
+from rigctl.mocks.ur_motion import JointMove, LinearMove, ServoMove, SpeedMove, StopMove
+from rigctl.mocks.ur_primary import dh_table, robot_state, version_message
 
 log = logging.getLogger("mock.ur")
 

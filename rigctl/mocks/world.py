@@ -1,8 +1,8 @@
 """The simulated rig's ground truth, and the renderer of what its camera sees.
 
-The world file (YAML) is documented key by key in ``mocks/worlds/README.md``. This module
+The world file (YAML) is documented key by key in ``rigctl/mocks/worlds/README.md``. This module
 is the simulator's forward model: projection and distortion by OpenCV's
-``projectPoints``, arm kinematics by ``mocks.ur_kinematics``. It shares no code with the
+``projectPoints``, arm kinematics by ``rigctl.mocks.ur_kinematics``. It shares no code with the
 solvers in ``rigctl.calib`` / ``rigctl.geometry``, so a bug cannot hide in both.
 
 Frames (``T_a_b`` maps points of b into a): ``base`` (arm base = world), ``flange``,
@@ -22,9 +22,9 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-from mocks.ur_kinematics import ArmModel
-from mocks.view_clip import clip_to_view
 from rigctl.errors import ConfigError
+from rigctl.mocks.ur_kinematics import ArmModel
+from rigctl.mocks.view_clip import clip_to_view
 
 WORLDS = Path(__file__).resolve().parent / "worlds"
 # The renderer fills polygons at this many samples per pixel side and averages them (area
@@ -147,8 +147,24 @@ def axis_angle(axis, angle: float) -> np.ndarray:
     return np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K
 
 
+def world_file(world: str | Path) -> Path:
+    """A world file: a path (``.yaml``/``.yml``, or any existing file), or the name of
+    one shipped with the package in ``rigctl/mocks/worlds`` ("default", "ideal", ...).
+    ``ConfigError`` names the shipped worlds when neither fits."""
+    path = Path(world)
+    if path.suffix in (".yaml", ".yml") or path.exists():
+        return path.resolve()
+    shipped = WORLDS / f"{world}.yaml"
+    if shipped.exists():
+        return shipped
+    names = ", ".join(sorted(p.stem for p in WORLDS.glob("*.yaml")))
+    raise ConfigError(f"world {world!r}: no such file, and no shipped world of that name "
+                      f"(shipped: {names})")
+
+
 def load_world(path: str | Path) -> World:
-    path = Path(path)
+    """The world of a file path or a shipped world's name (``world_file``)."""
+    path = world_file(path)
     try:
         data = yaml.safe_load(path.read_text()) or {}
     except FileNotFoundError:

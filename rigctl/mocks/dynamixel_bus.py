@@ -30,8 +30,15 @@ import time
 import tty
 from pathlib import Path
 
-from mocks.dxl_codec import BROADCAST_ID, BadPacket, Packet, PacketParser, crc16, status_packet
-from mocks.dxl_servo import (
+from rigctl.mocks.dxl_codec import (
+    BROADCAST_ID,
+    BadPacket,
+    Packet,
+    PacketParser,
+    crc16,
+    status_packet,
+)
+from rigctl.mocks.dxl_servo import (
     ERR_CRC,
     ERR_DATA_LENGTH,
     ERR_INSTRUCTION,
@@ -40,7 +47,7 @@ from mocks.dxl_servo import (
     Servo,
     ServoOptions,
 )
-from mocks.jsonlines import answer, listen
+from rigctl.mocks.jsonlines import answer, listen
 
 BAUD_CODES = {0: 9600, 1: 57600, 2: 115200, 3: 1_000_000, 4: 2_000_000, 5: 3_000_000,
               6: 4_000_000, 7: 4_500_000}

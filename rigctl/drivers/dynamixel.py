@@ -32,7 +32,7 @@ from typing import Any, ClassVar
 
 import dynamixel_sdk as sdk
 
-from drivers.base import (
+from rigctl.drivers.base import (
     DeviceError,
     Head,
     HeadAngles,

@@ -9,13 +9,13 @@ from rigctl.errors import ConfigError
 from .base import Procedure
 
 _MODULES = {
-    "head-sweep": "procedures.head_sweep",
-    "arm-sweep": "procedures.arm_sweep",
-    "capture-survey": "procedures.capture_survey",
-    "active-camera": "procedures.active_camera",
-    "hand-eye": "procedures.hand_eye",
-    "robot-kinematics": "procedures.robot_kinematics",
-    "validate-arm": "procedures.validate_arm",
+    "head-sweep": "rigctl.procedures.head_sweep",
+    "arm-sweep": "rigctl.procedures.arm_sweep",
+    "capture-survey": "rigctl.procedures.capture_survey",
+    "active-camera": "rigctl.procedures.active_camera",
+    "hand-eye": "rigctl.procedures.hand_eye",
+    "robot-kinematics": "rigctl.procedures.robot_kinematics",
+    "validate-arm": "rigctl.procedures.validate_arm",
 }
 
 

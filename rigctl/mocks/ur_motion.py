@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from mocks.ur_kinematics import ArmModel, matrix_to_rotvec, rotvec_to_matrix
+from rigctl.mocks.ur_kinematics import ArmModel, matrix_to_rotvec, rotvec_to_matrix
 
 
 def trapezoid_time(distance: float, v: float, a: float) -> tuple[float, float, float]:

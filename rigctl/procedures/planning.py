@@ -17,10 +17,10 @@ from typing import Any
 
 import numpy as np
 
-from drivers.ur_primary import PrimaryInfo, read_primary_info
 from rigctl.calib import pose_selection
 from rigctl.calib.board import target_points
 from rigctl.config import RigConfig
+from rigctl.drivers.ur_primary import PrimaryInfo, read_primary_info
 from rigctl.errors import ConfigError, DeviceError, SolveError
 from rigctl.geometry.camera import camera_matrix
 from rigctl.geometry.kinematics import KinematicModel, nominal_ur

@@ -25,8 +25,8 @@ from typing import Any
 
 import cv2
 
-from drivers.base import Camera, DeviceError, Frame, load_note
-from drivers.v4l2_controls import V4L2Controls, device_path
+from rigctl.drivers.base import Camera, DeviceError, Frame, load_note
+from rigctl.drivers.v4l2_controls import V4L2Controls, device_path
 
 log = logging.getLogger(__name__)
 
@@ -162,7 +162,7 @@ class OpenCVCamera(Camera):
 
     def _v4l2_controls(self) -> dict[str, int] | None:
         """Automatics off and ``v4l2_controls`` set by name through the kernel, every value
-        read back (``drivers.v4l2_controls``); None where the device is no V4L2 node."""
+        read back (``rigctl.drivers.v4l2_controls``); None where the device is no V4L2 node."""
         path = device_path(self.cfg.device)
         if path is None:
             if self.cfg.v4l2_controls:

@@ -194,9 +194,9 @@ def _within(limits_rad: dict | None, axis: str, angle: float) -> bool:
 def _shift_steps(config, home: tuple, params: ActiveCameraParams) -> list:
     """The arm moves the camera ``shift_mm`` sideways (nominal model; head at home) for the
     SHIFT capture that measures the scene's depths, then returns home."""
-    from procedures.planning import nominal_flange_cam
     from rigctl.calib.active_depth import camera_shift_joints
     from rigctl.geometry.kinematics import nominal_ur
+    from rigctl.procedures.planning import nominal_flange_cam
 
     q = camera_shift_joints(nominal_ur(config.devices.arm.model), home,
                             nominal_flange_cam(config), params.shift_mm / 1000.0)
@@ -231,8 +231,8 @@ def _second_station_steps(config, home: tuple, params: ActiveCameraParams) -> li
     all are); there a reference capture, the sideways move's capture, and the head at
     ``SECOND_STATION_POSES`` (within the head's soft limits), each labelled with
     ``STATION_PREFIX``; then the head and the arm home."""
-    from procedures.planning import nominal_flange_cam
     from rigctl.geometry.kinematics import nominal_ur
+    from rigctl.procedures.planning import nominal_flange_cam
 
     plan = second_station_joints(nominal_ur(config.devices.arm.model), home,
                                  nominal_flange_cam(config), params.second_station_mm,

@@ -1,7 +1,7 @@
 """A simulated camera: renders the world at the stand-ins' current head angles and arm
 joints and streams MJPEG over HTTP on loopback::
 
-    python -m mocks.camera_server --world W.yaml [--host 127.0.0.1] [--port 18080]
+    python -m rigctl.mocks.camera_server --world W.yaml [--host 127.0.0.1] [--port 18080]
         [--head-control SOCK] [--arm-control SOCK] [--control SOCK]
 
 Endpoints: ``/stream.mjpg`` (multipart/x-mixed-replace), ``/snapshot.jpg``, ``/state``.
@@ -28,8 +28,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from mocks.jsonlines import Client, listen, serve_stream
-from mocks.world import World, load_world
+from rigctl.mocks.jsonlines import Client, listen, serve_stream
+from rigctl.mocks.world import World, load_world
 
 # A real camera's frame reaches the host within tens of milliseconds of its exposure. A
 # stand-in descheduled on a busy host could publish a frame rendered from a state sampled

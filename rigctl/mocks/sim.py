@@ -22,9 +22,10 @@ from pathlib import Path
 
 import yaml
 
-from mocks.world import load_world
 from rigctl.childproc import ChildProcess
 from rigctl.errors import ConfigError, DeviceError
+from rigctl.mocks.world import load_world
+from rigctl.mocks.world import world_file as resolve_world
 
 STATE_DIR = Path(tempfile.gettempdir())
 
@@ -90,7 +91,7 @@ def rig_text(world_path: Path, host: str, workdir: Path, camera_url: str, record
 
 def up(world_file: str, rig_out: str, host: str = "127.0.0.1", records: str = "records",
        port: int = 18080, ready_out=None, workdir: str | None = None) -> int:
-    world_path = Path(world_file).resolve()
+    world_path = resolve_world(world_file)
     world = load_world(world_path)
     if not host.startswith("127."):
         raise ConfigError(f"--host {host}: the simulated rig binds loopback addresses only")
@@ -112,12 +113,14 @@ def up(world_file: str, rig_out: str, host: str = "127.0.0.1", records: str = "r
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     try:
         noise_pulses = world.spec.head.encoder_noise_deg * 4096 / 360
-        children.append(_child("head", ["mocks.dynamixel_bus", "--link", str(workdir / "dxl"),
-                                       "--control", str(workdir / "dxl.sock"),
-                                       "--position-noise", str(noise_pulses)]))
-        children.append(_child("arm", ["mocks.ur_controller", "--host", host, "--world",
-                                      str(world_path), "--control", str(workdir / "ur.sock")]))
-        children.append(_child("camera", ["mocks.camera_server", "--world", str(world_path),
+        children.append(_child("head", ["rigctl.mocks.dynamixel_bus",
+                                        "--link", str(workdir / "dxl"),
+                                        "--control", str(workdir / "dxl.sock"),
+                                        "--position-noise", str(noise_pulses)]))
+        children.append(_child("arm", ["rigctl.mocks.ur_controller", "--host", host,
+                                       "--world", str(world_path),
+                                       "--control", str(workdir / "ur.sock")]))
+        children.append(_child("camera", ["rigctl.mocks.camera_server", "--world", str(world_path),
                                          "--host", host, "--port", str(port),
                                          "--head-control", str(workdir / "dxl.sock"),
                                          "--arm-control", str(workdir / "ur.sock"),

@@ -1,7 +1,7 @@
 """Packages of the UR primary and secondary interfaces (ports 30001/30002), as the
 controller stand-in sends them.
 
-Written apart from ``drivers.ur_primary`` (the parser) on purpose. Layout, big-endian
+Written apart from ``rigctl.drivers.ur_primary`` (the parser) on purpose. Layout, big-endian
 (UR "Client Interfaces" manual; ``shared/reference/ur-primary-interface.md``):
 package = ``int32 length`` (header included), ``uint8 type``; the VERSION robot message
 (type 20, source -1, message type 3) is sent once on connect, then ROBOT_STATE (type 16)

@@ -12,7 +12,7 @@ Like is compared with like. The record holds the device's own control names and 
 value the driver set, including the automatic focus that ``auto_off`` turned off; what
 the camera runs with now is the rig file's ``v4l2_controls`` plus what ``auto_off``
 implies. Names are compared under their Linux >= 5.16 form
-(``drivers.v4l2_controls.canonical``), so a rig file's ``focus_auto`` matches a device's
+(``rigctl.drivers.v4l2_controls.canonical``), so a rig file's ``focus_auto`` matches a device's
 ``focus_automatic_continuous``. An automatic that ``auto_off`` turns off is set only on a
 device that has it, which the rig file cannot tell: it is compared only where the
 calibration recorded it (a camera without autofocus records none).
@@ -22,7 +22,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from drivers.v4l2_controls import AUTO_OFF, canonical, device_path
+from rigctl.drivers.v4l2_controls import AUTO_OFF, canonical, device_path
 from rigctl.errors import ConfigError
 
 # the focus controls, by their canonical names
