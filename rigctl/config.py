@@ -73,6 +73,20 @@ class AxisSign(_Strict):
     roll: Literal[1, -1] = 1
 
 
+class AxisModel(_Strict):
+    pan: str | None = None
+    tilt: str | None = None
+    roll: str | None = None
+
+
+def _known_servo(value: str | None) -> str | None:
+    from rigctl.drivers.dynamixel_models import MODEL_NAMES
+
+    if value is not None and value.lower() not in MODEL_NAMES:
+        raise ValueError(f"unknown servo model {value!r}; known: {', '.join(MODEL_NAMES)}")
+    return value.lower() if value is not None else None
+
+
 class HeadPark(_Strict):
     policy: Literal["hold", "home", "torque_off", "home_then_torque_off"] = "home"
     angles_deg: list[float] = [0.0, 0.0, 0.0]
@@ -96,7 +110,9 @@ class HeadConfig(_Strict):
     port: str
     mount: MountPose = MountPose()  # nominal T_flange_head (head on the flange), planning
     baud: int = 1_000_000
-    model: Literal["xm430-w350", "xl430-w250"] = "xm430-w350"
+    # One servo model for all axes, one per axis, or None: read from each servo when the
+    # driver pings it. A named model that differs from the servo's refuses the run.
+    model: str | AxisModel | None = None
     ids: AxisMap = AxisMap()
     limits: HeadLimits = HeadLimits()
     zero_offset_deg: AxisFloat = AxisFloat()
@@ -122,6 +138,21 @@ class HeadConfig(_Strict):
         if value not in allowed:
             raise ValueError(f"{value} is not a Dynamixel baud rate (one of {allowed})")
         return value
+
+    @field_validator("model")
+    @classmethod
+    def _known_models(cls, value):
+        if isinstance(value, AxisModel):
+            for axis in HEAD_AXES:
+                setattr(value, axis, _known_servo(getattr(value, axis)))
+            return value
+        return _known_servo(value)
+
+    def model_of(self, axis: str) -> str | None:
+        """The servo model the rig file names for ``axis`` (None: read it from the servo)."""
+        if isinstance(self.model, AxisModel):
+            return getattr(self.model, axis)
+        return self.model
 
     @model_validator(mode="after")
     def _distinct_ids(self) -> HeadConfig:

@@ -28,7 +28,7 @@ import termios
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import Any
 
 import dynamixel_sdk as sdk
 
@@ -41,29 +41,32 @@ from rigctl.drivers.base import (
     Status,
     load_note,
 )
+from rigctl.drivers.dynamixel_models import (
+    BY_NUMBER,
+    STANDARD_BAUDS,
+    STATUS_OFFSETS,
+    STATUS_SIZE,
+    ServoModel,
+    by_name,
+    model_label,
+)
+from rigctl.errors import ConfigError
 
 log = logging.getLogger(__name__)
 
-MODEL_NUMBERS = {"xm430-w350": 1020, "xl430-w250": 1060}
 AXES = ("pan", "tilt", "roll")
-
-# Control table addresses (X-series, Protocol 2.0).
-ADDR_MODEL, ADDR_FIRMWARE = 0, 6
-ADDR_RETURN_DELAY, ADDR_DRIVE_MODE, ADDR_OPERATING_MODE = 9, 10, 11
-ADDR_MAX_POS, ADDR_MIN_POS = 48, 52
-ADDR_TORQUE, ADDR_HW_ERROR = 64, 70
-ADDR_PROFILE_ACC, ADDR_PROFILE_VEL, ADDR_GOAL = 108, 112, 116
-ADDR_MOVING, ADDR_PRESENT_POS = 122, 132
-STATUS_BLOCK = (122, 14)  # moving, moving status, pwm, current, velocity, present position
 
 HW_ERROR_NAMES = {0x01: "input voltage", 0x04: "overheating", 0x08: "motor encoder",
                   0x10: "electrical shock", 0x20: "overload"}
 RETRYABLE = (sdk.COMM_RX_TIMEOUT, sdk.COMM_RX_CORRUPT, sdk.COMM_RX_FAIL, sdk.COMM_TX_FAIL)
-
-PULSES_PER_DEG = 4096 / 360.0
+# EEPROM items the driver sets (the same addresses in every table) and the values it wants.
+EEPROM_WANTED = {"return_delay_time": 0, "operating_mode": 3, "drive_mode": 0}
+STATUS_HEAD = 14  # Moving .. Present Position: what a move's watch polls
+ARRIVED_RAD = 2 * 2 * math.pi / 4096  # arrival tolerance: two X-series pulses, any family
 
 
 def hw_error_text(bits: int) -> str:
+    """The names of the Hardware Error Status bits set in ``bits``."""
     names = [name for bit, name in HW_ERROR_NAMES.items() if bits & bit]
     return ", ".join(names) or f"0x{bits:02x}"
 
@@ -105,11 +108,12 @@ FAST_BLOCK_START = 8  # a fast sync read reply: header, ID, length, 0x55, then t
 
 
 class DynamixelHead(Head):
-    """Pan (id ``ids.pan``), tilt and roll servos on one Protocol 2.0 bus."""
+    """Pan (id ``ids.pan``), tilt and roll servos on one Protocol 2.0 bus.
 
-    # EEPROM settings the driver wants; written only where they differ (EEPROM wear).
-    EEPROM_WANTED: ClassVar[dict[int, tuple[int, int]]] = {
-        ADDR_RETURN_DELAY: (1, 0), ADDR_OPERATING_MODE: (1, 3), ADDR_DRIVE_MODE: (1, 0)}
+    Each servo's model number, read when it is pinged, selects its control table,
+    resolution and units (``dynamixel_models``); servos whose items sit at one address
+    share a sync read or write, a bus that mixes tables uses bulk read (different
+    addresses, one packet) and one sync write per address."""
 
     def __init__(self, cfg) -> None:
         self.cfg = cfg
@@ -119,6 +123,7 @@ class DynamixelHead(Head):
         self.port: sdk.PortHandler | None = None
         self.packet = sdk.PacketHandler(2.0)
         self.info: dict[int, dict[str, Any]] = {}
+        self.models: dict[int, ServoModel] = {}
         self.eeprom_writes: list[str] = []
         self.retries_used = 0
         # The bus record (versions.json, doctor). Per servo id: transactions addressed to
@@ -133,15 +138,26 @@ class DynamixelHead(Head):
 
     # -- conversions --------------------------------------------------------------
 
+    def _model(self, axis: str) -> ServoModel:
+        return self.models[self.ids[axis]]
+
     def _to_pulses(self, axis: str, angle: float) -> int:
         servo_deg = (getattr(self.cfg.direction, axis) * math.degrees(angle)
                      + getattr(self.cfg.zero_offset_deg, axis))
-        return round(2048 + servo_deg * PULSES_PER_DEG)
+        return self._model(axis).to_pulses(math.radians(servo_deg))
 
     def _to_angle(self, axis: str, pulses: int) -> float:
-        servo_deg = (pulses - 2048) / PULSES_PER_DEG
+        servo_deg = math.degrees(self._model(axis).to_rad(pulses))
         return math.radians((servo_deg - getattr(self.cfg.zero_offset_deg, axis))
                             * getattr(self.cfg.direction, axis))
+
+    def _addr(self, dxl_id: int, item: str) -> int:
+        return self.models[dxl_id].table[item][0]
+
+    def _tolerance(self, dxl_id: int) -> int:
+        """Arrival tolerance in this servo's pulses (the same angle for every family)."""
+        return max(2, math.ceil(ARRIVED_RAD * self.models[dxl_id].pulses_per_rev
+                                / (2 * math.pi)))
 
     def _name(self, dxl_id: int) -> str:
         return f"head servo {dxl_id} ({self.axis_of.get(dxl_id, '?')}) on {self.cfg.port}"
@@ -264,7 +280,8 @@ class DynamixelHead(Head):
 
     def _check_error(self, dxl_id: int, error: int, what: str) -> None:
         if error & 0x80:
-            bits = self._read1(dxl_id, ADDR_HW_ERROR, "read hardware error status", check=False)
+            bits = self._read1(dxl_id, self._addr(dxl_id, "hardware_error_status"),
+                               "read hardware error status", check=False)
             raise self._hardware_error(dxl_id, bits)
         if error:
             raise ProtocolError(f"{self._name(dxl_id)}: {what}: "
@@ -274,6 +291,11 @@ class DynamixelHead(Head):
         value, _, error = self._call(what, dxl_id, self.packet.read1ByteTxRx, dxl_id, address)
         if check:
             self._check_error(dxl_id, error, what)
+        return value
+
+    def _read2(self, dxl_id: int, address: int, what: str) -> int:
+        value, _, error = self._call(what, dxl_id, self.packet.read2ByteTxRx, dxl_id, address)
+        self._check_error(dxl_id, error, what)
         return value
 
     def _read4(self, dxl_id: int, address: int, what: str) -> int:
@@ -288,24 +310,43 @@ class DynamixelHead(Head):
                                  dxl_id, address, value)
         self._check_error(dxl_id, error, what)
 
-    def _sync_write(self, address: int, size: int, values: dict[int, int], what: str) -> None:
-        def send(port):
-            group = sdk.GroupSyncWrite(port, self.packet, address, size)
-            for dxl_id, value in values.items():
-                group.addParam(dxl_id, (value & 0xFFFFFFFF).to_bytes(size, "little"))
-            return None, group.txPacket(), 0
+    def _by_address(self, item: str, ids) -> dict[int, list[int]]:
+        """The servos ``ids`` grouped by where ``item`` sits in their control tables."""
+        groups: dict[int, list[int]] = {}
+        for dxl_id in ids:
+            groups.setdefault(self._addr(dxl_id, item), []).append(dxl_id)
+        return groups
 
-        self._call(what, tuple(values), send)
+    def _sync_write(self, item: str, size: int, values: dict[int, int], what: str) -> None:
+        """One sync write per address ``item`` sits at (one packet on a single-family bus)."""
+        for address, ids in self._by_address(item, values).items():
+            def send(port, address=address, ids=ids):
+                group = sdk.GroupSyncWrite(port, self.packet, address, size)
+                for dxl_id in ids:
+                    group.addParam(dxl_id, (values[dxl_id] & 0xFFFFFFFF).to_bytes(size, "little"))
+                return None, group.txPacket(), 0
 
-    def _group_read(self, address: int, size: int, what: str, fast: bool = True
+            self._call(what, tuple(ids), send)
+
+    def _group_read(self, item: str, size: int, what: str, fast: bool = True
                     ) -> dict[int, bytes]:
+        """``size`` bytes from ``item`` on every servo in one transaction: a (fast) sync
+        read where the item sits at one address on every servo, else a (fast) bulk read
+        (each servo its own address; the same reply format)."""
         ids = tuple(self.ids.values())
+        groups = self._by_address(item, ids)
 
         def exchange(port):
-            group = sdk.GroupSyncRead(port, self.packet, address, size)
-            for dxl_id in ids:
-                group.addParam(dxl_id)
-            comm = group.fastSyncReadTxPacket() if fast else group.txPacket()
+            if len(groups) == 1:
+                group = sdk.GroupSyncRead(port, self.packet, next(iter(groups)), size)
+                for dxl_id in ids:
+                    group.addParam(dxl_id)
+                comm = group.fastSyncReadTxPacket() if fast else group.txPacket()
+            else:
+                group = sdk.GroupBulkRead(port, self.packet)
+                for dxl_id in ids:
+                    group.addParam(dxl_id, self._addr(dxl_id, item), size)
+                comm = group.fastBulkReadTxPacket() if fast else group.txPacket()
             if comm != sdk.COMM_SUCCESS:
                 return _GroupReply(comm), comm, 0  # not sent: no servo's doing
             reply = (self._fast_sync_rx(port, ids, size) if fast
@@ -368,63 +409,125 @@ class DynamixelHead(Head):
     # -- life cycle -----------------------------------------------------------------
 
     def open(self) -> None:
-        """Ping, check models, fix EEPROM where it differs, enable torque without a jump."""
+        """Ping every servo and check its model against the rig file before anything is
+        written; then fix EEPROM where it differs and enable torque without a jump."""
         with self._lock:
             self._open_port()
-            want = MODEL_NUMBERS[self.cfg.model]
+            pinged = {axis: self._ping_axis(axis, dxl_id) for axis, dxl_id in self.ids.items()}
             for axis, dxl_id in self.ids.items():
-                model, _, error = self._call("ping", dxl_id, self.packet.ping, dxl_id)
-                if model != want:
-                    raise DeviceError(f"{self._name(dxl_id)}: model number {model}, expected "
-                                      f"{want} ({self.cfg.model})")
-                firmware = self._read1(dxl_id, ADDR_FIRMWARE, "read firmware", check=False)
-                self.info[dxl_id] = {"axis": axis, "model": model, "firmware": firmware}
-                if error & 0x80:
-                    bits = self._read1(dxl_id, ADDR_HW_ERROR, "read hardware error", check=False)
-                    log.warning("%s: alert on connect (%s); rebooting", self._name(dxl_id),
-                                hw_error_text(bits))
-                    self._call("reboot", dxl_id, lambda *a: _wrap_write(self.packet.reboot, *a),
-                               dxl_id)
-                    time.sleep(0.05)
-                self._configure_eeprom(dxl_id)
-                self.info[dxl_id]["position_limits"] = (
-                    self._read4(dxl_id, ADDR_MIN_POS, "read min position limit"),
-                    self._read4(dxl_id, ADDR_MAX_POS, "read max position limit"))
+                self._check_model(axis, dxl_id, pinged[axis][0])
+            for axis, dxl_id in self.ids.items():
+                self._prepare(axis, dxl_id, pinged[axis][1])
             self._set_profile()
             self.set_torque(True)
 
+    def _ping_axis(self, axis: str, dxl_id: int) -> tuple[int, int]:
+        """Model number and status error byte of one servo; a servo silent at the rig
+        file's baud but answering at another is a rig-file error (exit 2)."""
+        try:
+            model, _, error = self._call("ping", dxl_id, self.packet.ping, dxl_id)
+        except DeviceError:
+            found = self._baud_of(dxl_id)
+            if found is None:
+                raise
+            raise ConfigError(
+                f"devices.head.baud: {self.cfg.baud}, but servo {dxl_id} ({axis}) on "
+                f"{self.cfg.port} does not answer at that baud; it answers at {found} baud "
+                "(set devices.head.baud, or change the servo's Baud Rate)") from None
+        return model, error
+
+    def _baud_of(self, dxl_id: int) -> int | None:
+        """The standard baud rate ``dxl_id`` answers a ping at (None: none); the port is
+        left at the rig file's baud."""
+        port = self.port
+        try:
+            for baud in STANDARD_BAUDS:
+                if baud == self.cfg.baud or not port.setBaudRate(baud):
+                    continue
+                if self.packet.ping(port, dxl_id)[1] == sdk.COMM_SUCCESS:
+                    return baud
+            return None
+        finally:
+            port.setBaudRate(self.cfg.baud)
+
+    def _check_model(self, axis: str, dxl_id: int, number: int) -> None:
+        model = BY_NUMBER.get(number)
+        named = self.cfg.model_of(axis)
+        if named is not None and by_name(named).number != number:
+            key = "devices.head.model" + (f".{axis}" if not isinstance(self.cfg.model, str)
+                                          else "")
+            raise ConfigError(
+                f"{key}: {named} (model number {by_name(named).number}), but servo {dxl_id} "
+                f"({axis}) on {self.cfg.port} reports {model_label(number)} (model number "
+                f"{number})")
+        if model is None:
+            raise DeviceError(f"{self._name(dxl_id)}: model number {number} is not a servo "
+                              f"this driver knows (see rigctl.drivers.dynamixel_models)")
+        self.models[dxl_id] = model
+
+    def _prepare(self, axis: str, dxl_id: int, error: int) -> None:
+        """Firmware, reboot on an alert, EEPROM, and the limits the servo holds."""
+        model = self.models[dxl_id]
+        table = model.table
+        firmware = self._read1(dxl_id, table["firmware_version"][0], "read firmware",
+                               check=False)
+        self.info[dxl_id] = {"axis": axis, "model": model.name, "model_number": model.number,
+                             "firmware": firmware}
+        if error & 0x80:
+            bits = self._read1(dxl_id, table["hardware_error_status"][0],
+                               "read hardware error", check=False)
+            log.warning("%s: alert on connect (%s); rebooting", self._name(dxl_id),
+                        hw_error_text(bits))
+            self._reboot_servo(dxl_id)
+        self._configure_eeprom(dxl_id)
+        self.info[dxl_id]["position_limits"] = (
+            _signed32(self._read4(dxl_id, table["min_position_limit"][0],
+                                  "read min position limit")),
+            _signed32(self._read4(dxl_id, table["max_position_limit"][0],
+                                  "read max position limit")))
+        self.info[dxl_id]["temperature_limit_c"] = self._read1(
+            dxl_id, table["temperature_limit"][0], "read temperature limit")
+        self.info[dxl_id]["voltage_limits_v"] = (
+            self._read2(dxl_id, table["min_voltage_limit"][0], "read min voltage limit") / 10,
+            self._read2(dxl_id, table["max_voltage_limit"][0], "read max voltage limit") / 10)
+
+    def _reboot_servo(self, dxl_id: int) -> None:
+        self._call("reboot", dxl_id, lambda *a: _wrap_write(self.packet.reboot, *a), dxl_id)
+        time.sleep(0.05)
+
     def _configure_eeprom(self, dxl_id: int) -> None:
-        for address, (size, wanted) in self.EEPROM_WANTED.items():
+        table = self.models[dxl_id].table
+        for item, wanted in EEPROM_WANTED.items():
+            address, size = table[item]
             current = self._read1(dxl_id, address, f"read EEPROM {address}")
             if current != wanted:
-                if self._read1(dxl_id, ADDR_TORQUE, "read torque"):
-                    self._write(dxl_id, ADDR_TORQUE, 1, 0, "torque off for EEPROM write")
+                torque = table["torque_enable"][0]
+                if self._read1(dxl_id, torque, "read torque"):
+                    self._write(dxl_id, torque, 1, 0, "torque off for EEPROM write")
                 self._write(dxl_id, address, size, wanted, f"write EEPROM {address}")
                 self.eeprom_writes.append(f"id {dxl_id} addr {address}: {current} -> {wanted}")
 
     def _set_profile(self) -> None:
-        rpm = self.cfg.speed_cap_dps / 6.0
-        rev_per_min2 = self.cfg.accel_cap_dps2 / 360.0 * 3600.0
-        velocity = max(1, int(rpm / 0.229))
-        acceleration = max(1, int(rev_per_min2 / 214.577))
         ids = self.ids.values()
-        self._sync_write(ADDR_PROFILE_ACC, 4, dict.fromkeys(ids, acceleration),
-                         "write profile acceleration")
-        self._sync_write(ADDR_PROFILE_VEL, 4, dict.fromkeys(ids, velocity),
-                         "write profile velocity")
+        velocity = {i: self.models[i].velocity_value(self.cfg.speed_cap_dps) for i in ids}
+        acceleration = {i: self.models[i].accel_value(self.cfg.accel_cap_dps2) for i in ids}
+        self._sync_write("profile_acceleration", 4, acceleration, "write profile acceleration")
+        self._sync_write("profile_velocity", 4, velocity, "write profile velocity")
         self.profile = {"velocity": velocity, "acceleration": acceleration}
 
     def set_torque(self, enabled: bool) -> None:
         """Torque on: goal := present position first, so the head never jumps."""
         with self._lock:
             for dxl_id in self.ids.values():
+                torque = self._addr(dxl_id, "torque_enable")
                 if enabled:
-                    present = _signed32(self._read4(dxl_id, ADDR_PRESENT_POS,
+                    present = _signed32(self._read4(dxl_id, self._addr(dxl_id, "present_position"),
                                                     "read present position"))
-                    if self._read1(dxl_id, ADDR_TORQUE, "read torque") == 0:
+                    if self._read1(dxl_id, torque, "read torque") == 0:
                         # The goal item is writable with torque off; align it to present.
-                        self._write(dxl_id, ADDR_GOAL, 4, present & 0xFFFFFFFF, "align goal")
-                self._write(dxl_id, ADDR_TORQUE, 1, int(enabled), "write torque enable")
+                        self._write(dxl_id, self._addr(dxl_id, "goal_position"), 4,
+                                    present & 0xFFFFFFFF, "align goal")
+                self._write(dxl_id, torque, 1, int(enabled), "write torque enable")
 
     def close(self) -> None:
         if self.port is None:
@@ -443,7 +546,9 @@ class DynamixelHead(Head):
                 self.port = None
 
     def describe(self) -> dict[str, Any]:
-        return {"model": self.cfg.model, "port": self.cfg.port, "baud": self.cfg.baud,
+        models = sorted({v["model"] for v in self.info.values()})
+        return {"model": models[0] if len(models) == 1 else models, "port": self.cfg.port,
+                "baud": self.cfg.baud,
                 "servos": {str(k): v for k, v in self.info.items()},
                 "firmware": sorted({v["firmware"] for v in self.info.values()}),
                 "profile": getattr(self, "profile", None), "eeprom_writes": self.eeprom_writes,
@@ -453,25 +558,77 @@ class DynamixelHead(Head):
     def limits(self) -> dict[str, tuple[float, float]]:
         return self.cfg.limits_rad()
 
+    # -- servo health ---------------------------------------------------------------
+
+    def health(self) -> dict[str, dict[str, Any]]:
+        """Per axis: present temperature, input voltage and load (one group read), the
+        hardware error status, and the servo's own limits."""
+        data = self._group_read("moving", STATUS_SIZE, "fast sync read servo health")
+        errors = self.hardware_errors()
+        out = {}
+        for axis, dxl_id in self.ids.items():
+            raw, model, info = data[dxl_id], self.models[dxl_id], self.info.get(dxl_id, {})
+            load = int.from_bytes(raw[4:6], "little", signed=True) * model.load_unit
+            out[axis] = {
+                "id": dxl_id, "model": model.name,
+                "temperature_c": raw[STATUS_OFFSETS["temperature"]],
+                "voltage_v": int.from_bytes(raw[22:24], "little") / 10.0,
+                **({"current_a": load / 1000.0} if model.load == "current"
+                   else {"load_pct": load}),
+                "hardware_error": errors.get(dxl_id, 0),
+                "temperature_limit_c": info.get("temperature_limit_c"),
+                "voltage_limits_v": info.get("voltage_limits_v")}
+        return out
+
+    def check_health(self, health: dict[str, dict[str, Any]]) -> None:
+        """Raise ``DeviceError`` naming the servo when one reached its temperature limit
+        or reports a hardware error (an alert)."""
+        for h in health.values():
+            name = self._name(h["id"])
+            if h["hardware_error"]:
+                bits = hw_error_text(h["hardware_error"])
+                raise DeviceError(f"{name}: alert: hardware error ({bits}); temperature "
+                                  f"{h['temperature_c']} C, input voltage {h['voltage_v']:.1f} V")
+            limit = h.get("temperature_limit_c")
+            if limit is not None and h["temperature_c"] >= limit:
+                raise DeviceError(f"{name}: temperature {h['temperature_c']} C reached its "
+                                  f"limit of {limit} C (Temperature Limit, address 31); "
+                                  f"let it cool")
+
+    def reboot(self, axis: str) -> dict[str, Any]:
+        """Reboot one servo (clears an alert), then read its hardware error status."""
+        dxl_id = self.ids[axis]
+        with self._lock:
+            before = self._read1(dxl_id, self._addr(dxl_id, "hardware_error_status"),
+                                 "read hardware error status", check=False)
+            self._reboot_servo(dxl_id)
+            after = self._read1(dxl_id, self._addr(dxl_id, "hardware_error_status"),
+                                "read hardware error status", check=False)
+        return {"axis": axis, "id": dxl_id, "model": self.models[dxl_id].name,
+                "hardware_error_before": before, "before": hw_error_text(before) if before
+                else "none", "hardware_error_after": after,
+                "after": hw_error_text(after) if after else "none"}
+
     # -- motion -------------------------------------------------------------------
 
     def read_angles(self) -> HeadAngles:
         t0 = time.time()
-        data = self._group_read(ADDR_PRESENT_POS, 4, "fast sync read present position")
+        data = self._group_read("present_position", 4, "fast sync read present position")
         t1 = time.time()
         angles = {axis: self._to_angle(axis, _signed32(int.from_bytes(data[i], "little")))
                   for axis, i in self.ids.items()}
         return HeadAngles(angles["pan"], angles["tilt"], angles["roll"], (t0 + t1) / 2)
 
     def read_status(self) -> dict[int, dict[str, int]]:
-        """Moving, moving status and present position of every servo (one fast sync read)."""
-        data = self._group_read(*STATUS_BLOCK, "fast sync read status")
+        """Moving, moving status and present position of every servo (one fast read)."""
+        data = self._group_read("moving", STATUS_HEAD, "fast sync read status")
         return {dxl_id: {"moving": raw[0], "moving_status": raw[1],
                          "position": _signed32(int.from_bytes(raw[10:14], "little"))}
                 for dxl_id, raw in data.items()}
 
     def hardware_errors(self) -> dict[int, int]:
-        data = self._group_read(ADDR_HW_ERROR, 1, "sync read hardware error status", fast=False)
+        data = self._group_read("hardware_error_status", 1, "sync read hardware error status",
+                                fast=False)
         return {dxl_id: raw[0] for dxl_id, raw in data.items() if raw[0]}
 
     def _raise_hardware_errors(self) -> None:
@@ -484,7 +641,8 @@ class DynamixelHead(Head):
         """The error to raise for Hardware Error Status ``bits``; says whether the servo
         shut its torque off (only errors in its Shutdown mask, address 63, do)."""
         try:
-            torque = self._read1(dxl_id, ADDR_TORQUE, "read torque enable", check=False)
+            torque = self._read1(dxl_id, self._addr(dxl_id, "torque_enable"),
+                                 "read torque enable", check=False)
             after = ("torque is off until a reboot" if not torque else
                      "torque stays on (not a shutdown condition); fix the cause")
         except DeviceError:
@@ -498,7 +656,8 @@ class DynamixelHead(Head):
         targets = {self.ids[a]: self._to_pulses(a, v)
                    for a, v in zip(AXES, (pan, tilt, roll), strict=True)}
         for dxl_id, goal in targets.items():
-            lo, hi = self.info.get(dxl_id, {}).get("position_limits", (0, 4095))
+            lo, hi = self.info.get(dxl_id, {}).get("position_limits",
+                                                   self.models[dxl_id].position_range)
             if not lo <= goal <= hi:
                 raise SafetyError(f"{self._name(dxl_id)}: goal {goal} pulses outside the servo's "
                                   f"position limits [{lo}, {hi}] (check zero_offset_deg)")
@@ -509,9 +668,9 @@ class DynamixelHead(Head):
         status = Status(f"head move to pan {math.degrees(pan):.2f}, tilt "
                         f"{math.degrees(tilt):.2f}, roll {math.degrees(roll):.2f} deg")
         start = {k: v["position"] for k, v in self.read_status().items()}
-        self._sync_write(ADDR_GOAL, 4, targets, "sync write goal position")
+        self._sync_write("goal_position", 4, targets, "sync write goal position")
         # Sync write has no reply: read the goals back so a refused goal is not a silent hang.
-        written = self._group_read(ADDR_GOAL, 4, "fast sync read goal position")
+        written = self._group_read("goal_position", 4, "fast sync read goal position")
         for dxl_id, goal in targets.items():
             got = _signed32(int.from_bytes(written[dxl_id], "little"))
             if got != goal:
@@ -522,9 +681,22 @@ class DynamixelHead(Head):
         self._motion.start()
         return status
 
+    def _remaining(self, targets: dict[int, int], state: dict) -> tuple[float, bool, bool]:
+        """The largest distance to go (radians), whether every servo arrived, and whether
+        one stopped short of its goal."""
+        remaining, arrived, stalled = 0.0, True, False
+        for i, s in state.items():
+            off = abs(targets[i] - s["position"])
+            remaining = max(remaining, off * 2 * math.pi / self.models[i].pulses_per_rev)
+            near = off <= self._tolerance(i)
+            arrived &= s["moving"] == 0 and bool(s["moving_status"] & 0x01) and near
+            stalled |= s["moving"] == 0 and not s["moving_status"] & 0x02 and not near
+        return remaining, arrived, stalled
+
     def _watch(self, status: Status, start: dict[int, int], targets: dict[int, int]) -> None:
         deadline = time.monotonic() + self.cfg.move_timeout_s
-        span = max(max(abs(targets[i] - start[i]) for i in targets), 1)
+        span = max(max(abs(targets[i] - start[i]) * 2 * math.pi / self.models[i].pulses_per_rev
+                       for i in targets), ARRIVED_RAD)
         polls = 0
         try:
             while True:
@@ -532,21 +704,17 @@ class DynamixelHead(Head):
                     raise SafetyError("head move stopped")
                 state = self.read_status()
                 polls += 1
-                remaining = max(abs(targets[i] - s["position"]) for i, s in state.items())
+                remaining, arrived, stalled = self._remaining(targets, state)
                 status.set_progress(1.0 - remaining / span)
-                arrived = all(s["moving"] == 0 and s["moving_status"] & 0x01 and
-                              abs(targets[i] - s["position"]) <= 2 for i, s in state.items())
                 if arrived:
                     self._raise_hardware_errors()
                     status.set_finished()
                     return
-                stalled = any(s["moving"] == 0 and not s["moving_status"] & 0x02 and
-                              abs(targets[i] - s["position"]) > 2 for i, s in state.items())
                 if stalled or polls % 25 == 0:
                     self._raise_hardware_errors()  # an Alert is possible: look for it
                 if time.monotonic() > deadline:
                     raise DeviceError(f"head: move not finished after {self.cfg.move_timeout_s}"
-                                      f" s (remaining {remaining / PULSES_PER_DEG:.2f} deg)")
+                                      f" s (remaining {math.degrees(remaining):.2f} deg)")
                 time.sleep(0.01)
         except Exception as exc:
             status.set_exception(exc)
@@ -558,10 +726,35 @@ class DynamixelHead(Head):
             return
         try:
             present = {k: v["position"] for k, v in self.read_status().items()}
-            self._sync_write(ADDR_GOAL, 4, present, "sync write goal (stop)")
+            self._sync_write("goal_position", 4, present, "sync write goal (stop)")
         except DeviceError as exc:
             log.error("head stop: %s", exc)
             raise
+
+
+def scan_bus(port_name: str, bauds: tuple[int, ...] = STANDARD_BAUDS) -> list[dict[str, Any]]:
+    """Broadcast ping at each baud rate in ``bauds``: every servo that answers, with its
+    ID, model (lower case), model number, firmware and baud."""
+    port = sdk.PortHandler(port_name)
+    try:
+        opened = port.openPort()
+    except Exception as exc:
+        raise DeviceError(f"head scan: cannot open {port_name}: {exc}") from None
+    if not opened:
+        raise DeviceError(f"head scan: cannot open {port_name}")
+    packet = sdk.PacketHandler(2.0)
+    found = []
+    try:
+        for baud in bauds:
+            if not port.setBaudRate(baud):
+                continue
+            servos, _ = packet.broadcastPing(port)
+            for dxl_id, (number, firmware) in sorted(servos.items()):
+                found.append({"id": dxl_id, "model": model_label(number),
+                              "model_number": number, "firmware": firmware, "baud": baud})
+    finally:
+        port.closePort()
+    return found
 
 
 def _wrap_write(fn, *args):

@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import http.server
 import json
-import math
 import os
 import signal
 import socket
@@ -61,7 +60,7 @@ class Camera:
             by_id = {s["id"]: s for s in dump["servos"]}
             for axis, dxl_id in enumerate(self.head_ids):
                 if dxl_id in by_id:
-                    angles[axis] = (by_id[dxl_id]["actual_pulses"] - 2048) * 2 * math.pi / 4096
+                    angles[axis] = by_id[dxl_id]["actual_rad"]
         q = self.world.home_q
         dump = self.arm.ask({"cmd": "dump"})
         if dump and dump.get("ok"):

@@ -1,7 +1,19 @@
-"""One simulated X-series servo: control table, access rules, trapezoidal motion, faults.
+"""One simulated servo of any family the stand-in knows: control table, access rules,
+trapezoidal motion, encoder, temperature and supply, faults.
 
-Facts from the ROBOTIS e-Manual (XM430-W350, XL430-W250 control tables). Behaviour the
-e-Manual leaves open is configurable through ``ServoOptions``.
+The tables and units are the stand-in's own transcription of the ROBOTIS e-Manual
+(``dxl_models``). Behaviour the e-Manual leaves open is configurable through
+``ServoOptions``.
+
+Encoder as on hardware (``encoder="hardware"``): the true shaft angle is continuous (a
+move ends within half a pulse of its goal, as a position loop holds it), and a reading
+is that angle plus noise (the model's ``noise_ticks`` pulses, sigma), quantized to one
+pulse. ``encoder="ideal"`` (the default) ends every move exactly on its goal pulse and
+reads it without noise; ``position_noise`` adds noise (pulses, sigma) in either mode.
+
+Heating: with ``heating_c_per_s`` set, the temperature climbs while torque is on, faster
+under load, and cools towards ``ambient_c``; at the Temperature Limit the servo raises
+its overheating error (shutting torque off when Shutdown selects it, as by default).
 """
 
 from __future__ import annotations
@@ -10,6 +22,8 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+
+from rigctl.mocks.dxl_models import SPEC_BY_NAME, items_of, table_end
 
 # Error numbers of the status packet (bits 0-6), and the Alert bit.
 ERR_RESULT_FAIL, ERR_INSTRUCTION, ERR_CRC = 1, 2, 3
@@ -21,85 +35,7 @@ HW_VOLTAGE, HW_OVERHEAT, HW_ENCODER, HW_SHOCK, HW_OVERLOAD = 0x01, 0x04, 0x08, 0
 HW_ERRORS = {"voltage": HW_VOLTAGE, "overheat": HW_OVERHEAT, "encoder": HW_ENCODER,
              "shock": HW_SHOCK, "overload": HW_OVERLOAD}
 
-PULSES_PER_REV = 4096
-VELOCITY_UNIT_RPM = 0.229
-ACCEL_UNIT_RPM2 = 214.577
-TABLE_END = 228  # addresses past the indirect-data area are undefined here
-
-
-@dataclass(frozen=True)
-class Item:
-    address: int
-    size: int
-    name: str
-    access: str  # "R" or "RW"
-    default: int
-    lo: int | None = None
-    hi: int | None = None
-    eeprom: bool = False
-    signed: bool = False
-
-
-def _table(model: str) -> list[Item]:
-    xm = model == "xm430-w350"
-    items = [
-        Item(0, 2, "model_number", "R", 1020 if xm else 1060, eeprom=True),
-        Item(2, 4, "model_information", "R", 0, eeprom=True),
-        Item(6, 1, "firmware_version", "R", 52 if xm else 46, eeprom=True),
-        Item(7, 1, "id", "RW", 1, 0, 252, eeprom=True),
-        Item(8, 1, "baud_rate", "RW", 1, 0, 7, eeprom=True),
-        Item(9, 1, "return_delay_time", "RW", 250, 0, 254, eeprom=True),
-        Item(10, 1, "drive_mode", "RW", 0, 0, 13, eeprom=True),
-        Item(11, 1, "operating_mode", "RW", 3, 0, 16, eeprom=True),
-        Item(12, 1, "secondary_id", "RW", 255, 0, 255, eeprom=True),
-        Item(13, 1, "protocol_type", "RW", 2, 1, 2, eeprom=True),
-        Item(20, 4, "homing_offset", "RW", 0, -1044479, 1044479, eeprom=True, signed=True),
-        Item(24, 4, "moving_threshold", "RW", 10, 0, 1023, eeprom=True),
-        Item(31, 1, "temperature_limit", "RW", 80 if xm else 72, 0, 100, eeprom=True),
-        Item(32, 2, "max_voltage_limit", "RW", 160 if xm else 140, 60, 160, eeprom=True),
-        Item(34, 2, "min_voltage_limit", "RW", 95 if xm else 60, 60, 160, eeprom=True),
-        Item(36, 2, "pwm_limit", "RW", 885, 0, 885, eeprom=True),
-        Item(44, 4, "velocity_limit", "RW", 200 if xm else 265, 0, 1023, eeprom=True),
-        Item(48, 4, "max_position_limit", "RW", 4095, 0, 4095, eeprom=True),
-        Item(52, 4, "min_position_limit", "RW", 0, 0, 4095, eeprom=True),
-        Item(63, 1, "shutdown", "RW", 52, 0, 255, eeprom=True),
-        Item(64, 1, "torque_enable", "RW", 0, 0, 1),
-        Item(65, 1, "led", "RW", 0, 0, 1),
-        Item(68, 1, "status_return_level", "RW", 2, 0, 2),
-        Item(69, 1, "registered_instruction", "R", 0),
-        Item(70, 1, "hardware_error_status", "R", 0),
-        Item(76, 2, "velocity_i_gain", "RW", 1920 if xm else 1000, 0, 16383),
-        Item(78, 2, "velocity_p_gain", "RW", 100, 0, 16383),
-        Item(80, 2, "position_d_gain", "RW", 0, 0, 16383),
-        Item(82, 2, "position_i_gain", "RW", 0, 0, 16383),
-        Item(84, 2, "position_p_gain", "RW", 800 if xm else 640, 0, 16383),
-        Item(88, 2, "feedforward_2nd_gain", "RW", 0, 0, 16383),
-        Item(90, 2, "feedforward_1st_gain", "RW", 0, 0, 16383),
-        Item(98, 1, "bus_watchdog", "RW", 0, -1, 127, signed=True),
-        Item(100, 2, "goal_pwm", "RW", 0, -885, 885, signed=True),
-        Item(104, 4, "goal_velocity", "RW", 0, -1023, 1023, signed=True),
-        Item(108, 4, "profile_acceleration", "RW", 0, 0, 32767),
-        Item(112, 4, "profile_velocity", "RW", 0, 0, 32767),
-        Item(116, 4, "goal_position", "RW", 2048, -1048575, 1048575, signed=True),
-        Item(120, 2, "realtime_tick", "R", 0),
-        Item(122, 1, "moving", "R", 0),
-        Item(123, 1, "moving_status", "R", 0),
-        Item(124, 2, "present_pwm", "R", 0, signed=True),
-        Item(126, 2, "present_current", "R", 0, signed=True),
-        Item(128, 4, "present_velocity", "R", 0, signed=True),
-        Item(132, 4, "present_position", "R", 2048, signed=True),
-        Item(136, 4, "velocity_trajectory", "R", 0, signed=True),
-        Item(140, 4, "position_trajectory", "R", 2048, signed=True),
-        Item(144, 2, "present_input_voltage", "R", 120 if xm else 115),
-        Item(146, 1, "present_temperature", "R", 32),
-    ]
-    if xm:
-        items += [Item(38, 2, "current_limit", "RW", 1193, 0, 1193, eeprom=True),
-                  Item(102, 2, "goal_current", "RW", 0, -1193, 1193, signed=True)]
-    return sorted(items, key=lambda i: i.address)
-
-
-MODELS = {"xm430-w350": 1020, "xl430-w250": 1060}
+MODELS = {name: spec.number for name, spec in SPEC_BY_NAME.items()}
 GOAL_ITEMS = ("goal_pwm", "goal_current", "goal_velocity", "goal_position")
 
 
@@ -170,23 +106,37 @@ class Servo:
     options: ServoOptions = field(default_factory=ServoOptions)
     clock: Callable[[], float] = time.monotonic
     position_noise: float = 0.0  # pulses, sigma of the present-position reading
+    encoder: str = "ideal"  # or "hardware": continuous true angle, the model's noise
+    seed: int | None = None
 
     def __post_init__(self) -> None:
-        if self.model not in MODELS:
+        if self.model not in SPEC_BY_NAME:
             raise ValueError(f"unknown servo model {self.model!r}; known: {sorted(MODELS)}")
-        self.items = _table(self.model)
+        if self.encoder not in ("ideal", "hardware"):
+            raise ValueError(f"encoder {self.encoder!r}: 'ideal' or 'hardware'")
+        self.spec = SPEC_BY_NAME[self.model]
+        self.table_end = table_end(self.spec)
+        self.items = items_of(self.spec)
         self.by_name = {i.name: i for i in self.items}
         self.by_addr = {i.address: i for i in self.items}
         self.values = {i.name: i.default for i in self.items}
         self.values["id"] = self.dxl_id
-        self.actual = 2048.0  # true shaft angle, pulses (0..4095 one turn)
-        self.profile = Profile(2048.0, 2048.0, self.clock())
+        center = float(self.spec.center)
+        self.actual = center  # true shaft angle, pulses of this model (centre: 0 rad)
+        self.profile = Profile(center, center, self.clock())
         self.registered: tuple[int, bytes] | None = None
         self.last_comm = self.clock()
         self.boot_time = self.clock()
+        self.temperature = float(self.values["present_temperature"])
+        self.ambient_c = self.temperature
+        self.heating_c_per_s = 0.0
+        self.cooling_s = 300.0
+        self._last_update = self.clock()
         import random
 
-        self._rng = random.Random(self.dxl_id)
+        self._rng = random.Random(self.dxl_id if self.seed is None else self.seed)
+        noise = self.spec.noise_ticks if self.encoder == "hardware" else 0.0
+        self.noise = math.hypot(noise, self.position_noise)
 
     # -- state ------------------------------------------------------------------
 
@@ -196,6 +146,10 @@ class Servo:
 
     def alert(self) -> int:
         return ALERT if self.values["hardware_error_status"] else 0
+
+    def angle_rad(self) -> float:
+        """The true shaft angle, radians from the centre (what a camera on it sees)."""
+        return (self.actual - self.spec.center) * 2 * math.pi / self.spec.pulses_per_rev
 
     def update(self) -> None:
         """Bring the present values up to the clock."""
@@ -207,20 +161,47 @@ class Servo:
         else:
             vel = 0.0
         v = self.values
-        noise = self._rng.gauss(0.0, self.position_noise) if self.position_noise else 0.0
+        noise = self._rng.gauss(0.0, self.noise) if self.noise else 0.0
         v["present_position"] = round(self.actual + noise) + v["homing_offset"]
         v["position_trajectory"] = round(self.profile.at(now)[0]) if self.torque else \
             v["present_position"]
-        rpm = vel / PULSES_PER_REV * 60.0
-        v["present_velocity"] = round(rpm / VELOCITY_UNIT_RPM)
+        rpm = vel / self.spec.pulses_per_rev * 60.0
+        v["present_velocity"] = round(rpm / self.spec.velocity_rpm)
         v["velocity_trajectory"] = v["present_velocity"]
         v["realtime_tick"] = int((now - self.boot_time) * 1000) % 32768
         ongoing = self.torque and self.profile.ongoing(now)
-        in_position = abs(v["goal_position"] - v["present_position"]) <= 1 or not self.torque
+        in_position = (abs(v["goal_position"] - v["homing_offset"] - self.actual) <= 1
+                       or not self.torque)
         v["moving"] = 1 if ongoing or abs(v["present_velocity"]) > v["moving_threshold"] else 0
         v["moving_status"] = ((1 if in_position else 0) | (2 if ongoing else 0)
                               | (self.profile.kind << 4 if ongoing else 0))
-        v["present_current"] = int(20 + abs(vel) * 0.01) if self.torque else 0
+        self._update_load_and_heat(now, vel)
+
+    def _update_load_and_heat(self, now: float, vel: float) -> None:
+        """Present current (or load) from the motion; temperature from load and time."""
+        v = self.values
+        peak = v["velocity_limit"] * self.spec.velocity_rpm / 60.0 * self.spec.pulses_per_rev
+        load = (0.05 + 0.3 * min(abs(vel) / peak, 1.0)) if self.torque and peak else 0.0
+        if self.spec.load_item == "present_current":
+            v["present_current"] = round(load * v.get("current_limit", 1000))
+        else:
+            v["present_load"] = round(load * 1000)  # 0.1 %
+        dt, self._last_update = max(now - self._last_update, 0.0), now
+        if self.torque and self.heating_c_per_s:
+            self.temperature += self.heating_c_per_s * (0.5 + 5.0 * load) * dt
+        self.temperature -= (self.temperature - self.ambient_c) * min(dt / self.cooling_s, 1.0)
+        v["present_temperature"] = max(0, min(255, round(self.temperature)))
+        if v["present_temperature"] >= v["temperature_limit"] \
+                and not v["hardware_error_status"] & HW_OVERHEAT:
+            self._raise_error(HW_OVERHEAT, now)
+
+    def set_supply(self, volts: float) -> None:
+        """The supply voltage; outside the servo's voltage limits it raises its input
+        voltage error (torque stays on unless Shutdown selects that error)."""
+        self.values["present_input_voltage"] = round(10 * volts)
+        v = self.values["present_input_voltage"]
+        if not self.values["min_voltage_limit"] <= v <= self.values["max_voltage_limit"]:
+            self.inject_hardware_error(HW_VOLTAGE)
 
     def _check_watchdog(self, now: float) -> None:
         wd = self.values["bus_watchdog"]
@@ -244,9 +225,12 @@ class Servo:
     def inject_hardware_error(self, bits: int) -> None:
         """Set Hardware Error Status bits; errors selected by Shutdown cut torque."""
         self.update()
+        self._raise_error(bits, self.clock())
+
+    def _raise_error(self, bits: int, now: float) -> None:
         self.values["hardware_error_status"] |= bits
         if bits & self.values["shutdown"]:
-            self._hold(self.clock())
+            self._hold(now)
             self.values["torque_enable"] = 0
 
     def reboot(self) -> None:
@@ -282,10 +266,10 @@ class Servo:
     # -- memory -----------------------------------------------------------------
 
     def read(self, address: int, length: int) -> tuple[int, bytes]:
-        if length == 0 or address < 0 or address + length > TABLE_END:
+        if length == 0 or address < 0 or address + length > self.table_end:
             return ERR_ACCESS, b""
         self.update()
-        memory = bytearray(TABLE_END)
+        memory = bytearray(self.table_end)
         for item in self.items:
             value = self.values[item.name]
             memory[item.address:item.address + item.size] = int(value).to_bytes(
@@ -295,7 +279,7 @@ class Servo:
     def check_write(self, address: int, data: bytes) -> int:
         """The error a write would give (0 if it is allowed)."""
         end = address + len(data)
-        if not data or address < 0 or end > TABLE_END:
+        if not data or address < 0 or end > self.table_end:
             return ERR_ACCESS
         pos = address
         while pos < end:
@@ -379,13 +363,21 @@ class Servo:
             kind = 3 if t_acc > 0 else 1
             self.profile = Profile(pos, target, now, t_acc, t_total, v_peak, kind)
             return
-        vel = v * VELOCITY_UNIT_RPM / 60.0 * PULSES_PER_REV if v else math.inf
-        acc = a * ACCEL_UNIT_RPM2 / 3600.0 * PULSES_PER_REV if a else math.inf
-        self.profile = Profile.plan(pos, target, now, vel, acc)
+        ppr = self.spec.pulses_per_rev
+        vel = v * self.spec.velocity_rpm / 60.0 * ppr if v else math.inf
+        acc = a * self.spec.accel_rpm2 / 3600.0 * ppr if a else math.inf
+        self.profile = Profile.plan(pos, target + self._settle_error(), now, vel, acc)
+
+    def _settle_error(self) -> float:
+        """Where the true angle ends against the goal pulse: anywhere within half a pulse
+        for a hardware encoder (the reading is quantized, the shaft is not), 0 ideal."""
+        return self._rng.uniform(-0.5, 0.5) if self.encoder == "hardware" else 0.0
 
     def dump(self) -> dict:
         self.update()
         return {"id": self.dxl_id, "model": self.model, "actual_pulses": self.actual,
+                "actual_rad": self.angle_rad(), "pulses_per_rev": self.spec.pulses_per_rev,
+                "heating_c_per_s": self.heating_c_per_s,
                 **{k: self.values[k] for k in (
                     "torque_enable", "goal_position", "present_position", "moving",
                     "moving_status", "hardware_error_status", "bus_watchdog",

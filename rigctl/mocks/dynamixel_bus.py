@@ -3,8 +3,13 @@
 Run as its own process (the SDK busy-waits; a thread in the client's interpreter would
 add GIL contention)::
 
-    rigctl mock head --link /tmp/dxl [--ids 1 2 3] [--model xm430-w350] \
-        [--wire-timing] [--control /tmp/dxl.sock]
+    rigctl mock head --link /tmp/dxl [--ids 1 2 3] [--model xh540-w270 [M ...]] \
+        [--baud 1000000 [B ...]] [--encoder ideal|hardware] [--wire-timing] \
+        [--control /tmp/dxl.sock]
+
+``--model`` and ``--baud``: one for every ID, or one per ID (a mixed bus: e.g.
+``--model xh540-w270 xh540-w270 xm430-w350``). Each servo plays its model's control
+table from the stand-in's own transcription (``dxl_models``).
 
 It prints one JSON ready line ``{"port", "link", "pid", "control"}`` and runs until
 SIGTERM or SIGINT, then removes the link and the control socket.
@@ -13,7 +18,8 @@ Control socket (JSON lines, one reply line per request)::
 
     {"cmd": "corrupt_next"}   {"cmd": "drop_next"}   {"cmd": "delay_next", "seconds": 0.1}
     {"cmd": "hw_error", "id": 2, "error": "overload"}     (overload|overheat|voltage|...)
-    {"cmd": "set", "id": 1, "temperature": 70, "voltage": 11.1}
+    {"cmd": "set", "id": 1, "temperature": 70, "voltage": 11.1}   (no "id": every servo)
+    {"cmd": "set", "id": 1, "heating_c_per_s": 2.0}   (heat under load; 0 stops heating)
     {"cmd": "dump"}           {"cmd": "stats"}
 """
 
@@ -416,16 +422,10 @@ class BusServer:
             bits = HW_ERRORS[request["error"]]
             self.bus.servos[int(request["id"])].inject_hardware_error(bits)
         elif cmd == "set":
-            servo = self.bus.servos[int(request["id"])]
-            if "temperature" in request:
-                servo.values["present_temperature"] = int(request["temperature"])
-                if servo.values["present_temperature"] > servo.values["temperature_limit"]:
-                    servo.inject_hardware_error(HW_ERRORS["overheat"])
-            if "voltage" in request:
-                servo.values["present_input_voltage"] = round(10 * request["voltage"])
-                v = servo.values["present_input_voltage"]
-                if not servo.values["min_voltage_limit"] <= v <= servo.values["max_voltage_limit"]:
-                    servo.inject_hardware_error(HW_ERRORS["voltage"])
+            targets = ([self.bus.servos[int(request["id"])]] if "id" in request
+                       else list(self.bus.servos.values()))
+            for servo in targets:
+                _set_servo(servo, request)
         elif cmd == "dump":
             return {"ok": True, "servos": [s.dump() for s in self.bus.servos.values()],
                     "client_baud": self.client_baud(), "stats": self.bus.stats}
@@ -446,14 +446,40 @@ class BusServer:
         os.close(self.slave)
 
 
+def _set_servo(servo: Servo, request: dict) -> None:
+    """A control ``set``: temperature (C), supply voltage (V), heating rate (C/s)."""
+    if "heating_c_per_s" in request:
+        servo.heating_c_per_s = float(request["heating_c_per_s"])
+    if "temperature" in request:
+        servo.temperature = float(request["temperature"])
+        servo.update()  # the Temperature Limit check raises overheating
+    if "voltage" in request:
+        servo.set_supply(float(request["voltage"]))
+
+
+def _per_id(values: list, ids: list[int], flag: str) -> list:
+    if len(values) == 1:
+        return values * len(ids)
+    if len(values) != len(ids):
+        raise SystemExit(f"rigctl mock head: {flag}: give one value, or one per ID "
+                         f"({len(ids)} IDs), got {len(values)}")
+    return values
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="rigctl mock head",
                                      description="Dynamixel Protocol 2.0 bus stand-in on a pty.")
     parser.add_argument("--link", required=True, type=Path, help="symlink to create")
     parser.add_argument("--ids", type=int, nargs="+", default=[1, 2, 3])
-    parser.add_argument("--model", default="xm430-w350", choices=sorted(MODELS))
-    parser.add_argument("--baud", type=int, default=1_000_000, choices=sorted(BAUD_CODES.values()),
-                        help="the servos' configured Baud Rate (address 8)")
+    parser.add_argument("--model", nargs="+", default=["xm430-w350"], choices=sorted(MODELS),
+                        metavar="MODEL", help="one model for every ID or one per ID, e.g. "
+                        "xh540-w270, xm430-w350, ph54-200-s500-r, mx-64")
+    parser.add_argument("--baud", type=int, nargs="+", default=[1_000_000],
+                        choices=sorted(BAUD_CODES.values()), metavar="BAUD",
+                        help="the servos' configured Baud Rate (address 8): one, or one per ID")
+    parser.add_argument("--encoder", choices=("ideal", "hardware"), default="ideal",
+                        help="hardware: continuous true angle, readings quantized with the "
+                             "model's noise (about a pulse)")
     parser.add_argument("--wire-timing", action="store_true",
                         help="emulate wire time from the client's baud and Return Delay Time")
     parser.add_argument("--control", type=Path, default=None, help="JSON-lines control socket")
@@ -470,12 +496,15 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    code = {v: k for k, v in BAUD_CODES.items()}[args.baud]
+    codes = {v: k for k, v in BAUD_CODES.items()}
     options = ServoOptions(goal_out_of_limit=args.goal_out_of_limit)
     servos = []
-    for dxl_id in args.ids:
-        servo = Servo(dxl_id, args.model, options, position_noise=args.position_noise)
-        servo.values["baud_rate"] = code
+    models = _per_id(args.model, args.ids, "--model")
+    bauds = _per_id(args.baud, args.ids, "--baud")
+    for dxl_id, model, baud in zip(args.ids, models, bauds, strict=True):
+        servo = Servo(dxl_id, model, options, position_noise=args.position_noise,
+                      encoder=args.encoder)
+        servo.values["baud_rate"] = codes[baud]
         servos.append(servo)
     server = BusServer(Bus(servos, crc_error_reply=not args.no_crc_reply), args.link,
                        args.control, args.wire_timing, args.latency_timer_ms / 1000.0)
@@ -486,7 +515,9 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGTERM, stop)
     signal.signal(signal.SIGINT, stop)
     print(json.dumps({"port": server.port_name, "link": str(args.link), "pid": os.getpid(),
-                      "control": str(args.control) if args.control else None}), flush=True)
+                      "control": str(args.control) if args.control else None,
+                      "models": dict(zip(map(str, args.ids), models, strict=True))}),
+          flush=True)
     try:
         server.serve()
     finally:
