@@ -28,6 +28,8 @@ app = typer.Typer(add_completion=False, no_args_is_help=True,
 runs_app = typer.Typer(no_args_is_help=True, help="Recorded runs.")
 mock_app = typer.Typer(no_args_is_help=True, help="Protocol stand-ins for the hardware.")
 bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks (JSON and a table).")
+head_app = typer.Typer(no_args_is_help=True, help="Dynamixel bus tools: scan, reboot.")
+app.add_typer(head_app, name="head")
 app.add_typer(runs_app, name="runs")
 app.add_typer(mock_app, name="mock")
 app.add_typer(bench_app, name="bench")
@@ -132,7 +134,9 @@ def run(procedure: str = typer.Argument(..., help="Procedure name (see `rigctl p
         err.print(f"records: {outcome.run_dir}", highlight=False)
         if outcome.result is not None:
             out.print_json(json.dumps(_summary(outcome.result), default=str))
-    raise typer.Exit({"succeeded": 0, "aborted": EXIT_ABORTED}.get(outcome.status, EXIT_FAILED))
+    refused = outcome.status == "failed" and (outcome.reason or "").startswith("ConfigError")
+    raise typer.Exit(EXIT_REFUSED if refused else  # the rig file disagrees with a device
+                     {"succeeded": 0, "aborted": EXIT_ABORTED}.get(outcome.status, EXIT_FAILED))
 
 
 def _summary(result: dict[str, Any]) -> dict[str, Any]:
@@ -322,6 +326,77 @@ def mock_head(ctx: typer.Context) -> None:
 
     raise typer.Exit(dynamixel_bus.main(ctx.args))
 
+
+
+@head_app.command("scan")
+def head_scan(port: str = typer.Option(..., "--port", help="serial port of the servo bus"),
+              bauds: list[int] = typer.Option(None, "--baud",
+                                              help="only these baud rates (default: every "
+                                                   "standard rate)"),
+              as_json: bool = typer.Option(False, "--json")) -> None:
+    """Broadcast ping at every standard baud rate: ID, model, firmware and baud."""
+    from rigctl.drivers.dynamixel import scan_bus
+    from rigctl.drivers.dynamixel_models import STANDARD_BAUDS
+
+    bad = [b for b in bauds or () if b not in STANDARD_BAUDS]
+    if bad:
+        _fail(ConfigError(f"--baud {bad[0]}: not a Dynamixel baud rate (one of "
+                          f"{', '.join(map(str, STANDARD_BAUDS))})"), as_json)
+    try:
+        found = scan_bus(port, tuple(bauds) if bauds else STANDARD_BAUDS)
+    except RigError as exc:
+        _fail(exc, as_json, EXIT_FAILED)
+    if as_json:
+        _print_json(found)
+        return
+    table = Table(title=f"head scan: {port}")
+    for col in ("id", "model", "model number", "firmware", "baud"):
+        table.add_column(col)
+    for row in found:
+        table.add_row(*(str(row[k]) for k in ("id", "model", "model_number", "firmware",
+                                              "baud")))
+    out.print(table)
+    if not found:
+        err.print(f"no servo answered on {port} at any baud rate tried")
+
+
+@head_app.command("reboot")
+def head_reboot(rig: Path = typer.Option(..., "--rig"),
+                axis: str | None = typer.Argument(None, help="pan, tilt or roll (default: "
+                                                             "every servo in alert)"),
+                as_json: bool = typer.Option(False, "--json")) -> None:
+    """Reboot a servo in alert (or AXIS), then report its hardware error status."""
+    from rigctl.drivers.dynamixel import AXES, DynamixelHead
+
+    try:
+        config = load_rig(rig)
+        if config.devices.head is None:
+            raise ConfigError(f"{rig}: devices.head: not configured")
+        if axis is not None and axis not in AXES:
+            raise ConfigError(f"AXIS {axis!r}: one of {', '.join(AXES)}")
+    except RigError as exc:
+        _fail(exc, as_json)
+    head = DynamixelHead(config.devices.head)  # connect() writes nothing; no park
+    try:
+        with stdout_to_stderr():
+            head.connect()
+            try:
+                alerts = {head.axis_of[i] for i in head.hardware_errors()}
+                targets = [axis] if axis else sorted(alerts)
+                report = [head.reboot(a) for a in targets]
+            finally:
+                head.disconnect()
+    except RigError as exc:
+        _fail(exc, as_json, EXIT_FAILED)
+    if as_json:
+        _print_json(report)
+        return
+    if not report:
+        out.print("no servo in alert; nothing rebooted")
+    for row in report:
+        out.print(f"{row['axis']} (id {row['id']}, {row['model']}): before {row['before']}, "
+                  f"after reboot {row['after']}", highlight=False)
+    raise typer.Exit(0 if all(not r["hardware_error_after"] for r in report) else EXIT_FAILED)
 
 
 @bench_app.command("head")

@@ -46,6 +46,39 @@ def serial_latency(port: str, sysfs: Path = Path("/sys")) -> dict[str, Any]:
                     "(then `sudo udevadm control --reload` and replug)"}
 
 
+TEMPERATURE_MARGIN_C = 10.0  # warn this close to a servo's Temperature Limit
+VOLTAGE_MARGIN = 0.05  # warn within 5 % of a servo's voltage limits
+
+
+def servo_warnings(head) -> list[str]:
+    """Each servo's present temperature and input voltage against its own limits
+    (Temperature Limit, Min/Max Voltage Limit) and its model's operating range, and any
+    hardware error: what is near or past a limit."""
+    from rigctl.drivers.dynamixel_models import by_name
+
+    warnings = []
+    for axis, h in head.health().items():
+        name = f"servo {h['id']} ({axis}, {h['model']})"
+        model, t = by_name(h["model"]), h["temperature_c"]
+        t_limit = min(h["temperature_limit_c"] or model.max_temperature_c,
+                      model.max_temperature_c)
+        if t >= t_limit - TEMPERATURE_MARGIN_C:
+            warnings.append(f"{name}: temperature {t} C is within {TEMPERATURE_MARGIN_C:g} C "
+                            f"of its limit {t_limit:g} C")
+        v, (lo, hi) = h["voltage_v"], h["voltage_limits_v"] or model.voltage_v
+        lo, hi = max(lo, model.voltage_v[0] * 0.9), min(hi, model.voltage_v[1] * 1.1)
+        if v <= lo * (1 + VOLTAGE_MARGIN) or v >= hi * (1 - VOLTAGE_MARGIN):
+            warnings.append(f"{name}: input voltage {v:.1f} V is near or past its limits "
+                            f"{lo:.1f}-{hi:.1f} V (rated {model.voltage_v[0]:g}-"
+                            f"{model.voltage_v[1]:g} V)")
+        if h["hardware_error"]:
+            from rigctl.drivers.dynamixel import hw_error_text
+
+            warnings.append(f"{name}: alert: {hw_error_text(h['hardware_error'])} "
+                            "(`rigctl head reboot` clears it once the cause is fixed)")
+    return warnings
+
+
 def check_rig(config: RigConfig, factories: dict | None = None, samples: int = 20) -> list[dict]:
     """One row per device: ``ok`` with description and median latency, ``missing`` when not
     configured, or ``error`` with what went wrong. Never moves anything."""
@@ -65,9 +98,12 @@ def check_rig(config: RigConfig, factories: dict | None = None, samples: int = 2
                 PROBES[kind](device)
                 times.append(time.perf_counter() - t0)
             info = device.describe()
+            warnings = servo_warnings(device) if hasattr(device, "health") else []
             report.append({"device": kind, "state": "ok", "describe": info,
                            "message": ", ".join(f"{k}={v}" for k, v in info.items()
-                                                if not isinstance(v, (dict, list)))[:160],
+                                                if not isinstance(v, (dict, list)))[:160]
+                           + "".join(f"; WARNING {w}" for w in warnings),
+                           "warnings": warnings,
                            "latency_ms": 1000 * statistics.median(times)})
         except Exception as exc:
             report.append({"device": kind, "state": "error",

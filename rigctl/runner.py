@@ -486,7 +486,7 @@ class Runner:
     def _capture(self, rig: Rig, step: CaptureStep, run: RunDirectory, state: dict) -> None:
         meta: dict[str, Any] = {"index": state["capture"], "label": step.label,
                                 "time": time.time(), "extra": dict(step.extra)}
-        image = None
+        image, health = None, None
         if step.image and "camera" in rig.configured():
             frame = self._fresh_frame(rig.open("camera"), state)
             image = frame.image
@@ -497,6 +497,8 @@ class Runner:
             meta["head"] = {"pan": angles.pan, "tilt": angles.tilt, "roll": angles.roll,
                             "timestamp": angles.timestamp}
             meta["head_commanded"] = state["head_commanded"]
+            if hasattr(rig.devices["head"], "health"):  # each servo's temperature, V, load
+                health = meta["head_health"] = rig.devices["head"].health()
         if "arm" in rig.devices:
             arm_state = rig.devices["arm"].read_state()
             meta["arm"] = {"q": list(arm_state.q), "tcp_pose": list(arm_state.tcp_pose),
@@ -506,6 +508,8 @@ class Runner:
         if image is not None and self._board is not None:
             self._board.submit(run.capture(state["capture"]), image)
         state["capture"] += 1
+        if health is not None:  # a servo at its temperature limit or in alert ends the run
+            rig.devices["head"].check_health(health)
 
 
 # what the runner does for each step type (procedures only describe steps)

@@ -412,14 +412,28 @@ class DynamixelHead(Head):
         """Ping every servo and check its model against the rig file before anything is
         written; then fix EEPROM where it differs and enable torque without a jump."""
         with self._lock:
+            errors = self.connect()
+            for axis, dxl_id in self.ids.items():
+                self._prepare(axis, dxl_id, errors[dxl_id])
+            self._set_profile()
+            self.set_torque(True)
+
+    def connect(self) -> dict[int, int]:
+        """Open the port, ping every servo and check its model; nothing is written (the
+        bus tools' way in). Returns each servo's status error byte."""
+        with self._lock:
             self._open_port()
             pinged = {axis: self._ping_axis(axis, dxl_id) for axis, dxl_id in self.ids.items()}
             for axis, dxl_id in self.ids.items():
                 self._check_model(axis, dxl_id, pinged[axis][0])
-            for axis, dxl_id in self.ids.items():
-                self._prepare(axis, dxl_id, pinged[axis][1])
-            self._set_profile()
-            self.set_torque(True)
+            return {self.ids[axis]: error for axis, (_, error) in pinged.items()}
+
+    def disconnect(self) -> None:
+        """Close the port without parking (after ``connect``)."""
+        with self._lock:
+            if self.port is not None:
+                self.port.closePort()
+            self.port = None
 
     def _ping_axis(self, axis: str, dxl_id: int) -> tuple[int, int]:
         """Model number and status error byte of one servo; a servo silent at the rig

@@ -44,6 +44,7 @@ from rigctl.mocks.dxl_codec import (
     crc16,
     status_packet,
 )
+from rigctl.mocks.dxl_models import SPEC_BY_NAME
 from rigctl.mocks.dxl_servo import (
     ERR_CRC,
     ERR_DATA_LENGTH,
@@ -488,6 +489,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="stay silent on a bad CRC instead of answering ERR=3")
     parser.add_argument("--position-noise", type=float, default=0.0,
                         help="sigma of present-position readings, pulses")
+    parser.add_argument("--position-noise-deg", type=float, default=0.0,
+                        help="sigma of present-position readings, degrees (each servo in "
+                             "its own pulses)")
     parser.add_argument("--latency-timer-ms", type=float, default=0.0,
                         help="emulate a USB-serial adapter's latency timer (FTDI default: "
                              "16 ms): replies reach the host that long after the last byte")
@@ -502,7 +506,8 @@ def main(argv: list[str] | None = None) -> int:
     models = _per_id(args.model, args.ids, "--model")
     bauds = _per_id(args.baud, args.ids, "--baud")
     for dxl_id, model, baud in zip(args.ids, models, bauds, strict=True):
-        servo = Servo(dxl_id, model, options, position_noise=args.position_noise,
+        pulses = args.position_noise_deg * SPEC_BY_NAME[model].pulses_per_rev / 360.0
+        servo = Servo(dxl_id, model, options, position_noise=args.position_noise + pulses,
                       encoder=args.encoder)
         servo.values["baud_rate"] = codes[baud]
         servos.append(servo)

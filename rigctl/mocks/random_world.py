@@ -9,6 +9,8 @@ that every solver and planner can be judged on a distribution of rigs rather tha
   tangential terms (rejected if the distortion folds over inside the image); blur and
   noise;
 - head: roll axis tilted up to 0.5 deg, centre of projection off the axes by up to 3 mm;
+  servos of one family (X, MX, P) or a mixed bus, with hardware encoders (readings
+  quantized to the model's pulse, about a pulse of noise, plus up to half a pulse more);
 - arm: UR3e, UR5e or UR10e with kinematic errors at the spread of factory variation
   (encoder offsets ~0.1 deg, lengths ~1 mm, twists ~0.08 deg; Hayati beta on the
   parallel joints 2-3 and 3-4); the controller's factory calibration (``factory_errors``)
@@ -101,6 +103,30 @@ def _target(rng: np.random.Generator, model: str) -> dict:
             "xyz_mm": (1000 * origin).round(1).tolist(), "rpy_deg": np.round(rpy, 3).tolist()}
 
 
+# Pan/tilt and roll servos of lab heads: one family, or a mixed bus
+HEAD_SETS = (
+    (("xm430-w350", "xh430-w350", "xm540-w270", "xh540-w270", "xw540-t260"),
+     ("xm430-w350", "xm430-w210", "xh430-w210", "xl430-w250", "xc430-w240")),
+    (("mx-64", "mx-106"), ("mx-28", "mx-64")),
+    (("ph54-200-s500-r", "ph54-100-s500-r", "pm54-060-s250-r", "pm54-040-s250-r"),
+     ("ph42-020-s300-r", "pm42-010-s260-r")),
+    (("xh540-w270", "xm540-w270", "ph54-100-s500-r"), ("xm430-w350", "xh430-w350")),
+)
+
+
+def _head_servos(rng: np.random.Generator) -> dict:
+    """The head's servo models (one family or mixed) and hardware encoders, with extra
+    reading noise of up to half the pan servo's pulse (sigma)."""
+    pan_tilt, roll = HEAD_SETS[rng.integers(len(HEAD_SETS))]
+    big = str(pan_tilt[rng.integers(len(pan_tilt))])
+    models = [big, big, str(roll[rng.integers(len(roll))])]
+    from rigctl.mocks.dxl_models import SPEC_BY_NAME
+
+    pulse_deg = 360.0 / SPEC_BY_NAME[big].pulses_per_rev
+    return {"models": models, "encoder": "hardware",
+            "encoder_noise_deg": round(float(rng.uniform(0.0, 0.5)) * pulse_deg, 6)}
+
+
 def random_world(seed: int) -> dict:
     """One plausible rig drawn from ``seed`` (deterministic), as world-file data."""
     rng = np.random.default_rng([seed, 20261123])
@@ -116,7 +142,7 @@ def random_world(seed: int) -> dict:
         "head": {"mount": "flange",
                  "roll_axis_tilt_deg": np.round(_within(rng, 0.5, 2), 4).tolist(),
                  "camera_offset_mm": np.round(_within(rng, 3.0, 3), 3).tolist(),
-                 "encoder_noise_deg": 0.0},
+                 **_head_servos(np.random.default_rng([seed, 40]))},
         "arm": {"model": model, "home_deg": [0.0, -90.0, 90.0, -90.0, -90.0, 0.0],
                 "errors": (errors := _arm_errors(rng)),
                 # drawn from its own stream: every other draw of a seed stays as it was

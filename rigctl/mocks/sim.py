@@ -69,7 +69,9 @@ def rig_text(world_path: Path, host: str, workdir: Path, camera_url: str, record
         "name": f"sim-{host.replace('.', '-')}",
         "world": str(world_path),
         "devices": {
-            "head": {"port": str(workdir / "dxl"), "baud": 1_000_000, "model": "xm430-w350",
+            "head": {"port": str(workdir / "dxl"), "baud": 1_000_000,
+                     "model": dict(zip(("pan", "tilt", "roll"), world.spec.head.models,
+                                       strict=True)),
                      "limits": {"pan": [-45, 45], "tilt": [-30, 30], "roll": [-180, 180]},
                      "speed_cap_dps": 120, "accel_cap_dps2": 600, "settle_s": 0.1,
                      **STAND_IN_TIMING["head"], "park": {"policy": "home"},
@@ -112,11 +114,12 @@ def up(world_file: str, rig_out: str, host: str = "127.0.0.1", records: str = "r
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     try:
-        noise_pulses = world.spec.head.encoder_noise_deg * 4096 / 360
+        head = world.spec.head
         children.append(_child("head", ["rigctl.mocks.dynamixel_bus",
                                         "--link", str(workdir / "dxl"),
                                         "--control", str(workdir / "dxl.sock"),
-                                        "--position-noise", str(noise_pulses)]))
+                                        "--model", *head.models, "--encoder", head.encoder,
+                                        "--position-noise-deg", str(head.encoder_noise_deg)]))
         children.append(_child("arm", ["rigctl.mocks.ur_controller", "--host", host,
                                        "--world", str(world_path),
                                        "--control", str(workdir / "ur.sock")]))

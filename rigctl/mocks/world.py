@@ -66,6 +66,24 @@ class HeadTruth(_Strict):
     encoder_noise_deg: float = Field(0.0, ge=0)
     fixed_xyz_mm: list[float] = Field(default_factory=lambda: [0.0, 0.0, 500.0])
     fixed_rpy_deg: list[float] = Field(default_factory=lambda: [0.0, 0.0, 0.0])
+    # pan, tilt, roll servo models the bus stand-in plays (its own tables, dxl_models);
+    # encoder "hardware": the true angle continuous, readings quantized to the model's
+    # pulse with its noise; "ideal": every move ends on its goal pulse, read exactly
+    models: list[str] = Field(default_factory=lambda: ["xm430-w350"] * 3)
+    encoder: Literal["ideal", "hardware"] = "ideal"
+
+    @field_validator("models")
+    @classmethod
+    def _known_models(cls, value: list[str]) -> list[str]:
+        from rigctl.mocks.dxl_models import SPEC_BY_NAME
+
+        if len(value) != 3:
+            raise ValueError(f"expected [pan, tilt, roll] servo models, got {len(value)}")
+        for name in value:
+            if name not in SPEC_BY_NAME:
+                raise ValueError(f"unknown servo model {name!r}; known: "
+                                 f"{', '.join(sorted(SPEC_BY_NAME))}")
+        return value
 
 
 class ArmErrors(_Strict):
