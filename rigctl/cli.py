@@ -402,12 +402,26 @@ def head_reboot(rig: Path = typer.Option(..., "--rig"),
 @bench_app.command("head")
 def bench_head(as_json: bool = typer.Option(False, "--json"),
                samples: int = typer.Option(500, "--samples"),
-               transactions: int = typer.Option(10000, "--transactions")) -> None:
-    """Dynamixel latency vs wire limit at 57.6k, 1M, 4M baud; failures; settle time."""
+               transactions: int = typer.Option(10000, "--transactions"),
+               mixed: int = typer.Option(2000, "--mixed", help="transactions per mixed bus"),
+               mixed_only: bool = typer.Option(False, "--mixed-only",
+                                               help="only the mixed buses at 1 Mbaud")) -> None:
+    """Dynamixel latency vs wire limit at 57.6k, 1M, 4M baud; failures; settle time;
+    mixed buses (XH540 + XM430, PH54 + XM430) at 1 Mbaud."""
     from rigctl.bench import head
     from rigctl.bench.common import print_table
 
-    result = head.run(samples, transactions)
+    if mixed_only:
+        result = head.run_mixed(mixed)
+        if as_json:
+            _print_json(result)
+        else:
+            print_table("bench head, mixed buses (ms)", ["bus", "transaction", "median", "p99",
+                                                        "wire limit", "ratio", "failures"],
+                        head.rows(result), out)
+            out.print(f"targets: {result['targets']}")
+        return
+    result = head.run(samples, transactions, mixed)
     if as_json:
         _print_json(result)
         return
