@@ -103,7 +103,8 @@ def test_driver_drives_a_bus_mixing_x_mx_and_p(start_bus):
     bus = start_bus("--model", *MIXED)
     head = DynamixelHead(head_cfg(bus.ready["link"]))
     with head:
-        assert [head.info[i]["model"] for i in (1, 2, 3)] == MIXED
+        assert [head.info[i]["model_name"] for i in (1, 2, 3)] == MIXED
+        assert [head.info[i]["model"] for i in (1, 2, 3)] == [1100, 311, 2020]
         head.move_to(math.radians(10), math.radians(-5), math.radians(30)).wait(15)
         servos = dump(bus)
         for dxl_id, (model, deg) in enumerate(zip(MIXED, (10, -5, 30), strict=True), start=1):

@@ -485,7 +485,7 @@ class DynamixelHead(Head):
         table = model.table
         firmware = self._read1(dxl_id, table["firmware_version"][0], "read firmware",
                                check=False)
-        self.info[dxl_id] = {"axis": axis, "model": model.name, "model_number": model.number,
+        self.info[dxl_id] = {"axis": axis, "model": model.number, "model_name": model.name,
                              "firmware": firmware}
         if error & 0x80:
             bits = self._read1(dxl_id, table["hardware_error_status"][0],
@@ -560,7 +560,7 @@ class DynamixelHead(Head):
                 self.port = None
 
     def describe(self) -> dict[str, Any]:
-        models = sorted({v["model"] for v in self.info.values()})
+        models = sorted({v["model_name"] for v in self.info.values()})
         return {"model": models[0] if len(models) == 1 else models, "port": self.cfg.port,
                 "baud": self.cfg.baud,
                 "servos": {str(k): v for k, v in self.info.items()},
