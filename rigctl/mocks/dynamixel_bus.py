@@ -15,6 +15,9 @@ Control socket (JSON lines, one reply line per request)::
     {"cmd": "hw_error", "id": 2, "error": "overload"}     (overload|overheat|voltage|...)
     {"cmd": "set", "id": 1, "temperature": 70, "voltage": 11.1}
     {"cmd": "dump"}           {"cmd": "stats"}
+    {"cmd": "freeze", "id": 1, "at_fraction": 0.5}   {"cmd": "thaw", "id": 1}
+        (a stuck shaft, latched: once the current or next move has run that fraction of
+        its profile's time it stays there, still moving, until thawed)
 """
 
 from __future__ import annotations
@@ -416,16 +419,11 @@ class BusServer:
             bits = HW_ERRORS[request["error"]]
             self.bus.servos[int(request["id"])].inject_hardware_error(bits)
         elif cmd == "set":
-            servo = self.bus.servos[int(request["id"])]
-            if "temperature" in request:
-                servo.values["present_temperature"] = int(request["temperature"])
-                if servo.values["present_temperature"] > servo.values["temperature_limit"]:
-                    servo.inject_hardware_error(HW_ERRORS["overheat"])
-            if "voltage" in request:
-                servo.values["present_input_voltage"] = round(10 * request["voltage"])
-                v = servo.values["present_input_voltage"]
-                if not servo.values["min_voltage_limit"] <= v <= servo.values["max_voltage_limit"]:
-                    servo.inject_hardware_error(HW_ERRORS["voltage"])
+            self._set_sensors(request)
+        elif cmd == "freeze":
+            self.bus.servos[int(request["id"])].freeze(float(request.get("at_fraction", 0.5)))
+        elif cmd == "thaw":
+            self.bus.servos[int(request["id"])].thaw()
         elif cmd == "dump":
             return {"ok": True, "servos": [s.dump() for s in self.bus.servos.values()],
                     "client_baud": self.client_baud(), "stats": self.bus.stats}
@@ -434,6 +432,20 @@ class BusServer:
         else:
             return {"ok": False, "error": f"unknown cmd {cmd!r}"}
         return {"ok": True}
+
+    def _set_sensors(self, request: dict) -> None:
+        """Temperature and input voltage of one servo; out of its limits, the Hardware
+        Error Status bit goes up as on a servo."""
+        servo = self.bus.servos[int(request["id"])]
+        if "temperature" in request:
+            servo.values["present_temperature"] = int(request["temperature"])
+            if servo.values["present_temperature"] > servo.values["temperature_limit"]:
+                servo.inject_hardware_error(HW_ERRORS["overheat"])
+        if "voltage" in request:
+            servo.values["present_input_voltage"] = round(10 * request["voltage"])
+            v = servo.values["present_input_voltage"]
+            if not servo.values["min_voltage_limit"] <= v <= servo.values["max_voltage_limit"]:
+                servo.inject_hardware_error(HW_ERRORS["voltage"])
 
     def close(self) -> None:
         for path in (self.link, self.control_path):
