@@ -4,12 +4,13 @@ no index beside it, no other run reachable, another working directory."""
 from __future__ import annotations
 
 import json
-import math
 import os
 import shutil
 import subprocess
 import sys
 from pathlib import Path
+
+import numpy as np
 
 from tests.mockproc import ROOT
 
@@ -37,15 +38,22 @@ def assert_resolves_alone(run_dir: Path, scratch: Path) -> None:
 # relative, while the chosen result agreed within 1e-4).
 LOOSE_PATHS = ("/tracking/final_starts/",)
 LOOSE_REL_TOL = 1e-3
+REL_TOL = 1e-4
+# Only for numbers that are zero up to rounding (a symmetric matrix's exact zeros, a
+# count); every quantity with a size is compared relative to its own scale below.
+ABS_TOL = 1e-12
 
 
 def _differences(a, b, path=""):
-    """Paths where two JSON documents differ. Numbers may differ by 1e-4 relative or 1e-5
-    absolute (``LOOSE_REL_TOL`` under ``LOOSE_PATHS``): rounding in numerical libraries
-    (threads, the alignment of arrays in memory) moves an iterative solve's end point
-    slightly (at load 12 on 2 cores an active-camera re-solve differed by 1.3e-5
-    relative in k1 and 1e-6 absolute in the roll axis); a re-solve from other inputs
-    (another intrinsics run, another rig file) moves results by far more."""
+    """Paths where two JSON documents differ. Numbers may differ by ``REL_TOL`` (1e-4,
+    ``LOOSE_REL_TOL`` under ``LOOSE_PATHS``) of their scale plus ``ABS_TOL``: rounding in
+    numerical libraries (threads, the alignment of arrays in memory) moves an iterative
+    solve's end point slightly (at load 12 on 2 cores an active-camera re-solve differed
+    by 1.3e-5 relative in k1 and 1e-6 absolute in the roll axis); a re-solve from other
+    inputs (another intrinsics run, another rig file) moves results by far more. The
+    scale is the number itself, except where a quantity's parts share one scale: a
+    covariance's (i, j) entry is scaled by sigma_i sigma_j, a transform's rotation by 1
+    and its translation by the translation's length, a unit axis's components by 1."""
     if isinstance(a, dict) and isinstance(b, dict):
         for key in sorted(set(a) | set(b)):
             if key not in a or key not in b:
@@ -55,11 +63,65 @@ def _differences(a, b, path=""):
     elif isinstance(a, list) and isinstance(b, list):
         if len(a) != len(b):
             yield f"{path}: {len(a)} items against {len(b)}"
-        for k, (u, v) in enumerate(zip(a, b, strict=False)):
-            yield from _differences(u, v, f"{path}[{k}]")
-    elif isinstance(a, float | int) and isinstance(b, float | int) and not isinstance(a, bool):
-        rel_tol = LOOSE_REL_TOL if path.startswith(LOOSE_PATHS) else 1e-4
-        if not math.isclose(a, b, rel_tol=rel_tol, abs_tol=1e-5):
-            yield f"{path}: {a} against {b}"
+            return
+        scales = _shared_scales(a, b, path)
+        for k, (u, v) in enumerate(zip(a, b, strict=True)):
+            if scales is not None and _number(u) and _number(v):
+                yield from _compare(u, v, f"{path}[{k}]", scales[k])
+            elif scales is not None and isinstance(u, list) and isinstance(v, list) \
+                    and len(u) == len(v):
+                for m, (x, y) in enumerate(zip(u, v, strict=True)):
+                    yield from _compare(x, y, f"{path}[{k}][{m}]", scales[k][m])
+            else:
+                yield from _differences(u, v, f"{path}[{k}]")
+    elif _number(a) and _number(b):
+        yield from _compare(a, b, path, max(abs(a), abs(b)))
     elif a != b:
         yield f"{path}: {a!r} against {b!r}"
+
+
+def _number(x) -> bool:
+    return isinstance(x, float | int) and not isinstance(x, bool)
+
+
+def _compare(a, b, path, scale):
+    if not (_number(a) and _number(b)):
+        if a != b:
+            yield f"{path}: {a!r} against {b!r}"
+        return
+    rel_tol = LOOSE_REL_TOL if path.startswith(LOOSE_PATHS) else REL_TOL
+    if abs(a - b) > rel_tol * scale + ABS_TOL:
+        yield f"{path}: {a} against {b} (scale {scale:.3g})"
+
+
+def _shared_scales(a, b, path):
+    """The scale of each number of a quantity whose parts share one (see
+    ``_differences``), or None: each number is then its own scale."""
+    name = path.rsplit("/", 1)[-1].split("[", 1)[0].lower()
+    A, B = _numeric(a), _numeric(b)
+    if A is None or B is None or A.shape != B.shape:
+        return None
+    if A.ndim == 2 and A.shape[0] == A.shape[1] and "covariance" in path.lower():
+        sigma = np.sqrt(np.maximum(np.abs(np.diag(A)), np.abs(np.diag(B))))
+        return np.outer(sigma, sigma).tolist()
+    if A.ndim == 2 and A.shape == (4, 4) and name.startswith("t_"):
+        scales = np.ones((4, 4))
+        scales[:3, 3] = max(np.linalg.norm(A[:3, 3]), np.linalg.norm(B[:3, 3]))
+        return scales.tolist()
+    if A.ndim == 1 and "axis" in name:
+        return [max(np.linalg.norm(A), np.linalg.norm(B))] * len(A)
+    return None
+
+
+def _numeric(x):
+    """``x`` as a float array if it is a vector or a matrix of numbers, else None."""
+    flat = x if x and all(_number(u) for u in x) else None
+    if flat is None and x and all(isinstance(r, list) and r and all(_number(u) for u in r)
+                                  for r in x):
+        flat = x
+    if flat is None:
+        return None
+    try:
+        return np.asarray(flat, dtype=float)
+    except ValueError:  # ragged rows
+        return None

@@ -146,3 +146,32 @@ def wait_for(stack, run_id, statuses=("succeeded", "failed", "aborted"), timeout
             return r.json()
         time.sleep(0.3)
     raise AssertionError(f"run {run_id} did not reach {statuses}")
+
+
+class LockHolder:
+    """Another process holding the rig's lock (as a CLI run on the rig would) until
+    ``release``; stopped by PID, also from ``with``."""
+
+    def __init__(self, lock_dir, rig_name: str, run_id: str = "run-held") -> None:
+        code = ("import sys, time; from pathlib import Path; from rigctl.locks import RigLock;"
+                f"RigLock(Path({str(lock_dir)!r}), {rig_name!r}).acquire({run_id!r});"
+                "print('held', flush=True); time.sleep(600)")
+        self.proc = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT,
+                                     stdout=subprocess.PIPE, text=True)
+        try:
+            assert self.proc.stdout.readline().strip() == "held", "the lock holder failed"
+        except BaseException:
+            self.release()
+            raise
+
+    def release(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            self.proc.wait(timeout=10)
+        self.proc.stdout.close()
+
+    def __enter__(self) -> LockHolder:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release()

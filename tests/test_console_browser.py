@@ -16,6 +16,7 @@ import yaml
 
 from rigctl.mocks.world import WORLDS
 from tests.mockproc import ROOT
+from tests.needs import missing
 from tests.service_stack import TOKEN, Stack, get, post, wait_for
 from tests.waiting import wait_until
 
@@ -31,12 +32,14 @@ WAIT_MS = 420_000  # a run on a busy host (ceilings only: the waits are on condi
 
 
 def _playwright():
+    """Playwright's sync API, with Chromium on the machine: in CI (``CI=true``) either
+    missing fails the tests; elsewhere they skip, saying what to install."""
     try:
         from playwright.sync_api import sync_playwright
     except ImportError:
-        pytest.skip(f"no Playwright for Python: {INSTALL}")
+        missing("Playwright for Python", INSTALL)
     if CHROMIUM is None:
-        pytest.skip(f"no Chromium on this machine: {INSTALL}")
+        missing("Chromium (chromium or chromium-browser on PATH)", INSTALL)
     return sync_playwright
 
 

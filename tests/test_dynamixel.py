@@ -20,6 +20,7 @@ from rigctl.mocks.sim import STAND_IN_TIMING
 from rigctl.records import RunDirectory
 from rigctl.runner import Runner
 from tests.mockproc import MockProcess, control
+from tests.waiting import wait_until
 
 pytestmark = pytest.mark.integration
 
@@ -158,30 +159,46 @@ def test_reboot_clears_hardware_error_and_factory_reset(port, bus):
     assert ph.clearMultiTurn(port, 3)[0] == sdk.COMM_SUCCESS
 
 
-def test_trapezoid_and_triangle_timing(port):
+def test_trapezoid_and_triangle_timing(port, bus):
     """1024 pulses at profile velocity 100, acceleration 20: 0.975 s trapezoid (e-Manual
-    units 0.229 rpm and 214.577 rev/min^2); 100 pulses: a triangle."""
+    units 0.229 rpm and 214.577 rev/min^2); 100 pulses: a triangle. The shaft is frozen
+    half-way (a latched fault of the stand-in) so that the profile is seen under way
+    however late the reads come; thawed, the move goes on to its goal."""
+    sock = bus.ready["control"]
     ph.write4ByteTxRx(port, 1, 108, 20)
     ph.write4ByteTxRx(port, 1, 112, 100)
     ph.write1ByteTxRx(port, 1, 64, 1)
+    control(sock, {"cmd": "freeze", "id": 1, "at_fraction": 0.5})
     t0 = time.monotonic()
     ph.write4ByteTxRx(port, 1, 116, 2048 + 1024)
     status = ph.read1ByteTxRx(port, 1, 123)[0]
     assert status & 0x02 and (status >> 4) == 3  # profile ongoing, trapezoidal
-    while ph.read1ByteTxRx(port, 1, 122)[0]:
-        time.sleep(0.002)
+    assert ph.read1ByteTxRx(port, 1, 122)[0] == 1  # moving
+    # frozen at half the profile's time: half-way, by the trapezoid's symmetry
+    wait_until(lambda: servo(sock, 1)["frozen"], what="servo 1 frozen half-way")
+    assert ph.read4ByteTxRx(port, 1, 132)[0] == 2048 + 512
+    control(sock, {"cmd": "thaw", "id": 1})
+    wait_until(lambda: ph.read1ByteTxRx(port, 1, 122)[0] == 0, what="the move to end")
     # never sooner than the profile allows (0.975 s); a busy host only makes it later
     assert time.monotonic() - t0 > 0.9
     assert ph.read4ByteTxRx(port, 1, 132)[0] == 3072
+    control(sock, {"cmd": "freeze", "id": 1, "at_fraction": 0.5})
     ph.write4ByteTxRx(port, 1, 116, 3072 - 100)
     assert ph.read1ByteTxRx(port, 1, 123)[0] >> 4 == 2  # triangular
+    control(sock, {"cmd": "thaw", "id": 1})
+
+
+def servo(sock: str, dxl_id: int) -> dict:
+    """One servo's state from the stand-in's control socket."""
+    return next(s for s in control(sock, {"cmd": "dump"})["servos"] if s["id"] == dxl_id)
 
 
 def test_bus_watchdog_stops_servo_and_locks_goal(port):
     ph.write1ByteTxRx(port, 1, 64, 1)
     ph.write1ByteTxRx(port, 1, 98, 5)  # 100 ms
-    time.sleep(0.3)
-    assert ph.read1ByteTxRx(port, 1, 98)[0] == 0xFF  # -1: Bus Watchdog Error
+    # polled every 0.25 s, longer than the watchdog: each poll finds the bus quiet
+    wait_until(lambda: ph.read1ByteTxRx(port, 1, 98)[0] == 0xFF, poll=0.25,
+               what="-1: Bus Watchdog Error")
     assert ph.write4ByteTxRx(port, 1, 116, 2100) == (sdk.COMM_SUCCESS, 7)
     assert ph.write1ByteTxRx(port, 1, 98, 0) == (sdk.COMM_SUCCESS, 0)
     assert ph.write4ByteTxRx(port, 1, 116, 2100) == (sdk.COMM_SUCCESS, 0)
@@ -272,8 +289,12 @@ def test_persistent_silence_raises_device_error_naming_servo(bus):
 def test_overload_mid_move_ends_in_device_error_with_torque_off(bus):
     head = DynamixelHead(head_config(bus.ready["link"], speed_cap_dps=20))
     with head:
+        # the pan shaft sticks a fifth of the way (latched): the move is under way
+        # whenever the overload comes
+        control(bus.ready["control"], {"cmd": "freeze", "id": 1, "at_fraction": 0.2})
         status = head.move_to(math.radians(40), 0.0, 0.0)
-        time.sleep(0.4)
+        wait_until(lambda: servo(bus.ready["control"], 1)["frozen"], what="pan stuck")
+        assert not status.done
         control(bus.ready["control"], {"cmd": "hw_error", "id": 1, "error": "overload"})
         with pytest.raises(DeviceError, match=r"servo 1 \(pan\).*overload.*torque is off"):
             status.wait(10)

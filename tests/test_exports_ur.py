@@ -13,8 +13,9 @@ from rigctl.errors import RigError
 from rigctl.exports import export_result
 from rigctl.exports_ur import joint_origins, ur_kinematics
 from rigctl.geometry.kinematics import KinematicModel, nominal_ur
+from tests.needs import dev_dependency
 
-yourdfpy = pytest.importorskip("yourdfpy")
+yourdfpy = dev_dependency("yourdfpy")
 
 
 def rz(t):

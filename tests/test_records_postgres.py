@@ -21,9 +21,10 @@ from rigctl.errors import ConfigError
 from rigctl.records import RecordIndex, RunDirectory, run_row, utcnow
 from rigctl.runner import solve_recorded
 from tests.mockproc import ROOT
+from tests.needs import dev_dependency
 from tests.test_runner import SMALL, make_runner
 
-pgserver = pytest.importorskip("pgserver", reason="the postgres test needs pgserver (dev extra)")
+pgserver = dev_dependency("pgserver")
 
 
 @pytest.fixture

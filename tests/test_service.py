@@ -13,6 +13,7 @@ import pytest
 from tests.mockproc import ROOT
 from tests.service_stack import (
     REQUEST_TIMEOUT_S,
+    LockHolder,
     Stack,
     get,
     post,
@@ -168,22 +169,30 @@ def test_service_run_while_cli_holds_the_rig_fails_busy(stack):
     assert cli.returncode == 0
 
 
-@pytest.mark.timeout(240)
-def test_schedule_fires_and_records_its_run(tmp_path):
-    """A stack of its own (its schedule never holds the rig during the other tests): an
-    interval schedule fires, and its runs are recorded as the scheduler's."""
+@pytest.mark.timeout(300)
+def test_schedule_fires_skips_while_the_rig_is_busy_and_records_its_runs(tmp_path):
+    """A stack of its own (its schedule never holds the rig during the other tests): while
+    another process holds the rig, an interval schedule's firing is recorded skipped,
+    naming the holder; once it lets go, a scheduled run succeeds. Both are the
+    scheduler's. The lock is held until the skip is seen: no timing decides the case."""
     schedule = {"procedure": "head-sweep", "interval_s": 3, "max_delay": "5s",
                 "params": {"pan_deg": [0], "tilt_deg": [0], "settle_s": 0}}
     own = Stack(tmp_path, schedules=[schedule])
-    try:
-        def scheduled_done():
-            runs = get(own.base + "/runs?limit=200&procedure=head-sweep").json()
-            done = [r for r in runs if r.get("operator") == "scheduler"
-                    and r["status"] in ("succeeded", "skipped")]
-            return done if any(r["status"] == "succeeded" for r in done) else None
 
-        done = wait_until(scheduled_done, timeout=120, poll=0.5, what="a scheduled run")
-        assert all("busy" in (r["reason"] or "") for r in done if r["status"] == "skipped")
+    def scheduled(status):
+        runs = get(own.base + "/runs?limit=200&procedure=head-sweep").json()
+        return [r for r in runs if r.get("operator") == "scheduler" and r["status"] == status]
+
+    try:
+        with LockHolder(tmp_path / "records" / "locks", own.rig_name, "run-held") as holder:
+            skipped = wait_until(lambda: [r for r in scheduled("skipped")
+                                          if "run-held" in (r["reason"] or "")],
+                                 timeout=120, poll=0.5, what="a scheduled run skipped as busy")
+            assert f"busy, held by run run-held (pid {holder.proc.pid})" in skipped[0]["reason"]
+        before = {r["run_id"] for r in scheduled("succeeded")}
+        wait_until(lambda: {r["run_id"] for r in scheduled("succeeded")} - before,
+                   timeout=120, poll=0.5, what="a scheduled run after the rig is free")
+        assert all("busy" in (r["reason"] or "") for r in scheduled("skipped"))
     finally:
         own.stop()
     own.assert_no_crash()

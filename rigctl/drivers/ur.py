@@ -60,6 +60,7 @@ class URArm(Arm):
         self._stop_event = threading.Event()
         self._watch_thread: threading.Thread | None = None
         self._last_ts = (0.0, time.monotonic())
+        self._lost: str | None = None  # why the link was lost: latched until reopened
         self.serial = None
         self.polyscope = None
         self.primary: PrimaryInfo | None = None
@@ -92,6 +93,7 @@ class URArm(Arm):
         self.control = self._with_retries(
             "control", lambda: rtde_control.RTDEControlInterface(self.cfg.host))
         self._last_ts = (self.receive.getTimestamp(), time.monotonic())
+        self._lost = None
         self._monitor_stop = threading.Event()
         threading.Thread(target=self._monitor, daemon=True, name="arm-stream-monitor").start()
         try:
@@ -176,7 +178,8 @@ class URArm(Arm):
     # -- state ------------------------------------------------------------------------
 
     def _monitor(self) -> None:
-        """Note when the controller timestamp last advanced (every 20 ms)."""
+        """Note when the controller timestamp last advanced (every 20 ms), and latch a lost
+        link as soon as it is seen, whether or not anyone is reading the arm then."""
         receive = self.receive
         while not self._monitor_stop.is_set() and receive is not None:
             try:
@@ -185,23 +188,39 @@ class URArm(Arm):
                 return
             if ts != self._last_ts[0]:
                 self._last_ts = (ts, time.monotonic())
+            if not self._alive():
+                return  # latched: nothing more to watch
             self._monitor_stop.wait(0.02)
 
-    def _alive(self) -> bool:
-        """The stream is connected and its timestamp advanced within ``stream_timeout_s``."""
+    def _link_problem(self) -> str | None:
+        """Why the link is down now, or None while it is up."""
         if self.receive is None or not self.receive.isConnected():
+            return (f"arm {self.cfg.host}: RTDE connection lost (closed by the controller or "
+                    "the network)")
+        silent = time.monotonic() - self._last_ts[1]
+        if silent < self.cfg.stream_timeout_s:
+            return None
+        return (f"arm {self.cfg.host}: RTDE connection lost (no new sample for {silent:.1f} s,"
+                f" limit {self.cfg.stream_timeout_s:g} s; "
+                f"{load_note('devices.arm.stream_timeout_s')})")
+
+    def _alive(self) -> bool:
+        """The stream is connected and its timestamp advanced within ``stream_timeout_s``.
+        A lost link stays lost (latched) until the arm is opened again: samples missed in
+        the gap cannot be trusted, and a link seen lost for a moment is a fault to report,
+        not a window that a busy host may or may not let anyone see."""
+        if self.receive is None:  # not open (or closed): nothing to latch
             return False
-        return time.monotonic() - self._last_ts[1] < self.cfg.stream_timeout_s
+        if self._lost is None:
+            self._lost = self._link_problem()
+            if self._lost is not None:
+                log.error("%s", self._lost)
+        return self._lost is None
 
     def _require_alive(self) -> None:
         if not self._alive():
-            if self.receive is None or not self.receive.isConnected():
-                raise DeviceError(f"arm {self.cfg.host}: RTDE connection lost (closed by the "
-                                  "controller or the network)")
-            silent = time.monotonic() - self._last_ts[1]
-            raise DeviceError(f"arm {self.cfg.host}: RTDE connection lost (no new sample for "
-                              f"{silent:.1f} s, limit {self.cfg.stream_timeout_s:g} s; "
-                              f"{load_note('devices.arm.stream_timeout_s')})")
+            lost = self._lost or self._link_problem()
+            raise DeviceError(f"{lost} (latched until the arm is opened again)")
 
     def check_safety(self) -> None:
         if self.receive is None:

@@ -125,6 +125,10 @@ class Servo:
         self.actual = center  # true shaft angle, pulses of this model (centre: 0 rad)
         self.profile = Profile(center, center, self.clock())
         self.registered: tuple[int, bytes] | None = None
+        # a stuck shaft (a test's latched fault): the motion clock stops at ``frozen``,
+        # armed to stop once a move has run ``freeze_at`` of its profile's time
+        self.freeze_at: float | None = None
+        self.frozen: float | None = None
         self.last_comm = self.clock()
         self.boot_time = self.clock()
         self.temperature = float(self.values["present_temperature"])
@@ -151,25 +155,51 @@ class Servo:
         """The true shaft angle, radians from the centre (what a camera on it sees)."""
         return (self.actual - self.spec.center) * 2 * math.pi / self.spec.pulses_per_rev
 
+    def _motion_now(self, now: float) -> float:
+        """The time the motion has reached: ``now`` unless the shaft is frozen (an armed
+        freeze latches here, at its fraction of the profile, whenever it is looked at)."""
+        if self.frozen is None and self.freeze_at is not None and self.profile.t_total > 0 \
+                and now - self.profile.t0 >= self.freeze_at * self.profile.t_total:
+            self.frozen = self.profile.t0 + self.freeze_at * self.profile.t_total
+            self.freeze_at = None
+        return now if self.frozen is None else min(now, self.frozen)
+
+    def freeze(self, at_fraction: float) -> None:
+        """Stop the shaft once the current or next move has run ``at_fraction`` of its
+        profile's time (0 to 1); it stays there, moving, until ``thaw``."""
+        if not 0.0 <= at_fraction < 1.0:
+            raise ValueError(f"freeze at_fraction {at_fraction} outside [0, 1)")
+        self.freeze_at = at_fraction
+        self.update()
+
+    def thaw(self) -> None:
+        """Let a frozen move go on from where it stopped."""
+        now = self.clock()
+        self.update()
+        if self.frozen is not None:  # the profile resumes where the shaft stopped
+            self.profile.t0 += now - max(self.frozen, self.profile.t0)
+        self.frozen = self.freeze_at = None
+
     def update(self) -> None:
         """Bring the present values up to the clock."""
         now = self.clock()
         self._check_watchdog(now)
+        motion_now = self._motion_now(now)
         if self.torque:
-            pos, vel = self.profile.at(now)
+            pos, vel = self.profile.at(motion_now)
             self.actual = pos
         else:
             vel = 0.0
         v = self.values
         noise = self._rng.gauss(0.0, self.noise) if self.noise else 0.0
         v["present_position"] = round(self.actual + noise) + v["homing_offset"]
-        v["position_trajectory"] = round(self.profile.at(now)[0]) if self.torque else \
+        v["position_trajectory"] = round(self.profile.at(motion_now)[0]) if self.torque else \
             v["present_position"]
         rpm = vel / self.spec.pulses_per_rev * 60.0
         v["present_velocity"] = round(rpm / self.spec.velocity_rpm)
         v["velocity_trajectory"] = v["present_velocity"]
         v["realtime_tick"] = int((now - self.boot_time) * 1000) % 32768
-        ongoing = self.torque and self.profile.ongoing(now)
+        ongoing = self.torque and self.profile.ongoing(motion_now)
         in_position = (abs(v["goal_position"] - v["homing_offset"] - self.actual) <= 1
                        or not self.torque)
         v["moving"] = 1 if ongoing or abs(v["present_velocity"]) > v["moving_threshold"] else 0
@@ -210,7 +240,7 @@ class Servo:
             self.values["bus_watchdog"] = -1
 
     def _hold(self, now: float) -> None:
-        pos, _ = self.profile.at(now)
+        pos, _ = self.profile.at(self._motion_now(now))
         self.actual = pos
         self.profile = Profile(pos, pos, now)
         self.values["goal_position"] = round(pos) + self.values["homing_offset"]
@@ -349,7 +379,7 @@ class Servo:
         v[name] = value
 
     def _start_move(self, target: float, now: float) -> None:
-        pos, _ = self.profile.at(now)
+        pos, _ = self.profile.at(self._motion_now(now))
         self.actual = pos
         v, a = self.values["profile_velocity"], self.values["profile_acceleration"]
         if self.values["drive_mode"] & 0x04:  # time-based profile: v = total ms, a = accel ms
@@ -378,6 +408,7 @@ class Servo:
         return {"id": self.dxl_id, "model": self.model, "actual_pulses": self.actual,
                 "actual_rad": self.angle_rad(), "pulses_per_rev": self.spec.pulses_per_rev,
                 "heating_c_per_s": self.heating_c_per_s,
+                "frozen": self.frozen is not None,
                 **{k: self.values[k] for k in (
                     "torque_enable", "goal_position", "present_position", "moving",
                     "moving_status", "hardware_error_status", "bus_watchdog",

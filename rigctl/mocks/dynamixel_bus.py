@@ -21,6 +21,9 @@ Control socket (JSON lines, one reply line per request)::
     {"cmd": "set", "id": 1, "temperature": 70, "voltage": 11.1}   (no "id": every servo)
     {"cmd": "set", "id": 1, "heating_c_per_s": 2.0}   (heat under load; 0 stops heating)
     {"cmd": "dump"}           {"cmd": "stats"}
+    {"cmd": "freeze", "id": 1, "at_fraction": 0.5}   {"cmd": "thaw", "id": 1}
+        (a stuck shaft, latched: once the current or next move has run that fraction of
+        its profile's time it stays there, still moving, until thawed)
 """
 
 from __future__ import annotations
@@ -427,6 +430,10 @@ class BusServer:
                        else list(self.bus.servos.values()))
             for servo in targets:
                 _set_servo(servo, request)
+        elif cmd == "freeze":
+            self.bus.servos[int(request["id"])].freeze(float(request.get("at_fraction", 0.5)))
+        elif cmd == "thaw":
+            self.bus.servos[int(request["id"])].thaw()
         elif cmd == "dump":
             return {"ok": True, "servos": [s.dump() for s in self.bus.servos.values()],
                     "client_baud": self.client_baud(), "stats": self.bus.stats}

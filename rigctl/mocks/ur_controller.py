@@ -11,7 +11,8 @@ register handshake (see ``shared/reference/ur-controller-protocol.md``)::
 
 Prints one JSON ready line and runs until SIGTERM. Control socket (JSON lines):
 ``protective_stop``, ``emergency_stop``, ``release_estop``, ``drop_connections``,
-``stall_stream`` (``seconds``), ``dump``.
+``stall_stream`` (for ``seconds``, or until ``resume_stream`` when none is given: a
+latched fault), ``resume_stream``, ``dump``.
 """
 
 from __future__ import annotations
@@ -823,7 +824,10 @@ class Server:
                 except OSError:
                     pass
         elif cmd == "stall_stream":
-            ctrl.stall_until = time.monotonic() + float(request.get("seconds", 5.0))
+            seconds = request.get("seconds")
+            ctrl.stall_until = math.inf if seconds is None else time.monotonic() + float(seconds)
+        elif cmd == "resume_stream":
+            ctrl.stall_until = 0.0
         elif cmd == "dump":
             return {"ok": True, **ctrl.dump()}
         else:
