@@ -286,3 +286,24 @@ def test_a_rig_file_naming_another_model_is_refused_and_nothing_moves(stand_in, 
     assert arm["state"] == "ok", arm
     assert arm["describe"]["controller_model"] == "UR5"
     assert arm["describe"]["firmware"].startswith("3.15.")
+
+
+@pytest.mark.integration
+def test_a_planned_arm_run_is_refused_with_exit_2_before_it_is_recorded(stand_in, tmp_path):
+    proc = stand_in("ur20")
+    rig = tmp_path / "rig.yaml"
+    rig.write_text(yaml.safe_dump({
+        "name": "mismatch-plan", "records": {"directory": str(tmp_path / "records")},
+        "devices": {"arm": {"host": proc.ready["host"], "model": "ur30"},
+                    "camera": {"device": "http://127.0.0.1:9/none.mjpg"}},
+        "target": {"rows": 6, "cols": 8, "square_mm": 60,
+                   "pose": {"xyz_mm": [-900, 0, 0], "rpy_deg": [180, 0, 0]}}}))
+    out = subprocess.run([sys.executable, "-m", "rigctl.cli", "run", "hand-eye", "--rig",
+                          str(rig), "--param", "intrinsics={fx: 900, fy: 900, cx: 640, "
+                          "cy: 360}"], capture_output=True, text=True, timeout=300, cwd=ROOT)
+    text = " ".join(out.stderr.split())
+    assert out.returncode == 2, out.stdout + out.stderr
+    assert "'ur30'" in text and "'UR20'" in text and "ur20" in text
+    assert not (tmp_path / "records").exists() or not any((tmp_path / "records").rglob("*.json"))
+    dump = control(proc.sock, {"cmd": "dump"})
+    assert np.allclose(dump["q"], HOME, atol=0) and dump["seen"]["script_lines"] == []
