@@ -313,6 +313,8 @@ def doctor(rig: Path = typer.Option(..., "--rig"),
         for row in report:
             if row.get("hint"):
                 out.print(f"{row['device']}: {row['hint']}", highlight=False)
+    if any(r["state"] == "refused" for r in report):  # e.g. the arm is another model
+        raise typer.Exit(EXIT_REFUSED)
     raise typer.Exit(0 if all(r["state"] in ("ok", "missing") for r in report) else EXIT_FAILED)
 
 

@@ -193,7 +193,7 @@ class ArmPark(_Strict):
 
 class ArmConfig(_Strict):
     host: str = "127.0.0.1"
-    model: Literal["ur3e", "ur5e", "ur10e"] = "ur5e"
+    model: str = "ur5e"  # any row of rigctl.hardware.ur_models, as ur_description spells it
     joint_limits_deg: list[list[float]] = Field(default_factory=lambda: [[-360.0, 360.0]] * 6)
     home_deg: list[float] = [0.0, -90.0, 90.0, -90.0, -90.0, 0.0]
     speed_cap_dps: float = Field(60.0, gt=0, le=180)
@@ -230,6 +230,28 @@ class ArmConfig(_Strict):
         if len(value) != 6:
             raise ValueError(f"expected 6 joint angles, got {len(value)}")
         return value
+
+    @field_validator("model")
+    @classmethod
+    def _known_model(cls, value: str) -> str:
+        from rigctl.hardware.ur_models import MODEL_NAMES
+
+        if value not in MODEL_NAMES:
+            raise ValueError(f"unknown UR arm model {value!r}; known: {', '.join(MODEL_NAMES)}")
+        return value
+
+    @model_validator(mode="after")
+    def _within_model_limits(self) -> ArmConfig:
+        from rigctl.hardware.ur_models import MODELS
+
+        for i, (pair, limit) in enumerate(zip(self.joint_limits_deg,
+                                              MODELS[self.model].position_limits_deg,
+                                              strict=True)):
+            if limit is not None and (pair[0] < limit[0] or pair[1] > limit[1]):
+                raise ValueError(f"joint_limits_deg: joint {i + 1} [{pair[0]:g}, {pair[1]:g}] "
+                                 f"deg exceeds the {self.model}'s limits [{limit[0]:g}, "
+                                 f"{limit[1]:g}] deg")
+        return self
 
     def joint_limits_rad(self) -> list[tuple[float, float]]:
         return [(math.radians(lo), math.radians(hi)) for lo, hi in self.joint_limits_deg]

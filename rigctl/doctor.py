@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from rigctl.config import RigConfig
+from rigctl.errors import ConfigError
 from rigctl.rig import Rig
 
 PROBES = {
@@ -81,7 +82,9 @@ def servo_warnings(head) -> list[str]:
 
 def check_rig(config: RigConfig, factories: dict | None = None, samples: int = 20) -> list[dict]:
     """One row per device: ``ok`` with description and median latency, ``missing`` when not
-    configured, or ``error`` with what went wrong. Never moves anything."""
+    configured, ``refused`` when the device is another than the rig file says (the arm's
+    controller reports another model: ``rigctl doctor`` exits 2), or ``error`` with what
+    went wrong. Never moves anything."""
     rig = Rig(config, factories)
     report: list[dict[str, Any]] = []
     for kind in ("head", "arm", "camera"):
@@ -105,6 +108,8 @@ def check_rig(config: RigConfig, factories: dict | None = None, samples: int = 2
                            + "".join(f"; WARNING {w}" for w in warnings),
                            "warnings": warnings,
                            "latency_ms": 1000 * statistics.median(times)})
+        except ConfigError as exc:  # the device is not what the rig file says
+            report.append({"device": kind, "state": "refused", "message": str(exc)})
         except Exception as exc:
             report.append({"device": kind, "state": "error",
                            "message": f"{type(exc).__name__}: {exc}"})

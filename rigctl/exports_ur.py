@@ -134,14 +134,39 @@ def _fixed(name: str, parent: str, child: str, T: np.ndarray) -> str:
             f'<child link={quoteattr(child)}/>{_origin(T)}</joint>')
 
 
+def joint_limits_of(model_name: str | None) -> list[tuple[float, float, float, float]]:
+    """Per joint (lower, upper, velocity, effort) for the URDF of arm model ``model_name``
+    (``rigctl.hardware.ur_models``), as ur_description's ``joint_limits.yaml`` gives them:
+    the elbow held to +-180 deg, a joint without limit at +-360 deg. Generic (+-360 deg,
+    pi rad/s, 150 N m) for an unknown model."""
+    from rigctl.hardware.ur_models import ELBOW_PLANNING_LIMIT_DEG, MODELS
+
+    row = MODELS.get(model_name or "")
+    if row is None:
+        return [(-2 * math.pi, 2 * math.pi, math.pi, 150.0)] * 6
+    out = []
+    for i, lim in enumerate(row.position_limits_deg):
+        lo, hi = lim if lim is not None else (-360.0, 360.0)
+        if i == 2:
+            lo, hi = max(lo, -ELBOW_PLANNING_LIMIT_DEG), min(hi, ELBOW_PLANNING_LIMIT_DEG)
+        out.append((math.radians(lo), math.radians(hi), math.radians(row.max_speed_dps[i]),
+                    float(row.max_effort_nm[i])))
+    return out
+
+
 def urdf_from_kinematics(kinematics: dict[str, Any], T_flange_cam: np.ndarray,
                          T_base_target: np.ndarray | None, T_wrist3_flange: np.ndarray,
-                         name: str = "rigctl_ur", limits_rad=None) -> str:
+                         name: str = "rigctl_ur", limits_rad=None,
+                         model_name: str | None = None) -> str:
     """A URDF with ur_description's frames, its joints placed from a kinematics document
     exactly as ur_description's xacro places them, then the camera's optical frame on
-    ``tool0`` and the target fixed to the base."""
+    ``tool0`` and the target fixed to the base. Joint limits, speeds and efforts are arm
+    model ``model_name``'s (``joint_limits_of``); ``limits_rad`` overrides the positions."""
     kin = kinematics["kinematics"]
-    limits_rad = limits_rad or [(-2 * math.pi, 2 * math.pi)] * 6
+    limits = joint_limits_of(model_name)
+    if limits_rad:
+        limits = [(lo, hi, v, e) for (lo, hi), (_, _, v, e) in zip(limits_rad, limits,
+                                                                     strict=True)]
     links = ["base_link", "base_link_inertia", "base"] + [f"{n}_link" for n in LINKS] + \
         ["flange", "tool0", "camera_optical_frame", "target"]
     lines = ['<?xml version="1.0"?>', f"<robot name={quoteattr(name)}>"]
@@ -154,12 +179,12 @@ def urdf_from_kinematics(kinematics: dict[str, Any], T_flange_cam: np.ndarray,
     for i, (link, joint) in enumerate(zip(LINKS, JOINTS, strict=True)):
         e = kin[link]
         T = rpy_to_T([e["x"], e["y"], e["z"]], [e["roll"], e["pitch"], e["yaw"]])
-        lo, hi = limits_rad[i]
+        lo, hi, velocity, effort = limits[i]
         lines.append(f'  <joint name={quoteattr(joint)} type="revolute">'
                      f'<parent link={quoteattr(parent)}/><child link="{link}_link"/>'
                      f'{_origin(T)}<axis xyz="0 0 1"/>'
-                     f'<limit lower="{lo!r}" upper="{hi!r}" effort="150" velocity="3.14"/>'
-                     "</joint>")
+                     f'<limit lower="{lo!r}" upper="{hi!r}" effort="{effort!r}" '
+                     f'velocity="{velocity!r}"/></joint>')
         parent = f"{link}_link"
     lines.append(_fixed("wrist_3-flange", "wrist_3_link", "flange",
                         rpy_to_T([0, 0, 0], FLANGE_RPY)))
@@ -209,4 +234,5 @@ def export_urdf(result: dict, path, run_id: str, versions: dict | None) -> None:
     path.write_text(urdf_from_kinematics(
         kinematics, np.asarray(result["T_flange_cam"]),
         None if T_base_target is None else np.asarray(T_base_target), T_wrist3_flange,
-        name=f"rigctl_{result.get('arm_model', 'ur')}_{run_id}"))
+        name=f"rigctl_{result.get('arm_model', 'ur')}_{run_id}",
+        model_name=result.get("arm_model")))

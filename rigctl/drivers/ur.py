@@ -1,4 +1,8 @@
-"""``Arm`` on ``ur_rtde``: a Universal Robots e-Series arm over RTDE.
+"""``Arm`` on ``ur_rtde``: a Universal Robots arm (CB3, e-Series, UR-Series) over RTDE.
+
+- Before anything else it asks the dashboard what the arm is (``get robot model``,
+  ``get serial number``, ``PolyscopeVersion``) and refuses (``ConfigError``) a rig file
+  whose ``devices.arm.model`` disagrees, naming both (``rigctl.hardware.ur_models``).
 
 - Connects the receive and control interfaces with bounded retries (connections often
   fail right after a stop).
@@ -24,6 +28,7 @@ from typing import Any
 
 from rigctl.drivers.base import Arm, ArmState, DeviceError, SafetyError, Status, load_note
 from rigctl.drivers.ur_primary import PrimaryInfo, read_primary_info
+from rigctl.hardware.ur_models import ControllerIdentity, check_model
 
 log = logging.getLogger(__name__)
 
@@ -64,6 +69,7 @@ class URArm(Arm):
         self.serial = None
         self.polyscope = None
         self.primary: PrimaryInfo | None = None
+        self.identity: ControllerIdentity | None = None
         self._monitor_stop = threading.Event()
 
     # -- connection -----------------------------------------------------------------
@@ -88,6 +94,10 @@ class URArm(Arm):
         import rtde_control
         import rtde_receive
 
+        self.identity = read_identity(self.cfg.host)
+        if self.identity is not None:
+            check_model(self.cfg.model, self.identity, self.cfg.host)
+            self.serial, self.polyscope = self.identity.serial, self.identity.version
         self.receive = self._with_retries(
             "receive", lambda: rtde_receive.RTDEReceiveInterface(self.cfg.host))
         self.control = self._with_retries(
@@ -96,16 +106,6 @@ class URArm(Arm):
         self._lost = None
         self._monitor_stop = threading.Event()
         threading.Thread(target=self._monitor, daemon=True, name="arm-stream-monitor").start()
-        try:
-            import dashboard_client
-
-            dash = dashboard_client.DashboardClient(self.cfg.host)
-            dash.connect()
-            self.serial = dash.getSerialNumber()
-            self.polyscope = dash.polyscopeVersion()
-            dash.disconnect()
-        except Exception as exc:
-            log.info("arm: dashboard not available for provenance: %s", exc)
         try:
             self.primary = read_primary_info(self.cfg.host, timeout_s=self.cfg.primary_timeout_s)
         except DeviceError as exc:
@@ -166,6 +166,7 @@ class URArm(Arm):
         return {"controller": primary.get("controller_version"),
                 "kinematics_hash": kinematics["hash"] if kinematics else None,
                 "model": self.cfg.model, "host": self.cfg.host, "serial": self.serial,
+                "controller_model": self.identity.robot_model if self.identity else None,
                 "firmware": self.polyscope, "connect_s": self.connect_s,
                 "teardown_s": self.teardown_s,
                 "speed_cap_dps": self.cfg.speed_cap_dps, "accel_cap_dps2": self.cfg.accel_cap_dps2,
@@ -349,7 +350,9 @@ class URArm(Arm):
         dash.connect()
         try:
             dash.unlockProtectiveStop()  # ur_rtde returns nothing; it raises when refused
-            status = dash.safetystatus()
+            # a CB3 has no `safetystatus` (PolyScope 5.4+); its `safetymode` says the same
+            cb3 = self.identity is not None and self.identity.major == 3
+            status = dash.safetymode() if cb3 else dash.safetystatus()
         finally:
             dash.disconnect()
         if "PROTECTIVE_STOP" in status:
@@ -358,3 +361,34 @@ class URArm(Arm):
         if self.control is not None:
             self.control.reuploadScript()
         return f"protective stop unlocked ({status})"
+
+
+def _dashboard_answer(dash, command: str, expect: str) -> str | None:
+    """One dashboard command's answer when it starts with ``expect`` (a controller too
+    old for the command answers "could not understand ..."), else None."""
+    dash.send(command + "\n")
+    answer = str(dash.receive()).strip()
+    return answer if answer.startswith(expect) else None
+
+
+def read_identity(host: str) -> ControllerIdentity | None:
+    """What the controller at ``host`` says it is (dashboard ``get robot model``, ``get
+    serial number``, ``PolyscopeVersion``; CB3 from 3.12, e-Series from 5.6), or None when
+    the dashboard cannot be reached (then nothing can be checked; logged). The serial number
+    is asked directly: ur_rtde's ``getSerialNumber`` refuses on a CB3, which has it."""
+    try:
+        import dashboard_client
+
+        dash = dashboard_client.DashboardClient(host)
+        dash.connect()
+        try:
+            version = dash.polyscopeVersion()
+            model = _dashboard_answer(dash, "get robot model", "UR")
+            serial = _dashboard_answer(dash, "get serial number", "20")
+        finally:
+            dash.disconnect()
+    except Exception as exc:  # ur_rtde raises RuntimeError on a refused connection
+        log.warning("arm %s: the dashboard did not say what the arm is: %s", host, exc)
+        return None
+    return ControllerIdentity(model, serial if serial and serial.isdigit() else None,
+                              version or None)

@@ -156,20 +156,16 @@ class KinematicModel:
         return J
 
 
-UR_DH = {  # Universal Robots' published nominal DH (d, a), metres
-    "ur3e": ([0.15185, 0, 0, 0.13105, 0.08535, 0.0921], [0, -0.24355, -0.2132, 0, 0, 0]),
-    "ur5e": ([0.1625, 0, 0, 0.1333, 0.0997, 0.0996], [0, -0.425, -0.3922, 0, 0, 0]),
-    "ur10e": ([0.1807, 0, 0, 0.17415, 0.11985, 0.11655], [0, -0.6127, -0.57155, 0, 0, 0]),
-}
-UR_ALPHA = [np.pi / 2, 0, 0, np.pi / 2, -np.pi / 2, 0]
-
-
 def nominal_ur(model: str) -> KinematicModel:
-    """Nominal UR3e/UR5e/UR10e model."""
-    if model not in UR_DH:
-        raise SolveError(f"no nominal kinematics for {model!r}; known: {sorted(UR_DH)}")
-    d, a = UR_DH[model]
-    return KinematicModel(np.array(d, float), np.array(a, float), np.array(UR_ALPHA, float))
+    """The nominal (published) DH model of a UR arm: any model of
+    ``rigctl.hardware.ur_models`` (UR3 ... UR30, CB3 and e-Series)."""
+    from rigctl.hardware.ur_models import MODELS
+
+    if model not in MODELS:
+        raise SolveError(f"no nominal kinematics for {model!r}; known: {', '.join(MODELS)}")
+    row = MODELS[model]
+    return KinematicModel(np.array(row.d, float), np.array(row.a, float),
+                          np.array(row.alpha, float))
 
 
 def puma560_3link() -> KinematicModel:

@@ -11,7 +11,11 @@ that every solver and planner can be judged on a distribution of rigs rather tha
 - head: roll axis tilted up to 0.5 deg, centre of projection off the axes by up to 3 mm;
   servos of one family (X, MX, P) or a mixed bus, with hardware encoders (readings
   quantized to the model's pulse, about a pulse of noise, plus up to half a pulse more);
-- arm: UR3e, UR5e or UR10e with kinematic errors at the spread of factory variation
+- arm: any of the thirteen UR models (``rigctl.mocks.ur_models``): seeds from
+  ``ALL_MODELS_FROM`` on take them in turn (seed mod 13, so any 26 consecutive seeds hold
+  each twice); seeds below keep the UR3e, UR5e or UR10e they always drew, so that every
+  recorded benchmark and regression seed still gives its world. Kinematic errors at
+  the spread of factory variation
   (encoder offsets ~0.1 deg, lengths ~1 mm, twists ~0.08 deg; Hayati beta on the
   parallel joints 2-3 and 3-4); the controller's factory calibration (``factory_errors``)
   is the truth's plain-DH part up to a third of that spread;
@@ -27,9 +31,11 @@ import math
 
 import numpy as np
 
+from rigctl.mocks.ur_models import MODEL_NAMES
+from rigctl.mocks.ur_models import REACH_M as REACH_M
 from rigctl.mocks.world import WorldFile, rpy_matrix
 
-REACH_M = {"ur3e": 0.50, "ur5e": 0.85, "ur10e": 1.30}
+ALL_MODELS_FROM = 100_000  # seeds from here on draw every UR model (see the module note)
 SIZES = ((1280, 720), (1280, 720), (1024, 768), (1280, 960))
 
 
@@ -127,10 +133,18 @@ def _head_servos(rng: np.random.Generator) -> dict:
             "encoder_noise_deg": round(float(rng.uniform(0.0, 0.5)) * pulse_deg, 6)}
 
 
+def _arm_model(seed: int, rng: np.random.Generator) -> str:
+    """The arm of world ``seed``: UR3e, UR5e or UR10e drawn from ``rng`` below
+    ``ALL_MODELS_FROM`` (the worlds those seeds always gave), else every model in turn.
+    Draws from ``rng`` either way, so that the rest of a world is drawn as before."""
+    legacy = ("ur3e", "ur5e", "ur10e")[rng.integers(3)]
+    return legacy if seed < ALL_MODELS_FROM else MODEL_NAMES[seed % len(MODEL_NAMES)]
+
+
 def random_world(seed: int) -> dict:
     """One plausible rig drawn from ``seed`` (deterministic), as world-file data."""
     rng = np.random.default_rng([seed, 20261123])
-    model = ("ur3e", "ur5e", "ur10e")[rng.integers(3)]
+    model = _arm_model(seed, rng)
     near = rng.uniform(0.6, 2.0)  # the nearest scene shapes, metres from the camera
     cam = _camera(rng)
     # the scene fills the view (a lab has texture everywhere), whatever the lens

@@ -1,10 +1,17 @@
-"""A Universal Robots e-Series controller stand-in that the real ``ur_rtde`` client drives.
+"""A Universal Robots controller stand-in (CB3, e-Series, UR-Series) that the real
+``ur_rtde`` client drives.
 
 Serves RTDE (30004), the dashboard (29999), the script port (30003) and the primary and
 secondary interfaces (30001/30002: version, then robot state with KINEMATICS_INFO at 10 Hz)
-on one loopback address, and runs a 500 Hz controller loop reporting
-version 5.11.1. It recognises the uploaded ``rtde_control`` script and emulates its
-register handshake (see ``shared/reference/ur-controller-protocol.md``)::
+on one loopback address, and runs a 500 Hz controller loop. Each model (``--model``, as
+ur_description spells it: ur3 ... ur30) is played from the stand-in's own table
+(``rigctl.mocks.ur_models``): its DH, its joint position limits and speeds, and what its
+controller reports (software version on RTDE, the primary interface and the dashboard;
+``get robot model``; serial number). A CB3 reports 3.15: ur_rtde then streams at 125 Hz,
+skips the serial-number query and strips the ``$5.x`` lines of its control script, and
+the dashboard refuses what a CB3 does not have (``safetystatus``, ``is in remote
+control``). It recognises the uploaded ``rtde_control`` script and emulates its register
+handshake (see ``shared/reference/ur-controller-protocol.md``)::
 
     rigctl mock arm [--host 127.0.0.1] [--model ur5e] [--world FILE] [--control SOCKET]
                     [--tcp-model factory|nominal|true]
@@ -34,6 +41,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from rigctl.mocks import ur_models as models
 from rigctl.mocks.jsonlines import listen, serve_stream
 from rigctl.mocks.ur_kinematics import ArmModel, matrix_to_pose, pose_to_matrix
 from rigctl.mocks.ur_motion import JointMove, LinearMove, ServoMove, SpeedMove, StopMove
@@ -41,11 +49,13 @@ from rigctl.mocks.ur_primary import dh_table, robot_state, version_message
 
 log = logging.getLogger("mock.ur")
 
-VERSION = (5, 11, 1, 108318)
 PERIOD = 0.002
-JOINT_LIMIT = math.radians(363.0)
-JOINT_SPEED_MAX = math.pi  # rad/s (UR5e: 180 deg/s on every joint)
 JOINT_ACCEL_MAX = 40.0  # rad/s^2
+# RTDE outputs a CB3 (3.x) does not offer (RTDE guide: added with PolyScope 5.x)
+E_SERIES_ONLY_OUTPUTS = frozenset({"ft_raw_wrench", "actual_current_as_torque"})
+# dashboard commands a CB3 does not know (UR Client Library's command table: 5.x only)
+E_SERIES_ONLY_DASHBOARD = frozenset({"safetystatus", "is in remote control",
+                                     "get operational mode"})
 
 # Runtime, robot and safety modes as the RTDE guide numbers them.
 RUNTIME_STOPPED, RUNTIME_PLAYING, RUNTIME_PAUSED = 1, 2, 4
@@ -174,6 +184,11 @@ class Controller:
                  home_deg: list[float] | None = None, factory_errors: dict | None = None,
                  calibration_status: int = 0) -> None:
         self.nominal = ArmModel.nominal(model)
+        self.version = models.version(model)
+        self.cb3 = models.is_cb3(model)
+        self.limits = np.array(models.joint_limits_rad(model))
+        self.speed_max = np.array(models.joint_speed_max(model))
+        self.seen = {"rtde_frequencies": [], "script_lines": [], "dashboard": []}
         self.true = self.nominal.with_errors(**errors)
         self.factory = None if factory_errors is None else \
             self.nominal.with_errors(**factory_errors)
@@ -250,6 +265,7 @@ class Controller:
 
     def load_script(self, text: str) -> None:
         lines = text.splitlines()
+        self.seen["script_lines"].append(len(lines))
         offset = 0
         for i, line in enumerate(lines):
             if "reg_offset_int" in line and "=" in line and i + 1 < len(lines):
@@ -303,17 +319,29 @@ class Controller:
     # -- commands ----------------------------------------------------------------
 
     def _check_joints(self, q) -> bool:
-        return bool(np.all(np.abs(q) <= JOINT_LIMIT))
+        return bool(np.all(np.abs(q) <= self.limits))
 
-    def _caps(self, v: float, a: float) -> tuple[float, float]:
-        return min(max(v, 1e-6), JOINT_SPEED_MAX), min(max(a, 1e-6), JOINT_ACCEL_MAX)
+    def _caps(self, v: float, a: float, delta=None) -> tuple[float, float]:
+        """moveJ's leading-joint speed and acceleration, capped so that no joint exceeds
+        its own maximum speed (the joints move in step, each at |delta_i| / max|delta| of
+        the leading joint's speed)."""
+        v, a = max(v, 1e-6), min(max(a, 1e-6), JOINT_ACCEL_MAX)
+        vmax = float(np.max(self.speed_max))
+        if delta is not None and np.max(np.abs(delta)) > 0:
+            share = np.abs(delta) / np.max(np.abs(delta))
+            moving = share > 0
+            vmax = float(np.min(self.speed_max[moving] / share[moving]))
+        if v > vmax:
+            self.messages.append(f"moveJ speed {v:.3f} rad/s capped at {vmax:.3f} rad/s "
+                                 "(joint speed limits)")
+        return min(v, vmax), a
 
     def _start_joint_move(self, q1, v, a, sync: bool) -> bool:
         if not self._check_joints(q1):
             self.messages.append("moveJ target outside the joint limits: program halted")
             self.stop_program("joint limit violation")
             return False
-        v, a = self._caps(v, a)
+        v, a = self._caps(v, a, np.asarray(q1) - self.q)
         self.motion = JointMove(self.q, q1, v, a, self.t)
         self._begin(sync)
         return True
@@ -370,7 +398,7 @@ class Controller:
 
     def _cmd_speedj(self, _async: bool) -> None:
         target, accel = self.q_from(0), max(self.rdouble(6), 1e-3)
-        target = np.clip(target, -JOINT_SPEED_MAX, JOINT_SPEED_MAX)
+        target = np.clip(target, -self.speed_max, self.speed_max)
         if isinstance(self.motion, SpeedMove):
             self.motion.update(target, accel)
         else:
@@ -385,7 +413,7 @@ class Controller:
         if isinstance(self.motion, ServoMove):
             self.motion.update(target, self.rdouble(9))
         else:
-            self.motion = ServoMove(self.q, target, self.rdouble(9), JOINT_SPEED_MAX, self.t)
+            self.motion = ServoMove(self.q, target, self.rdouble(9), self.speed_max, self.t)
         self.motion_kind = "rt"
 
     def _cmd_inverse_kinematics(self, cmd: int) -> None:
@@ -540,7 +568,10 @@ class Controller:
                     "tcp_pose": matrix_to_pose(self.ctrl_model.tool(self.q, self.tcp)).tolist(),
                     "runtime_state": self.runtime_state, "robot_mode": self.robot_mode,
                     "safety_mode": self.safety_mode, "out_int": self.out_int[:4],
-                    "messages": self.messages[-20:], "model": self.model_name}
+                    "messages": self.messages[-20:], "model": self.model_name,
+                    "version": list(self.version), "seen": self.seen,
+                    "joint_speed_max": self.speed_max.tolist(),
+                    "joint_limits": [None if math.isinf(v) else v for v in self.limits]}
 
 
 def _recv_exact(sock: socket.socket, n: int) -> bytes:
@@ -584,11 +615,15 @@ class RTDEConnection:
         if kind == "V":
             self.send("V", b"\x01")
         elif kind == "v":
-            self.send("v", struct.pack(">IIII", *VERSION))
+            self.send("v", struct.pack(">IIII", *self.ctrl.version))
         elif kind == "O":
             self.frequency = struct.unpack(">d", payload[:8])[0]
             names = [n for n in payload[8:].decode().split(",") if n]
-            types = [OUTPUT_TYPES.get(n, "NOT_FOUND") for n in names]
+            offered = {k: v for k, v in OUTPUT_TYPES.items()
+                       if not (self.ctrl.cb3 and k in E_SERIES_ONLY_OUTPUTS)}
+            types = [offered.get(n, "NOT_FOUND") for n in names]
+            with self.ctrl.lock:
+                self.ctrl.seen["rtde_frequencies"].append(self.frequency)
             self.output_names = names
             self.output_fmt = ">B" + "".join(FIELD_SIZES[t][1:] for t in types
                                              if t != "NOT_FOUND")
@@ -663,13 +698,9 @@ class RTDEConnection:
 
 
 DASHBOARD_ANSWERS = {
-    "PolyscopeVersion": "URSoftware 5.11.1.108318 (Nov 01 2021)",
-    "polyscopeVersion": "URSoftware 5.11.1.108318 (Nov 01 2021)",
-    "get serial number": "20215500001",
     "is in remote control": "true",
     "close popup": "closing popup",
     "close safety popup": "closing safety popup",
-    "get robot model": "UR5",
 }
 
 
@@ -734,7 +765,7 @@ class Server:
         ctrl = self.ctrl
         threading.Thread(target=self._drain, args=(sock,), daemon=True).start()
         try:
-            sock.sendall(version_message(int(ctrl.t * 1e6)))
+            sock.sendall(version_message(int(ctrl.t * 1e6), ctrl.version))
             while not self.stop_event.is_set():
                 with ctrl.lock:
                     package = robot_state(ctrl.q, ctrl.qd, ctrl.snapshot["actual_TCP_pose"],
@@ -793,7 +824,18 @@ class Server:
     def dashboard(self, command: str) -> str:
         """One dashboard-server command (port 29999): a fixed answer, or a handler of
         ``DASHBOARD_HANDLERS`` that may change the controller's state."""
-        with self.ctrl.lock:
+        ctrl = self.ctrl
+        with ctrl.lock:
+            ctrl.seen["dashboard"] = [*ctrl.seen["dashboard"][-99:], command]
+            if ctrl.cb3 and command in E_SERIES_ONLY_DASHBOARD:
+                return f"could not understand: '{command}'"
+            model = ctrl.model_name
+            if command in ("PolyscopeVersion", "polyscopeVersion"):
+                return models.polyscope_line(model)
+            if command == "get robot model":
+                return models.dashboard_model(model)
+            if command == "get serial number":
+                return models.serial_number(model)
             if command in DASHBOARD_ANSWERS:
                 return DASHBOARD_ANSWERS[command]
             handler = DASHBOARD_HANDLERS.get(command)
@@ -853,9 +895,12 @@ class Server:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="rigctl mock arm",
-                                     description="UR e-Series controller stand-in (RTDE).")
+                                     description="UR controller stand-in (RTDE, dashboard, "
+                                                 "primary interface), any model.")
     parser.add_argument("--host", default="127.0.0.1")
-    parser.add_argument("--model", default="ur5e", choices=["ur3e", "ur5e", "ur10e"])
+    parser.add_argument("--model", default="ur5e", choices=list(models.MODEL_NAMES),
+                        help="the arm, as ur_description spells it (a world file's "
+                             "arm.model wins)")
     parser.add_argument("--world", default=None, help="world file (arm.errors) or errors YAML")
     parser.add_argument("--control", type=Path, default=None, help="JSON-lines control socket")
     parser.add_argument("--tcp-model", choices=("factory", "nominal", "true"),
@@ -1003,7 +1048,8 @@ DASHBOARD_HANDLERS = {
     "stop": _dash_stop, "play": _dash_play, "pause": _dash_pause,
     "running": lambda c: f"Program running: {str(c.runtime_state == RUNTIME_PLAYING).lower()}",
     "programState": _dash_program_state, "robotmode": _dash_robot_mode,
-    "safetystatus": _dash_safety, "safetymode": _dash_safety,
+    "safetystatus": _dash_safety,
+    "safetymode": lambda c: _dash_safety(c).replace("Safetystatus", "Safetymode"),
     "power on": _dash_power_on, "power off": _dash_power_off,
     "brake release": _dash_brake_release, "unlock protective stop": _dash_unlock,
     "quit": lambda c: "Disconnected",

@@ -4,7 +4,8 @@ This is the simulator's own forward model, written apart from ``rigctl.geometry`
 purpose: a bug shared by simulator and solver would pass every test.
 
 Link transform (Hayati-extended DH): ``A_i = Rz(theta_i + dtheta_i) Tz(d_i) Tx(a_i)
-Rx(alpha_i) Ry(beta_i)``. The nominal values are Universal Robots' published DH tables.
+Rx(alpha_i) Ry(beta_i)``. The nominal values are Universal Robots' published DH tables
+(the stand-in's own transcription, ``rigctl.mocks.ur_models``).
 """
 
 from __future__ import annotations
@@ -13,15 +14,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-NOMINAL = {  # d, a, alpha (m, rad); beta = 0
-    "ur3e": ([0.15185, 0, 0, 0.13105, 0.08535, 0.0921],
-             [0, -0.24355, -0.2132, 0, 0, 0]),
-    "ur5e": ([0.1625, 0, 0, 0.1333, 0.0997, 0.0996],
-             [0, -0.425, -0.3922, 0, 0, 0]),
-    "ur10e": ([0.1807, 0, 0, 0.17415, 0.11985, 0.11655],
-              [0, -0.6127, -0.57155, 0, 0, 0]),
-}
-ALPHA = [np.pi / 2, 0, 0, np.pi / 2, -np.pi / 2, 0]
+from rigctl.mocks import ur_models as _models
+
+ALPHA = _models.ALPHA
 
 
 def rotvec_to_matrix(rv) -> np.ndarray:
@@ -83,9 +78,7 @@ class ArmModel:
 
     @classmethod
     def nominal(cls, model: str) -> ArmModel:
-        if model not in NOMINAL:
-            raise ValueError(f"unknown UR model {model!r}; known: {sorted(NOMINAL)}")
-        d, a = NOMINAL[model]
+        d, a = _models.dh(model)  # ValueError naming the known models
         return cls(np.array(d, float), np.array(a, float), np.array(ALPHA, float))
 
     def with_errors(self, theta_deg=None, d_mm=None, a_mm=None, alpha_deg=None,

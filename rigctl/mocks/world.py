@@ -105,7 +105,17 @@ class FactoryErrors(_Strict):
 
 
 class ArmTruth(_Strict):
-    model: Literal["ur3e", "ur5e", "ur10e"] = "ur5e"
+    model: str = "ur5e"  # any model of rigctl.mocks.ur_models
+
+    @field_validator("model")
+    @classmethod
+    def _known_model(cls, value: str) -> str:
+        from rigctl.mocks.ur_models import MODEL_NAMES
+
+        if value not in MODEL_NAMES:
+            raise ValueError(f"unknown UR model {value!r}; known: {', '.join(MODEL_NAMES)}")
+        return value
+
     home_deg: list[float] = Field(default_factory=lambda: [0.0, -90.0, 90.0, -90.0, -90.0, 0.0])
     errors: ArmErrors = ArmErrors()
     factory_errors: FactoryErrors | None = None

@@ -41,6 +41,7 @@ VIEW_SEEDS_DEG = ([0, -100, -100, -70, 90, 0], [0, -80, -110, -80, 90, 0],
 PRIMARY_REUSE_S = 600.0
 _primary_reads: dict[str, tuple[float, PrimaryInfo | Exception]] = {}
 _primary_lock = threading.Lock()
+_identities: dict[str, tuple[float, Any]] = {}  # host -> (when, ControllerIdentity or None)
 
 
 def controller_dh_model(kinematics: dict) -> KinematicModel:
@@ -105,6 +106,7 @@ def planning_arm(config: RigConfig, use_controller: bool = True, fresh: bool = T
     if isinstance(info, Exception):
         return PlanningArm(nominal, "nominal", note=f"no controller model ({info}); planned "
                            f"with the nominal {arm.model} table")
+    _check_controller_model(arm, fresh)
     version = info.version.text if info.version else None
     if info.kinematics is None:
         return PlanningArm(nominal, "nominal", controller_version=version,
@@ -119,6 +121,22 @@ def planning_arm(config: RigConfig, use_controller: bool = True, fresh: bool = T
                        note=f"planned with the controller's own kinematics ({kinematics['hash']}"
                             f", controller {version}): up to {mm:.2f} mm and {deg:.3f} deg "
                             f"from the nominal {arm.model} table")
+
+
+def _check_controller_model(arm, fresh: bool) -> None:
+    """``ConfigError`` (before anything moves) when the controller that answered says it is
+    another model than ``devices.arm.model`` (its dashboard, read once per plan)."""
+    from rigctl.drivers.ur import read_identity
+    from rigctl.hardware.ur_models import check_model
+
+    with _primary_lock:
+        cached = _identities.get(arm.host)
+    if fresh or cached is None or time.monotonic() - cached[0] >= PRIMARY_REUSE_S:
+        cached = (time.monotonic(), read_identity(arm.host))
+        with _primary_lock:
+            _identities[arm.host] = cached
+    if cached[1] is not None:
+        check_model(arm.model, cached[1], arm.host)
 
 
 def arm_model(config: RigConfig, model: KinematicModel | None) -> KinematicModel:
