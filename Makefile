@@ -15,14 +15,15 @@ $(STAMP): pyproject.toml
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 
-# Two pytest workers, each taking whole test files (module fixtures such as the simulated
-# rig of tests/test_e2e_default_world.py stay in one worker): 5.3 min instead of 7.4 on
-# this 2-core machine. TEST_WORKERS=0 runs the suite in one process.
+# Two pytest workers. --dist loadgroup hands out one test at a time to a free worker, the
+# heavy ones first (tests/conftest.py); a module whose fixtures must be made once (the
+# simulated rig of tests/test_e2e_default_world.py) is one xdist_group and goes to one
+# worker. TEST_WORKERS=0 runs the suite in one process.
 TEST_WORKERS ?= 2
 
 test: $(STAMP)
 	$(VENV)/bin/ruff check .
-	$(VENV)/bin/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile
+	$(VENV)/bin/python -m pytest -q -n $(TEST_WORKERS) --dist loadgroup
 
 # The suite on a busy machine: 3 runs of everything with two cores kept busy, then 10 runs
 # of the end-to-end tests with one (tools/load_check.py; logs in load-check-logs/).

@@ -10,6 +10,15 @@ from rigctl.config import load_rig
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def pytest_collection_modifyitems(config, items):
+    """Tests marked ``heavy`` (minutes each: random-world trials, the end-to-end chain)
+    run first, in their file order. ``make test`` runs pytest-xdist with ``--dist
+    loadgroup``, which hands one unit of work (a test, or an ``xdist_group``) at a time to
+    whichever worker is free, in this order: started last, a heavy test would leave the
+    other worker idle while it runs."""
+    items.sort(key=lambda item: item.get_closest_marker("heavy") is None)
+
+
 @pytest.fixture
 def start_sim(tmp_path: Path):
     """Start ``rigctl sim up`` (``rigctl.simrig.SimulatedRig`` keywords, world "ideal" by

@@ -53,7 +53,8 @@ def test_the_planned_shift_moves_the_camera_sideways_without_turning_it():
     assert np.allclose(after[:3, 3] - before[:3, 3], 0.01 * before[:3, 0], atol=1e-9)
 
 
-@pytest.mark.timeout(900)  # a hang guard: ~4x the idle time under the load check
+@pytest.mark.heavy
+@pytest.mark.timeout(600)  # a hang guard: ~4x the idle time under the load check
 def test_active_camera_on_a_random_world_estimates_the_offset_from_the_axes():
     """Seed 2005 (a UR5e, the camera 1.6, 1.9 and 1.4 mm off the head's axes, k3 and
     tangential distortion): with the depths the arm's move measured, the offset across

@@ -17,6 +17,9 @@ from rigctl.config import load_rig
 from rigctl.service import RigService, create_app
 from tests.mockproc import ROOT
 
+# one worker runs the module, so its schema is loaded once
+pytestmark = pytest.mark.xdist_group("api-properties")
+
 TOKEN = "fuzz-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 

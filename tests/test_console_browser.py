@@ -20,7 +20,8 @@ from tests.needs import missing
 from tests.service_stack import TOKEN, Stack, get, post, wait_for
 from tests.waiting import wait_until
 
-pytestmark = pytest.mark.integration
+# one worker runs the module, so its service stack and browser are started once
+pytestmark = [pytest.mark.integration, pytest.mark.xdist_group("console-browser")]
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 INSTALL = "apt-get install chromium (Debian/Ubuntu), then pip install playwright"
@@ -134,7 +135,7 @@ def _open_following(page, stack, run_id: str) -> None:
     assert page.inner_text("#run-status") == "succeeded"
 
 
-@pytest.mark.timeout(1500)
+@pytest.mark.timeout(900)  # a hang guard: runs on the simulated rig through the service
 def test_console_end_to_end(page, stack, artifacts):
     base = stack.base
     # 1. every page opens, at desktop width, without script errors
@@ -415,7 +416,7 @@ def _decided(stack, run_id: str) -> str:
                       timeout=WAIT_MS // 1000, what=f"the decision on {run_id}")
 
 
-@pytest.mark.timeout(1500)
+@pytest.mark.timeout(900)  # a hang guard: runs on the simulated rig through the service
 def test_console_compares_arm_models(page, stack, artifacts, tmp_path):
     """An arm model compared with the accepted one: the camera's position over the run's
     configurations. The second run is on the same devices with the camera 3 mm further

@@ -29,7 +29,9 @@ from rigctl.simrig import SimulatedRig
 from tests.mockproc import ROOT
 from tests.resolve_check import assert_resolves_alone
 
-pytestmark = pytest.mark.integration
+# one worker runs the module, so its rig and active-camera run are made once
+pytestmark = [pytest.mark.integration, pytest.mark.xdist_group("e2e-default-world"),
+              pytest.mark.heavy]
 
 
 def rigctl(*args, timeout=1200):  # a hang guard, not a timing claim
@@ -102,7 +104,7 @@ def test_active_camera_on_default_world(camera_run):
         assert math.sqrt(matrix[i, i]) == pytest.approx(out["sigma"][key], rel=1e-9)
 
 
-@pytest.mark.timeout(2400)  # five runs on the simulated rig: ~2.5 min idle, 15 on a crowded host
+@pytest.mark.timeout(900)  # a hang guard: five runs on the simulated rig, ~2 min idle
 def test_robot_kinematics_end_to_end(tmp_path, camera_run):
     rig, records = camera_run.rig, camera_run.records
     assert camera_run.result.returncode == 0, camera_run.result.stderr[-2000:]

@@ -77,7 +77,8 @@ def test_the_plan_captures_the_second_station_inside_the_limits():
                    for s in plain)
 
 
-@pytest.mark.timeout(1800)  # a hang guard (~150 s idle)
+@pytest.mark.heavy
+@pytest.mark.timeout(900)  # a hang guard (~2 min on a busy host)
 def test_a_second_station_pins_the_offset_one_far_contour_carried():
     """Random world 62019 (a board filling the view at 0.56 m, one contour at 1.9 m):
     from one station the focal length comes out 0.11 % low and the centre 2.2 px off

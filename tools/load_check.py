@@ -91,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("pytest_args", nargs="*", help="passed to pytest (after --)")
     args = parser.parse_args(argv)
     # the whole suite as `make test` runs it (two workers), the end-to-end files in one
-    tests = E2E if args.e2e else ["-n", "2", "--dist", "loadfile"]
+    tests = E2E if args.e2e else ["-n", "2", "--dist", "loadgroup"]
     logs = Path(args.logs)
     logs.mkdir(parents=True, exist_ok=True)
     busy = start_busy_loops(args.busy)

@@ -603,20 +603,24 @@ class _Problem:
             cam, self.n_dist, DIST_SLOTS[self.n_dist], und, inverse[point], normals,
             self.cache.rotations(self.motions, N, a), rotation_derivatives(self.motions, cam),
             counts, s, rho_rows)
-        free_cam = self.free[:self.n_cam]
+        # one array for the whole Jacobian: the residual rows' camera and inverse-depth
+        # columns, then the priors' rows (copying a Jacobian of 100,000 rows costs as
+        # much as forming it)
+        free_cam = np.flatnonzero(self.free[:self.n_cam])
         free_rho = self.free[self.n_cam:]
-        J = J_cam if free_cam.all() else np.take(J_cam, np.flatnonzero(free_cam), axis=1)
+        with_prior = np.flatnonzero(np.isfinite(self.prior_sigma[self.free]))
+        n_rows = len(point)
+        J = np.zeros((n_rows + len(with_prior), len(xf)))
+        J[:n_rows, :len(free_cam)] = J_cam[:, free_cam]
         if free_rho.any():  # each point's inverse depth is its contour's parameter
             column = np.full(len(free_rho), -1)
-            column[free_rho] = int(free_cam.sum()) + np.arange(int(free_rho.sum()))
+            column[free_rho] = len(free_cam) + np.arange(int(free_rho.sum()))
             row_column = column[self.groups[point]]
             has = np.flatnonzero(row_column >= 0)
-            J = np.hstack([J, np.zeros((len(J), int(free_rho.sum())))])
             J[has, row_column[has]] = d_rho[has]
-        has = np.flatnonzero(np.isfinite(self.prior_sigma[self.free]))
-        prior_rows = np.zeros((len(has), J.shape[1]))
-        prior_rows[np.arange(len(has)), has] = 1.0 / self.prior_sigma[self.free][has]
-        return np.vstack([J, prior_rows])
+        J[n_rows + np.arange(len(with_prior)), with_prior] = \
+            1.0 / self.prior_sigma[self.free][with_prior]
+        return J
 
     def _row_layout(self, assoc, targets) -> tuple[np.ndarray, np.ndarray, list[int]]:
         """For each residual row, in ``_residuals``' order: its reference point (row of
