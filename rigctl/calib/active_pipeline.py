@@ -37,6 +37,7 @@ from rigctl.calib.active_refine import (
 from rigctl.calib.active_tracking import SHIFT, WIDE_WINDOW, Tracker, roll_tiers, tier_key, tiers
 from rigctl.calib.blas_threads import with_one_blas_thread
 from rigctl.errors import SolveError
+from rigctl.timing import stage_timer
 from rigctl.vision.tracking import track_in_range
 
 NEAREST_SCENE_M = 0.25  # the shift capture's search window covers contours this close
@@ -206,22 +207,27 @@ def _centre_of(K: dict | RefineResult) -> tuple[float, float]:
     return (K["cx"], K["cy"]) if isinstance(K, dict) else (K.cx, K.cy)
 
 
-def _refine_from_starts(motions, starts: dict[str, dict], kwargs: dict
-                        ) -> tuple[RefineResult, dict]:
+def _refine_from_starts(motions, starts: dict[str, dict], kwargs: dict,
+                        timings: dict[str, float] | None = None) -> tuple[RefineResult, dict]:
     """The refinement from each start; the one of least ``robust_cost`` (comparable across
     starts: every point counts, whatever each run rejected). A start whose refinement
-    fails is reported and skipped; if all fail, the first's error is raised."""
+    fails is reported and skipped; if all fail, the first's error is raised. Each
+    start's seconds, and those of its refinement's parts, go into ``timings``."""
+    timings = {} if timings is None else timings
     results: dict[str, RefineResult] = {}
     report: dict[str, dict] = {}
     first_error: SolveError | None = None
     for name, start in starts.items():
         try:
-            results[name] = refine(motions, start, **kwargs)
+            with stage_timer(timings)(f"final refinement from {name}"):
+                results[name] = refine(motions, start, **kwargs)
         except SolveError as exc:
             first_error = first_error or exc
             report[name] = {"centre": [start["cx"], start["cy"]], "error": str(exc)}
             continue
         r = results[name]
+        timings.update({f"final refinement from {name}: {part}": seconds
+                        for part, seconds in r.timings_s.items()})
         report[name] = {"centre": [start["cx"], start["cy"]], "ended_at": [r.cx, r.cy],
                         "robust_cost": r.robust_cost, "rms_px": r.rms_px}
     if not results:
@@ -488,67 +494,75 @@ def solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, f
     if missing:
         raise SolveError(f"active-camera: captures missing: {missing}")
     timings: dict[str, float] = {}
-    t0 = time.perf_counter()
-    tr = Tracker(images, angles, settings.window, settings.min_points,
-                 settings.assumed_centre)
-    K0 = tr.first_K()
-    timings["contours_and_first_K"] = time.perf_counter() - t0
+    stage = stage_timer(timings)
+    with stage("contours and first K"):
+        tr = Tracker(images, angles, settings.window, settings.min_points,
+                     settings.assumed_centre)
+        K0 = tr.first_K()
 
-    t0 = time.perf_counter()
-    small, wide, roll_labels = tiers(images)
-    order = small + wide + roll_labels
-    for label in small:
-        tr.track(label, K0, 12.0)
+    small, wide, roll_groups, order = _tiers(images, tr)
+    with stage("tracking: small pans and tilts"):
+        for label in small:
+            tr.track(label, K0, 12.0)
     # each tier is tracked by prediction from the model refined on the tiers before it;
     # those refinements only predict: a quarter of the points do
     K1: dict | RefineResult = dict(K0)
     K_pans: dict | RefineResult | None = None  # the refinement on every pan and tilt
     done = list(small)
     depths = None
-    roll_groups = roll_tiers(roll_labels, tr.rel)
     for tier in (wide, *roll_groups):
         if not tier:
             continue
+        key = tier_key(tier, wide, roll_groups)
         before = [m for m in (tr.motion(lb, PREDICTION_STRIDE) for lb in done) if m]
         if len(before) >= 2:
-            K1 = _predicting_refinement(before, K0 if isinstance(K1, dict) else _as_start(K1),
-                                        settings, depths)
+            with stage(f"predicting refinement: {key}"):
+                K1 = _predicting_refinement(
+                    before, K0 if isinstance(K1, dict) else _as_start(K1), settings, depths)
             if depths is None:  # measured once the pans' K is known, used from then on
-                depths = _measured_depths(tr, K1, settings, images)
+                with stage("depths"):
+                    depths = _measured_depths(tr, K1, settings, images)
                 if depths is not None:
-                    K1 = _predicting_refinement(before, _as_start(K1), settings, depths)
-            tr.report[tier_key(tier, wide, roll_groups)] = {
-                "fx": K1.fx, "fy": K1.fy, "cx": K1.cx, "cy": K1.cy,
-                "distortion": [K1.k1, K1.k2, K1.p1, K1.p2, K1.k3]}
+                    with stage(f"predicting refinement: {key} with depths"):
+                        K1 = _predicting_refinement(before, _as_start(K1), settings, depths)
+            tr.report[key] = {"fx": K1.fx, "fy": K1.fy, "cx": K1.cx, "cy": K1.cy,
+                              "distortion": [K1.k1, K1.k2, K1.p1, K1.p2, K1.k3]}
         if roll_groups and tier is roll_groups[0]:
             K_pans = K1
-        for label in tier:
-            tr.track(label, K1, TIER_WINDOW_PX,
-                     ROLL_JOINT_WINDOW_PX if tier is not wide else 0.0)
+        with stage(f"tracking: {key.removeprefix('K_for_')}"):
+            for label in tier:
+                tr.track(label, K1, TIER_WINDOW_PX,
+                         ROLL_JOINT_WINDOW_PX if tier is not wide else 0.0)
         done += tier
     K_pans = K1 if K_pans is None else K_pans
-    timings["tracking"] = time.perf_counter() - t0
 
     if SHIFT in images and settings.shift_m > 0:  # again, with the K of every pose
-        depths = _measured_depths(tr, K1, settings, images)
+        with stage("depths"):
+            depths = _measured_depths(tr, K1, settings, images)
 
-    strategies = _strategies(tr, roll_labels)
-    start = _final_start(K_pans, strategies, K0)
+    with stage("strategies A-D"):
+        strategies = _strategies(tr, [lb for group in roll_groups for lb in group])
+        start = _final_start(K_pans, strategies, K0)
 
     second = _second_station_if_any(images_far, angles_far, K1, depths, settings, tr, timings)
 
-    t0 = time.perf_counter()
     motions, prior = _with_second_station(
         [m for m in (tr.motion(lb, REFINE_STRIDE) for lb in order) if m is not None],
         None if depths is None else depths.prior(), second)
     refined, tr.report["final_starts"] = _refine_from_starts(
         motions, _starts(start, K_pans, K0),
         dict(n_dist=_distortion_terms(settings, depths), parallax_sigma=settings.parallax_sigma,
-             depths=prior, offset_sigma_m=settings.nodal_offset_mm / 1000.0))
-    timings["refinement"] = time.perf_counter() - t0
+             depths=prior, offset_sigma_m=settings.nodal_offset_mm / 1000.0), timings)
     strategies["refined"] = refined.as_dict()
     result = _result(tr, refined, depths, settings, strategies, second)
     return ActiveSolution(result, refined, tr.contours, tr.matches, order, timings)
+
+
+def _tiers(images: dict, tr: Tracker) -> tuple[list, list, list, list]:
+    """The captures' tracking tiers (``active_tracking.tiers``, the rolls in groups
+    of ``roll_tiers``) and the order of all of them."""
+    small, wide, roll_labels = tiers(images)
+    return small, wide, roll_tiers(roll_labels, tr.rel), small + wide + roll_labels
 
 
 def _result(tr: Tracker, refined: RefineResult, depths: SceneDepths | None,

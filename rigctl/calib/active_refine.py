@@ -32,6 +32,7 @@ image (images): then the residual is the point-to-curve distance along the norma
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -316,6 +317,9 @@ class RefineResult:
     with_depths: bool = False  # the parallax is the offset o (m), each contour's s = rho o
     # with contour ids: which contour carries fx, fy, cx, cy most (``_influence``)
     influence: dict = field(default_factory=dict)
+    # seconds of the refinement's parts: the least-squares solves, the covariance, the
+    # delete-one-contour jackknife
+    timings_s: dict[str, float] = field(default_factory=dict)
 
     def predictor(self, angles0, angles1, inv_depth: float | None = None):
         """Where reference pixels land after the head moves from ``angles0`` to
@@ -679,6 +683,7 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
     if n_dist not in DIST_SLOTS:
         raise SolveError(f"refinement: n_dist must be one of {sorted(DIST_SLOTS)}, got {n_dist}")
     pb = _Problem(motions, initial, n_dist, prior_deg, parallax_sigma, depths, offset_sigma_m)
+    started = time.perf_counter()
     for _ in range(outer_iterations):
         assoc = pb.associate(pb.x)
         pb.solve(assoc, "soft_l1", 200)
@@ -692,7 +697,9 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
     r = pb.residuals(pb.x, assoc, cache=False)
     if not np.all(np.isfinite(pb.x)) or not np.all(np.isfinite(r)):
         raise SolveError("refinement diverged (non-finite parameters)")
+    solves_s = time.perf_counter() - started
     result = _result(pb, final, r, assoc, parallax_sigma)
+    result.timings_s = {"solves": solves_s, **result.timings_s}
     result.robust_cost = _robust_cost(pb)
     result.with_depths = pb.groups is not None
     return result
@@ -719,9 +726,12 @@ def _result(pb: _Problem, final, r: np.ndarray, assoc, parallax_sigma: float) ->
     J = final.jac[:len(r)]
     J = J.toarray() if hasattr(J, "toarray") else np.asarray(J)
     prior = pb.prior_sigma[pb.free]
+    started = time.perf_counter()
     cov, A_inv, A = _covariance(J, r, _clusters(pb.motions, pb.masks), prior)
+    timings = {"covariance": time.perf_counter() - started}
     influence: dict = {}
     if pb.groups is not None:
+        started = time.perf_counter()
         # with depths the centre of projection's offset is told by how contours at
         # different depths move apart; when few contours lie off the others' depth, each
         # carries it. The delete-one-contour jackknife sees that, the per-motion clusters
@@ -733,6 +743,7 @@ def _result(pb: _Problem, final, r: np.ndarray, assoc, parallax_sigma: float) ->
         influence = _influence(changes, contours, free_names, cov)
         cov = larger_variances(cov, jackknife_spread(changes)
                                + A_inv @ np.diag(1.0 / prior ** 2) @ A_inv)
+        timings["jackknife"] = time.perf_counter() - started
     # the consider parameters: the parallax when it is held (no depths); measured inverse
     # depths are held too, but as known values, not as consider parameters
     held = np.flatnonzero(~pb.free[:pb.n_cam])
@@ -752,7 +763,7 @@ def _result(pb: _Problem, final, r: np.ndarray, assoc, parallax_sigma: float) ->
                         float(np.sqrt(np.mean(r ** 2))), inliers, total - inliers,
                         _rms_by_motion(r, pb.motions, pb.masks), parallax.copy(), float(k[4]),
                         x[:pb.n_cam].copy(), n_dist, full[:pb.n_cam, :pb.n_cam],
-                        influence=influence)
+                        influence=influence, timings_s=timings)
 
 
 def _all_names(pb: _Problem) -> list[str]:
