@@ -17,6 +17,7 @@ from typing import Any
 import typer
 import yaml
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from rigctl import __version__
@@ -37,7 +38,8 @@ class _Typer(typer.Typer):
             missing = missing_extra(exc)
             if missing is None:
                 raise
-            Console(stderr=True).print(f"[red]error:[/red] {missing}", highlight=False)
+            Console(stderr=True, soft_wrap=True).print(
+                f"[red]error:[/red] {escape(str(missing))}", highlight=False)
             sys.exit(EXIT_REFUSED)
 
 
@@ -85,7 +87,7 @@ def _fail(exc: Exception, as_json: bool, code: int = EXIT_REFUSED) -> None:
     if as_json:
         _print_json({"error": str(exc), "type": type(exc).__name__})
     else:
-        err.print(f"[red]error:[/red] {exc}", markup=True, highlight=False)
+        err.print(f"[red]error:[/red] {escape(str(exc))}", markup=True, highlight=False)
     raise typer.Exit(code)
 
 
@@ -118,7 +120,7 @@ def main(version: bool = typer.Option(False, "--version", callback=_version, is_
 @app.command()
 def demo(quick: bool = typer.Option(False, "--quick",
                                     help="a short chain: active-camera on fewer rotations, "
-                                    "then hand-eye on six views"),
+                                    "then hand-eye on eight views"),
          records: Path = typer.Option(Path("demo-records"), "--records",
                                       help="where the runs are recorded"),
          world: str = typer.Option("default", "--world",

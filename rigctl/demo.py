@@ -42,7 +42,7 @@ from rigctl.simrig import SimulatedRig
 console = Console(stderr=True)
 # --quick: pans and tilts of 3, 12 and 25 deg and three rolls (17 captures instead of 33)
 QUICK_CAMERA = {"wide_deg": [12.0, 25.0], "rolls_deg": [90.0, -180.0, -90.0]}
-QUICK_HAND_EYE = {"poses": 6}
+QUICK_HAND_EYE = {"poses": 8}
 
 
 def camera_table(result: dict, truth: dict) -> Table:

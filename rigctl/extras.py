@@ -9,6 +9,7 @@ command that reaches a module of a missing extra fails with ``MissingExtraError`
 from __future__ import annotations
 
 import importlib.util
+import sys
 
 from rigctl.errors import ConfigError
 
@@ -51,8 +52,15 @@ def missing_extra(exc: BaseException) -> MissingExtraError | None:
     return None if extra is None else MissingExtraError(extra, exc.name or "")
 
 
+def importable(module: str) -> bool:
+    """Whether ``module`` is installed (without importing it)."""
+    if module in sys.modules:
+        return sys.modules[module] is not None
+    return importlib.util.find_spec(module) is not None
+
+
 def require(extra: str) -> None:
-    """Raise ``MissingExtraError`` unless every module of ``extra`` can be imported."""
+    """Raise ``MissingExtraError`` unless every module of ``extra`` is installed."""
     for module in EXTRAS[extra]:
-        if importlib.util.find_spec(module) is None:
+        if not importable(module):
             raise MissingExtraError(extra, module)

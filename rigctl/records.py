@@ -380,7 +380,7 @@ def software_provenance() -> dict[str, Any]:
 
     root = Path(rigctl.__file__).resolve().parent.parent
     return _checkout_provenance(root, rigctl.__version__) or \
-        _built_provenance(rigctl.__version__)
+        _built_provenance(rigctl.__version__, _built_commit())
 
 
 def _git(root: Path, *args: str) -> str | None:
@@ -410,23 +410,28 @@ def _checkout_provenance(root: Path, version: str) -> dict[str, Any] | None:
             "dirty": None if status is None else bool(status), "from": "git checkout"}
 
 
-def _built_provenance(version: str) -> dict[str, Any]:
-    """From the version file of a build: setuptools-scm writes the commit (``commit_id``,
-    newer releases) and a version whose local part names it (``+g<commit>``) and marks
-    a dirty tree with the date (``.d<yyyymmdd>``)."""
-    commit = None
+def _built_commit() -> str | None:
+    """The commit setuptools-scm wrote into ``rigctl/_version.py`` (newer releases)."""
     try:
         from rigctl import _version
-
-        commit = getattr(_version, "commit_id", None)
     except ImportError:
-        pass
+        return None
+    commit = getattr(_version, "commit_id", None)  # git's is written "g<hash>"
+    return commit[1:] if commit and re.fullmatch(r"g[0-9a-f]{7,40}", commit) else commit
+
+
+def _built_provenance(version: str, commit: str | None = None) -> dict[str, Any]:
+    """From a build's version (setuptools-scm: a local part that names the commit,
+    ``+g<commit>``, and marks a dirty tree with the date, ``.d<yyyymmdd>``) and the
+    commit its version file holds, when it holds one."""
     local = version.partition("+")[2]
+    parts = local.split(".") if local else []
     if not commit:
-        match = re.search(r"(?:^|\.)g([0-9a-f]{7,40})", local)
-        commit = match.group(1) if match else None
-    known = "unknown" not in local
-    dirty = bool(re.search(r"(?:^|\.)d\d{8}$", local)) if known else None
+        commit = next((p[1:] for p in parts if re.fullmatch(r"g[0-9a-f]{7,40}", p)), None)
+    if any(re.fullmatch(r"d\d{8}", p) for p in parts):
+        dirty = True
+    else:  # clean when the version says where it comes from: a commit, or a bare tag
+        dirty = False if commit or not parts else None
     return {"version": version, "commit": commit, "dirty": dirty, "from": "build"}
 
 
