@@ -355,11 +355,14 @@ class ServiceConfig(_Strict):
     # the bearer token of mutating requests (and of every read when reads are not public);
     # the environment's RIGCTL_TOKEN when not set here. Never written by rigctl: a run
     # directory's copy of the rig file has it redacted.
-    token: str | None = None
+    token: str | None = Field(None, description="bearer token of changes (and of reads when "
+                              "they are not public); default: the environment's RIGCTL_TOKEN")
     # whether anyone who reaches the port may read (runs, captures, the devices'
     # configuration, the console, the event stream) without the token; None: yes on a
     # loopback bind, no elsewhere
-    public_read: bool | None = None
+    public_read: bool | None = Field(
+        None, description="reads (runs, captures, device configuration, the console) without "
+        "the token; default: true on a loopback bind, false elsewhere")
     webhook: str | None = None
     auto_accept: bool = False
     schedules: list[Schedule] = Field(default_factory=list)

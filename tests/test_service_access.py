@@ -6,10 +6,12 @@ from __future__ import annotations
 
 import json
 import logging
+import sys
 
 import pytest
 from fastapi.testclient import TestClient
 
+import rigctl.console
 from rigctl import service as service_module
 from rigctl.config import load_rig, parse_rig
 from rigctl.errors import ConfigError
@@ -183,3 +185,14 @@ def test_versions_and_log_never_carry_the_token(tmp_path):
     log = (run.path / "run.log").read_text()
     assert TOKEN not in log and f"header Bearer {REDACTED}" in log
     assert f"ValueError: {REDACTED}" in log
+
+
+def test_figures_without_the_plots_extra_say_which(tmp_path, monkeypatch):
+    """The service runs without matplotlib; its figures answer 404 naming the extra."""
+    monkeypatch.delitem(sys.modules, "rigctl.console.plots", raising=False)
+    monkeypatch.delattr(rigctl.console, "plots", raising=False)
+    monkeypatch.setitem(sys.modules, "matplotlib", None)
+    with _client(tmp_path, f"{{token: {TOKEN}}}") as api:
+        r = api.get("/console/history/active-camera.png")
+        assert r.status_code == 404 and "pip install 'rigctl[plots]'" in r.json()["detail"]
+        assert api.get("/console/history").status_code == 200
