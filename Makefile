@@ -1,16 +1,24 @@
 # `make demo` and `make test` each create .venv when missing or stale against
-# pyproject.toml, install the project into it, then run.
+# pyproject.toml, install the project into it, then run. The demo installs only what it
+# needs (the arm's client and the plots); the tests install the dev extra (everything).
 PYTHON ?= python3
 VENV := .venv
 STAMP := $(VENV)/.installed
+DEMO_STAMP := $(VENV)/.installed-demo
 
-.PHONY: demo test lint bench clean load-check
+.PHONY: demo test lint bench clean load-check wheel-check
 
-$(STAMP): pyproject.toml
-	test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
+$(VENV)/bin/python:
+	$(PYTHON) -m venv $(VENV)
 	$(VENV)/bin/python -m pip install --quiet --upgrade pip
+
+$(STAMP): pyproject.toml | $(VENV)/bin/python
 	$(VENV)/bin/python -m pip install --quiet -e '.[dev]'
 	touch $(STAMP)
+
+$(DEMO_STAMP): pyproject.toml | $(VENV)/bin/python
+	$(VENV)/bin/python -m pip install --quiet -e '.[arm,plots]'
+	touch $(DEMO_STAMP)
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
@@ -34,8 +42,13 @@ load-check: $(STAMP)
 	$(VENV)/bin/python tools/load_check.py --busy 1 --runs 10 --e2e; e2e=$$?; \
 	test $$suite -eq 0 && test $$e2e -eq 0
 
-demo: $(STAMP)
+demo: $(DEMO_STAMP)
 	$(VENV)/bin/python -m rigctl.demo
+
+# The wheel, installed in a clean venv in an empty folder outside the source tree:
+# `rigctl demo --quick` and a smoke test (.ci/wheel-check).
+wheel-check:
+	bash .ci/wheel-check
 
 clean:
 	rm -rf $(VENV) demo-records load-check-logs

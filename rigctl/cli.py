@@ -17,14 +17,34 @@ from typing import Any
 import typer
 import yaml
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from rigctl import __version__
 from rigctl.config import load_rig
 from rigctl.errors import ConfigError, RigError
 
-app = typer.Typer(add_completion=False, no_args_is_help=True,
-                  help="rigctl: rig controller for camera and robot calibration.")
+
+class _Typer(typer.Typer):
+    """The command line; an import of a missing extra anywhere in a command ends in one
+    message naming the extra to install (``rigctl.extras``), exit 2."""
+
+    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        from rigctl.extras import missing_extra
+
+        try:
+            return super().__call__(*args, **kwargs)
+        except (ModuleNotFoundError, ConfigError) as exc:
+            missing = missing_extra(exc)
+            if missing is None:
+                raise
+            Console(stderr=True, soft_wrap=True).print(
+                f"[red]error:[/red] {escape(str(missing))}", highlight=False)
+            sys.exit(EXIT_REFUSED)
+
+
+app = _Typer(add_completion=False, no_args_is_help=True,
+             help="rigctl: rig controller for camera and robot calibration.")
 runs_app = typer.Typer(no_args_is_help=True, help="Recorded runs.")
 mock_app = typer.Typer(no_args_is_help=True, help="Protocol stand-ins for the hardware.")
 bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks (JSON and a table).")
@@ -69,7 +89,7 @@ def _fail(exc: Exception, as_json: bool, code: int = EXIT_REFUSED) -> None:
     if as_json:
         _print_json({"error": str(exc), "type": type(exc).__name__})
     else:
-        err.print(f"[red]error:[/red] {exc}", markup=True, highlight=False)
+        err.print(f"[red]error:[/red] {escape(str(exc))}", markup=True, highlight=False)
     raise typer.Exit(code)
 
 
@@ -97,6 +117,26 @@ def _version(value: bool) -> None:
 def main(version: bool = typer.Option(False, "--version", callback=_version, is_eager=True,
                                       help="Print the version and exit.")) -> None:
     """rigctl: rig controller for camera and robot calibration."""
+
+
+@app.command()
+def demo(quick: bool = typer.Option(False, "--quick",
+                                    help="a short chain: active-camera on fewer rotations, "
+                                    "then hand-eye on eight views"),
+         records: Path = typer.Option(Path("demo-records"), "--records",
+                                      help="where the runs are recorded"),
+         world: str = typer.Option("default", "--world",
+                                   help="a shipped world's name or a world file")) -> None:
+    """The main job on a simulated rig (stand-ins started and stopped here): every
+    estimate printed against the world's truth. Needs the arm extra."""
+    from rigctl import demo as demo_job
+
+    try:
+        with stdout_to_stderr():
+            status = demo_job.main(quick=quick, records=records, world=world)
+    except RigError as exc:
+        _fail(exc, False)
+    raise typer.Exit(EXIT_FAILED if status else 0)
 
 
 @app.command()

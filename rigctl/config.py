@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import os
 import re
 from pathlib import Path
 from typing import Any, Literal
@@ -393,14 +394,47 @@ class DriftThresholds(_Strict):
     hand_eye_deg: float = 0.2
 
 
+LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "::1")
+
+
+def is_loopback(host: str) -> bool:
+    """Whether ``host`` is a loopback address (127.0.0.0/8, ::1, localhost)."""
+    return host in LOOPBACK_HOSTS or host.startswith("127.")
+
+
 class ServiceConfig(_Strict):
     bind: str = "127.0.0.1"
     port: int = Field(8765, ge=1, le=65535)
-    token: str | None = None
+    # the bearer token of mutating requests (and of every read when reads are not public);
+    # the environment's RIGCTL_TOKEN when not set here. Never written by rigctl: a run
+    # directory's copy of the rig file has it redacted.
+    token: str | None = Field(None, description="bearer token of changes (and of reads when "
+                              "they are not public); default: the environment's RIGCTL_TOKEN")
+    # whether anyone who reaches the port may read (runs, captures, the devices'
+    # configuration, the console, the event stream) without the token; None: yes on a
+    # loopback bind, no elsewhere
+    public_read: bool | None = Field(
+        None, description="reads (runs, captures, device configuration, the console) without "
+        "the token; default: true on a loopback bind, false elsewhere")
     webhook: str | None = None
     auto_accept: bool = False
     schedules: list[Schedule] = Field(default_factory=list)
     drift: DriftThresholds = DriftThresholds()
+
+    def bearer_token(self) -> str | None:
+        """The token in force: ``token``, else the environment's ``RIGCTL_TOKEN``."""
+        return self.token or os.environ.get("RIGCTL_TOKEN") or None
+
+    def secrets(self) -> list[str]:
+        """What rigctl never writes to a file or sends in an answer."""
+        return [s for s in {self.token, os.environ.get("RIGCTL_TOKEN")} if s]
+
+    def reads_public(self, host: str | None = None) -> bool:
+        """Whether reads need no token when the service listens on ``host`` (default:
+        ``bind``): ``public_read``, or, when unset, whether the bind is loopback."""
+        if self.public_read is not None:
+            return self.public_read
+        return is_loopback(host or self.bind)
 
 
 class RigConfig(_Strict):

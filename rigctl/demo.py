@@ -1,8 +1,8 @@
-"""``make demo``: the main job on the simulated rig.
+"""``rigctl demo`` (and ``make demo``): the main job on the simulated rig.
 
-Starts the whole simulated rig (`rigctl sim up` on ``rigctl/mocks/worlds/default.yaml``: lens
+Starts the whole simulated rig (`rigctl sim up` on the shipped world ``default``: lens
 distortion, 0.5 px noise, a 0.3 deg roll-axis tilt, mm-level arm errors), then runs
-through the runner, recorded under ``demo-records/``:
+through the runner, recorded under ``demo-records/`` in the current folder:
 
 1. ``active-camera``: intrinsics from head rotations (thesis ch. 3), printed against the
    world's truth;
@@ -14,6 +14,10 @@ through the runner, recorded under ``demo-records/``:
 4. ``validate-arm``: held-out views, camera pose error before and after;
 
 and prints every estimate against the world's truth.
+
+``--quick`` runs a short chain instead: active-camera on fewer rotations
+(``QUICK_CAMERA``), then hand-eye on a few views (``QUICK_HAND_EYE``), each printed
+against the truth. The simulated rig needs the ``arm`` extra (ur-rtde, the arm's client).
 """
 
 from __future__ import annotations
@@ -29,12 +33,16 @@ from rigctl.bench.truth import model_against_truth
 from rigctl.config import load_rig
 from rigctl.errors import RigError
 from rigctl.exports import SUFFIXES, export_result
-from rigctl.mocks.world import WORLDS, load_world
+from rigctl.extras import require
+from rigctl.mocks.world import load_world, world_file
 from rigctl.records import RunDirectory
 from rigctl.runner import Runner
 from rigctl.simrig import SimulatedRig
 
 console = Console(stderr=True)
+# --quick: pans and tilts of 3, 12 and 25 deg and three rolls (17 captures instead of 33)
+QUICK_CAMERA = {"wide_deg": [12.0, 25.0], "rolls_deg": [90.0, -180.0, -90.0]}
+QUICK_HAND_EYE = {"poses": 8}
 
 
 def camera_table(result: dict, truth: dict) -> Table:
@@ -71,17 +79,34 @@ def robot_table(result: dict, truth: dict) -> Table:
     return table
 
 
-def main() -> int:
-    records = Path("demo-records").resolve()
-    world_path = WORLDS / "default.yaml"
+def hand_eye_line(result: dict, truth: dict) -> str:
+    """T_flange_cam's translation and rotation against the truth."""
+    X = np.array(result["T_flange_cam"])
+    X_true = np.array(truth["T_flange_cam"])
+    d = X_true[:3, :3].T @ X[:3, :3]
+    angle = np.degrees(np.arccos(np.clip((np.trace(d) - 1) / 2, -1.0, 1.0)))
+    return (f"T_flange_cam translation (mm): estimated {np.round(1000 * X[:3, 3], 2).tolist()}, "
+            f"true {np.round(1000 * X_true[:3, 3], 2).tolist()}, error "
+            f"{1000 * np.linalg.norm(X[:3, 3] - X_true[:3, 3]):.2f} mm and {angle:.3f} deg "
+            f"(with the {result.get('arm_model_used', 'nominal')} arm model)")
+
+
+def main(quick: bool = False, records: str | Path = "demo-records",
+         world: str = "default") -> int:
+    """Run the demo on the simulated rig of ``world`` (a shipped world's name or a file),
+    recording under ``records``; 0 when every run succeeded."""
+    require("arm")  # the simulated arm is driven through ur-rtde, as a real one
+    records = Path(records).resolve()
+    world_path = world_file(world)
     truth = load_world(world_path).truth()
     status = 0
     with SimulatedRig(world_path, records=records) as sim:
         rig_path = sim.rig_path
         runner = Runner(load_rig(rig_path))
-        console.rule("1. active-camera on the simulated rig (default plan: pan/tilt 3, 15 and "
-                     "25 deg, rolls)")
-        outcome = runner.run("active-camera", {})
+        console.rule("1. active-camera on the simulated rig " + (
+            "(quick: pan/tilt 3, 12 and 25 deg, three rolls)" if quick else
+            "(default plan: pan/tilt 3, 8 to 25 deg, rolls every 45 deg)"))
+        outcome = runner.run("active-camera", QUICK_CAMERA if quick else {})
         console.print(f"run {outcome.run_id}: {outcome.status}"
                       + (f" ({outcome.reason})" if outcome.reason else ""))
         if outcome.result:
@@ -90,7 +115,9 @@ def main() -> int:
             pp = max(abs(outcome.result[k] - truth[k]) for k in ("cx", "cy"))
             console.print(f"focal error {f_err:.3f} %, principal point error {pp:.2f} px")
         status |= outcome.status != "succeeded"
-        for name, params in (("hand-eye", {}), ("robot-kinematics", {}), ("validate-arm", {})):
+        chain = ((("hand-eye", QUICK_HAND_EYE),) if quick else
+                 (("hand-eye", {}), ("robot-kinematics", {}), ("validate-arm", {})))
+        for name, params in chain:
             console.rule(name)
             outcome = runner.run(name, params)
             console.print(f"run {outcome.run_id}: {outcome.status}"
@@ -99,12 +126,7 @@ def main() -> int:
             if outcome.result is None:
                 continue
             if name == "hand-eye":
-                X = np.array(outcome.result["T_flange_cam"])
-                X_true = np.array(truth["T_flange_cam"])
-                console.print(f"T_flange_cam translation (mm): estimated "
-                              f"{np.round(1000 * X[:3, 3], 2).tolist()}, true "
-                              f"{np.round(1000 * X_true[:3, 3], 2).tolist()} (with the "
-                              f"{outcome.result.get('arm_model_used', 'nominal')} arm model)")
+                console.print(hand_eye_line(outcome.result, truth))
             elif name == "robot-kinematics":
                 console.print(robot_table(outcome.result, truth))
                 s = outcome.result["summary"]
@@ -166,4 +188,8 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    try:
+        sys.exit(main())
+    except RigError as exc:
+        console.print(f"[red]error:[/red] {exc}", highlight=False)
+        sys.exit(2)

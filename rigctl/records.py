@@ -3,11 +3,12 @@
 Layout of a run directory::
 
     <records>/<run_id>/
-        rig.yaml           copy of the rig file as used
+        rig.yaml           copy of the rig file as used, its service token redacted
         params.json        procedure, parameters, operator, and where the rig file was
                            (its relative paths resolve against that folder on a re-solve)
         versions.json      software and device versions (``describe()`` of each device),
-                           for failed and aborted runs too
+                           for failed and aborted runs too; rigctl's exact version, its
+                           commit and whether its tree was dirty (``software_provenance``)
         run.log            the log
         captures/NNN.png   images, written the moment they are taken
         captures/NNN.json  sidecar: head angles, joint angles, timestamps, camera settings
@@ -24,14 +25,19 @@ from __future__ import annotations
 import contextlib
 import datetime as dt
 import json
+import logging
 import os
+import re
 import secrets
 import socket
+import subprocess
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import yaml
 from sqlalchemy import (
     JSON,
     Column,
@@ -361,3 +367,146 @@ def summarize(result: dict[str, Any]) -> dict[str, Any]:
         return to_jsonable(summary)
     keys = ("fx", "fy", "cx", "cy", "rms_px")
     return {k: result[k] for k in keys if k in result}
+
+
+# -- provenance ------------------------------------------------------------------------
+
+def software_provenance() -> dict[str, Any]:
+    """Which rigctl runs: its exact version, the commit it comes from and whether the
+    tree had uncommitted changes (``dirty``; None when unknown). From a git checkout (a
+    source tree on PYTHONPATH, an editable install) git is asked now; from a wheel,
+    ``rigctl/_version.py``, which setuptools-scm wrote from git when the wheel was built."""
+    import rigctl
+
+    root = Path(rigctl.__file__).resolve().parent.parent
+    return _checkout_provenance(root, rigctl.__version__) or \
+        _built_provenance(rigctl.__version__, _built_commit())
+
+
+def _git(root: Path, *args: str) -> str | None:
+    try:
+        done = subprocess.run(["git", "-C", str(root), *args], capture_output=True, text=True,
+                              timeout=20, check=True)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return done.stdout.strip()
+
+
+def _checkout_provenance(root: Path, version: str) -> dict[str, Any] | None:
+    """None unless ``root`` is rigctl's own git checkout."""
+    if not ((root / ".git").exists() and (root / "pyproject.toml").is_file()):
+        return None
+    commit = _git(root, "rev-parse", "HEAD")
+    if not commit:
+        return None
+    status = _git(root, "status", "--porcelain", "--untracked-files=no")
+    try:  # the version a build of this tree would carry (setuptools-scm: the dev extra)
+        from setuptools_scm import get_version
+
+        version = get_version(root=str(root), fallback_version=version)
+    except Exception:  # not installed, or git metadata it cannot read
+        pass
+    return {"version": version, "commit": commit,
+            "dirty": None if status is None else bool(status), "from": "git checkout"}
+
+
+def _built_commit() -> str | None:
+    """The commit setuptools-scm wrote into ``rigctl/_version.py`` (newer releases)."""
+    try:
+        from rigctl import _version
+    except ImportError:
+        return None
+    commit = getattr(_version, "commit_id", None)  # git's is written "g<hash>"
+    return commit[1:] if commit and re.fullmatch(r"g[0-9a-f]{7,40}", commit) else commit
+
+
+def _built_provenance(version: str, commit: str | None = None) -> dict[str, Any]:
+    """From a build's version (setuptools-scm: a local part that names the commit,
+    ``+g<commit>``, and marks a dirty tree with the date, ``.d<yyyymmdd>``) and the
+    commit its version file holds, when it holds one."""
+    local = version.partition("+")[2]
+    parts = local.split(".") if local else []
+    if not commit:
+        commit = next((p[1:] for p in parts if re.fullmatch(r"g[0-9a-f]{7,40}", p)), None)
+    if any(re.fullmatch(r"d\d{8}", p) for p in parts):
+        dirty = True
+    else:  # clean when the version says where it comes from: a commit, or a bare tag
+        dirty = False if commit or not parts else None
+    return {"version": version, "commit": commit, "dirty": dirty, "from": "build"}
+
+
+# -- secrets ---------------------------------------------------------------------------
+
+REDACTED = "<redacted>"
+# a secret this short is only replaced where the rig file's own key holds it: replacing
+# every occurrence of a few characters would garble the copy
+MIN_LITERAL = 6
+
+
+def redact_text(text: str, hidden: Iterable[str]) -> str:
+    """``text`` with every occurrence of each secret (``MIN_LITERAL`` characters or
+    more) replaced by ``REDACTED``."""
+    for secret in sorted({s for s in hidden if s and len(s) >= MIN_LITERAL}, key=len,
+                         reverse=True):
+        text = text.replace(secret, REDACTED)
+    return text
+
+
+def redact_rig_text(text: str, hidden: Iterable[str]) -> str:
+    """The rig file's text as a run directory keeps it (``rig.yaml``): the value of
+    ``service.token`` replaced by ``REDACTED`` whatever its YAML style, comments and
+    layout kept, and any other occurrence of a secret replaced too (``redact_text``).
+    The copy still loads (a re-solve reads it); its token is only a placeholder."""
+    hidden = [s for s in hidden if s]
+    node = _yaml_value(_yaml_value(_compose(text), "service"), "token")
+    if isinstance(node, yaml.ScalarNode) and node.tag != "tag:yaml.org,2002:null":
+        start, end = node.start_mark.index, node.end_mark.index
+        tail = "\n" if text[start:end].endswith("\n") else ""
+        text = f'{text[:start]}"{REDACTED}"{tail}{text[end:]}'
+    return redact_text(text, hidden)
+
+
+def _compose(text: str) -> yaml.Node | None:
+    try:
+        return yaml.compose(text, Loader=yaml.SafeLoader)
+    except yaml.YAMLError:
+        return None
+
+
+def _yaml_value(node: yaml.Node | None, key: str) -> yaml.Node | None:
+    if not isinstance(node, yaml.MappingNode):
+        return None
+    for k, v in node.value:
+        if isinstance(k, yaml.ScalarNode) and k.value == key:
+            return v
+    return None
+
+
+def scrub(value: Any, hidden: Iterable[str]) -> Any:
+    """``value`` (JSON-like: dicts, lists, strings) with each secret in its strings and
+    keys replaced by ``REDACTED`` (``redact_text``)."""
+    hidden = [s for s in hidden if s]
+    if not hidden:
+        return value
+    if isinstance(value, str):
+        return redact_text(value, hidden)
+    if isinstance(value, dict):
+        return {scrub(k, hidden): scrub(v, hidden) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [scrub(v, hidden) for v in value]
+    return value
+
+
+class RedactingFormatter(logging.Formatter):
+    """A log formatter whose lines (message, arguments, traceback) never carry a secret:
+    the run's ``run.log`` is written with it."""
+
+    def __init__(self, fmt: str, hidden: Iterable[str]) -> None:
+        super().__init__(fmt)
+        self.hidden = [s for s in hidden if s]
+
+    def format(self, record: logging.LogRecord) -> str:
+        text = super().format(record)
+        for secret in self.hidden:  # a short secret too: a log line has no layout to keep
+            text = text.replace(secret, REDACTED)
+        return text

@@ -41,12 +41,13 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
-from rigctl import __version__, procedures
+from rigctl import procedures
 from rigctl.calib.blas_threads import one_blas_thread
 from rigctl.config import HEAD_AXES, RigConfig, parse_rig
 from rigctl.drivers.base import check_axis_limit
 from rigctl.drivers.camera import mean_change
 from rigctl.errors import AbortedError, ConfigError, RigError, SafetyError
+from rigctl.extras import missing_extra
 from rigctl.locks import rig_lock
 from rigctl.procedures.base import (
     CaptureStep,
@@ -62,9 +63,13 @@ from rigctl.procedures.base import (
 )
 from rigctl.records import (
     RecordIndex,
+    RedactingFormatter,
     RunDirectory,
     new_run_id,
+    redact_rig_text,
     run_row,
+    scrub,
+    software_provenance,
     summarize,
     utcnow,
     write_json,
@@ -203,11 +208,11 @@ def check_plan(config: RigConfig, steps: list[Step], needs: tuple[str, ...]) -> 
     return problems
 
 
-def _write_versions(run: RunDirectory, devices: dict) -> None:
+def _write_versions(run: RunDirectory, devices: dict, hidden: list[str]) -> None:
     """``versions.json``: the software's versions and each device's ``describe()``
-    (model, firmware, settings, bus transaction counts). A device that cannot describe
-    itself is recorded with its error; a write that fails is logged: neither may end a
-    run or hide its real outcome."""
+    (model, firmware, settings, bus transaction counts), with the ``hidden`` secrets
+    redacted. A device that cannot describe itself is recorded with its error; a write
+    that fails is logged: neither may end a run or hide its real outcome."""
     described = {}
     for kind, device in devices.items():
         try:
@@ -216,14 +221,19 @@ def _write_versions(run: RunDirectory, devices: dict) -> None:
             described[kind] = {"error": f"describe() failed: {type(exc).__name__}: {exc}"}
             log.error("%s: describe() failed: %s", kind, exc)
     try:
-        write_json(run.path / "versions.json", {"software": _versions(), "devices": described})
+        write_json(run.path / "versions.json",
+                   scrub({"software": _versions(), "devices": described}, hidden))
     except OSError as exc:
         log.error("cannot write versions.json: %s", exc)
 
 
-def _versions() -> dict[str, str]:
-    out = {"rigctl": __version__, "python": platform.python_version(),
-           "platform": platform.platform()}
+def _versions() -> dict[str, Any]:
+    """rigctl's exact version, commit and dirty tree (``software_provenance``), Python's,
+    the platform's and the main libraries'."""
+    prov = software_provenance()
+    out = {"rigctl": prov["version"], "rigctl_commit": prov["commit"],
+           "rigctl_dirty": prov["dirty"], "rigctl_from": prov["from"],
+           "python": platform.python_version(), "platform": platform.platform()}
     for dist in ("numpy", "scipy", "opencv-python-headless", "dynamixel-sdk", "ur-rtde"):
         try:
             out[dist] = importlib_metadata.version(dist)
@@ -302,7 +312,8 @@ class Runner:
     def _run_locked(self, procedure: Procedure, params: Any, plan: PlanCheck,
                     run_id: str, inputs: dict[str, Any]) -> RunOutcome:
         run = RunDirectory.create(self.config.records_dir(), run_id)
-        (run.path / "rig.yaml").write_text(self.config.source_text)
+        hidden = self.config.service.secrets()  # the service token: never on disk
+        (run.path / "rig.yaml").write_text(redact_rig_text(self.config.source_text, hidden))
         source = self.config.source_path
         write_json(run.path / "params.json", {
             "procedure": procedure.name, "params": plan.params, "operator": self.operator,
@@ -311,7 +322,8 @@ class Runner:
         self.index.insert(run_row(self.config, run_id, procedure.name, "running", self.operator,
                                   str(run.path.resolve())))
         handler = logging.FileHandler(run.path / "run.log")
-        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+        handler.setFormatter(RedactingFormatter("%(asctime)s %(levelname)s %(name)s: %(message)s",
+                                                hidden))
         root = logging.getLogger()
         root.addHandler(handler)
         if root.level > logging.INFO or root.level == logging.NOTSET:
@@ -329,7 +341,7 @@ class Runner:
         try:
             self._execute(rig, procedure, plan.steps, run, run_id)
             timings["motion_s"] = time.monotonic() - started
-            _write_versions(run, rig.devices)
+            _write_versions(run, rig.devices, hidden)
             problems = rig.close_all()
             if problems:
                 log.warning("after the run: %s", "; ".join(problems))
@@ -353,7 +365,9 @@ class Runner:
         except RigError as exc:
             status, reason = "failed", f"{type(exc).__name__}: {exc}"
         except Exception as exc:  # a bug: still record it, and keep the captures
-            status, reason = "failed", f"internal error: {type(exc).__name__}: {exc}"
+            missing = missing_extra(exc)  # a device's client library not installed
+            status, reason = "failed", (str(missing) if missing else
+                                        f"internal error: {type(exc).__name__}: {exc}")
             log.exception("internal error")
         finally:
             if status != "succeeded":
@@ -386,7 +400,7 @@ class Runner:
         opened = dict(rig.devices)  # closing forgets them; describe() needs no link
         self._safe_stop(rig, reason)
         if not (run.path / "versions.json").exists():
-            _write_versions(run, opened)
+            _write_versions(run, opened, self.config.service.secrets())
 
     def _install_sigterm(self) -> Callable[[], None]:
         if threading.current_thread() is not threading.main_thread():

@@ -6,8 +6,11 @@ Runs execute in one worker thread through the same ``Runner`` as the CLI, under 
 per-rig ``flock``: a CLI run while the service holds the rig fails with "busy, held by
 run X", and the other way round. Mutating endpoints need the bearer token when one is
 set (rig file ``service.token`` or ``RIGCTL_TOKEN``); binding anything but loopback
-requires one. No endpoint runs code or reads a path it was given: captures are
-addressed by run id and index.
+requires one. Reads (runs, captures, the devices' configuration, the console, the event
+stream) need it too unless ``service.public_read`` (default: on a loopback bind only);
+the console asks for it once and keeps a session cookie (``Access``). The token is
+compared in constant time and never written or answered. No endpoint runs code or reads
+a path it was given: captures are addressed by run id and index.
 """
 
 from __future__ import annotations
@@ -15,9 +18,10 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import datetime as dt
+import hashlib
+import hmac
 import json
 import logging
-import os
 import threading
 import urllib.request
 from collections import deque
@@ -25,35 +29,76 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from fastapi import APIRouter, Depends, FastAPI, Header, HTTPException, Query, Request
+from fastapi import APIRouter, Depends, FastAPI, HTTPException, Query, Request
 from fastapi import Path as PathParam
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse, StreamingResponse
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from pydantic import BaseModel, Field
 
 from rigctl import __version__, drift, procedures
-from rigctl.config import RigConfig, parse_duration
-from rigctl.console.pages import console_routes, mount_static
+from rigctl.config import RigConfig, is_loopback, parse_duration
+from rigctl.console.pages import (
+    LoginRequiredError,
+    console_routes,
+    console_templates,
+    login_routes,
+    mount_static,
+)
 from rigctl.errors import BusyError, ConfigError, RigError, SafetyError
 from rigctl.locks import rig_lock
 from rigctl.records import RecordIndex, RunDirectory, new_run_id, run_row, utcnow
 from rigctl.runner import Runner, prepare_run, refuse_violations
 
 log = logging.getLogger("rigctl.service")
-LOOPBACK = ("127.0.0.1", "localhost", "::1")
 DECISION_WAIT_S = 30.0  # how long an operator's decision waits for the service's drift check
+SESSION_COOKIE = "rigctl_session"
+UNAUTHORIZED = "missing or wrong bearer token"
 
 
 def service_token(config: RigConfig) -> str | None:
-    return config.service.token or os.environ.get("RIGCTL_TOKEN") or None
+    """The bearer token in force: ``service.token``, else ``RIGCTL_TOKEN``."""
+    return config.service.bearer_token()
 
 
 def check_bind(config: RigConfig, host: str) -> None:
-    """Refuse a non-loopback bind without a token."""
-    loopback = host in LOOPBACK or host.startswith("127.")
-    if not loopback and not service_token(config):
+    """Refuse a non-loopback bind without a token, and reads that need a token when
+    there is none."""
+    if not is_loopback(host) and not service_token(config):
         raise ConfigError(f"service.bind {host}: binding beyond loopback requires a bearer "
                           "token (service.token in the rig file, or RIGCTL_TOKEN)")
+    if not config.service.reads_public(host) and not service_token(config):
+        raise ConfigError("service.public_read: false needs a bearer token (service.token "
+                          "in the rig file, or RIGCTL_TOKEN): without one nothing could read")
+
+
+class Access:
+    """Who may do what: the bearer token (``Authorization: Bearer ...``) or the console's
+    session cookie, compared in constant time. The cookie holds a keyed hash of the
+    token, never the token itself."""
+
+    def __init__(self, token: str | None, public_read: bool) -> None:
+        self.token = token
+        self.public_read = public_read or not token
+        self.session = (hmac.new(token.encode(), b"rigctl console session",
+                                 hashlib.sha256).hexdigest() if token else "")
+
+    def token_matches(self, given: str | None) -> bool:
+        """Whether ``given`` is the token (constant time)."""
+        return bool(self.token) and given is not None and \
+            hmac.compare_digest(given.encode(), self.token.encode())
+
+    def allows(self, request: Request, credentials: HTTPAuthorizationCredentials | None
+               ) -> bool:
+        """Whether the request carries the token or the console's session cookie (always,
+        when no token is set)."""
+        if not self.token:
+            return True
+        if credentials is not None and self.token_matches(credentials.credentials):
+            return True
+        cookie = request.cookies.get(SESSION_COOKIE)
+        return cookie is not None and hmac.compare_digest(cookie.encode(),
+                                                          self.session.encode())
 
 
 class EventBus:
@@ -391,13 +436,17 @@ def _row(row: dict) -> dict:
             if k not in ("pid", "host")}
 
 
-def create_app(service: RigService, stop_service_on_shutdown: bool = False) -> FastAPI:
-    """The HTTP API of ``service``. With ``stop_service_on_shutdown``, the server's
-    graceful shutdown (SIGTERM, SIGINT) aborts the current run and waits for it to be
-    recorded: uvicorn re-raises the signal once it has shut down, so code after
-    ``uvicorn.run`` never runs."""
+def create_app(service: RigService, stop_service_on_shutdown: bool = False,
+               host: str | None = None) -> FastAPI:
+    """The HTTP API of ``service``, listening on ``host`` (default: ``service.bind``;
+    it decides whether reads are public when ``service.public_read`` is unset). With
+    ``stop_service_on_shutdown``, the server's graceful shutdown (SIGTERM, SIGINT)
+    aborts the current run and waits for it to be recorded: uvicorn re-raises the signal
+    once it has shut down, so code after ``uvicorn.run`` never runs."""
     config = service.config
-    token = service_token(config)
+    host = host or config.service.bind
+    check_bind(config, host)
+    access = Access(service_token(config), config.service.reads_public(host))
 
     @contextlib.asynccontextmanager
     async def lifespan(_app):
@@ -416,17 +465,36 @@ def create_app(service: RigService, stop_service_on_shutdown: bool = False) -> F
                    "type": str(e.get("type", ""))} for e in exc.errors()]
         return JSONResponse(status_code=422, content={"detail": errors})
 
-    def require_token(authorization: str | None = Header(None)) -> None:
-        if token and authorization != f"Bearer {token}":
-            raise HTTPException(401, "missing or wrong bearer token",
-                                headers={"WWW-Authenticate": "Bearer"})
+    bearer = HTTPBearer(auto_error=False, description="service.token (or RIGCTL_TOKEN)")
 
-    guarded = [Depends(require_token)]
-    app.include_router(_rig_routes(service))
-    app.include_router(_run_routes(service, guarded))
-    app.include_router(_calibration_routes(service, guarded))
-    app.include_router(_page_routes(service))
-    mount_static(app)
+    def require_token(request: Request,
+                      credentials: HTTPAuthorizationCredentials | None = Depends(bearer)
+                      ) -> None:
+        """Changes need the token (or the console's session)."""
+        if not access.allows(request, credentials):
+            raise HTTPException(401, UNAUTHORIZED, headers={"WWW-Authenticate": "Bearer"})
+
+    def require_read(request: Request,
+                     credentials: HTTPAuthorizationCredentials | None = Depends(bearer)
+                     ) -> None:
+        """Reads need the token too unless they are public (``service.public_read``); a
+        console page answers with its sign-in form."""
+        if access.public_read or access.allows(request, credentials):
+            return
+        path = request.url.path
+        if request.method == "GET" and (path == "/" or path.startswith("/console")):
+            raise LoginRequiredError(path)
+        raise HTTPException(401, UNAUTHORIZED, headers={"WWW-Authenticate": "Bearer"})
+
+    templates = console_templates(service)
+    guarded, readers = [Depends(require_token)], [Depends(require_read)]
+    app.include_router(_health_routes(service))
+    app.include_router(login_routes(access, templates, SESSION_COOKIE))
+    app.include_router(_rig_routes(service), dependencies=readers)
+    app.include_router(_run_routes(service, guarded), dependencies=readers)
+    app.include_router(_calibration_routes(service, guarded), dependencies=readers)
+    app.include_router(_page_routes(service, templates), dependencies=readers)
+    mount_static(app, templates)
     return app
 
 
@@ -514,13 +582,20 @@ def _set_decision(service: RigService, run_id: str, decision: str,
                                       request.comment)
 
 
-def _rig_routes(service: RigService) -> APIRouter:
-    """Health, the rig's devices and readings, the procedures with their schemas."""
+def _health_routes(service: RigService) -> APIRouter:
+    """Whether the service answers: open to all, whatever ``service.public_read``."""
     config, router = service.config, APIRouter()
 
     @router.get("/health")
     def health() -> dict:
         return {"status": "ok", "rig": config.name, "version": __version__}
+
+    return router
+
+
+def _rig_routes(service: RigService) -> APIRouter:
+    """The rig's devices and readings, the procedures with their schemas."""
+    router = APIRouter()
 
     @router.get("/rig")
     def rig_state() -> dict:
@@ -614,7 +689,7 @@ def _calibration_routes(service: RigService, guarded: list) -> APIRouter:
     return router
 
 
-def _page_routes(service: RigService) -> APIRouter:
+def _page_routes(service: RigService, templates) -> APIRouter:
     """The event stream and the operator console (``rigctl.console``)."""
     router = APIRouter()
 
@@ -639,7 +714,7 @@ def _page_routes(service: RigService) -> APIRouter:
 
         return StreamingResponse(stream(), media_type="text/event-stream")
 
-    router.include_router(console_routes(service))
+    router.include_router(console_routes(service, templates))
     return router
 
 
@@ -652,7 +727,7 @@ def serve(config: RigConfig, host: str | None = None, port: int | None = None) -
     check_bind(config, host)
     service = RigService(config)
     service.start()
-    app = create_app(service, stop_service_on_shutdown=True)
+    app = create_app(service, stop_service_on_shutdown=True, host=host)
     try:
         uvicorn.run(app, host=host, port=port, log_level="warning")
     finally:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 
@@ -11,6 +12,7 @@ import numpy as np
 import pytest
 import yaml
 
+from rigctl import __version__
 from rigctl.errors import RigError
 from rigctl.exports import export_result
 from rigctl.mocks.sim import STAND_IN_TIMING
@@ -24,8 +26,10 @@ def rigctl(*args, timeout=60):
 
 
 def test_version():
+    """The version from git (setuptools-scm), one PEP 440 version."""
     result = rigctl("--version")
-    assert result.returncode == 0 and result.stdout.strip() == "rigctl 0.1.0"
+    assert result.returncode == 0 and result.stdout.strip() == f"rigctl {__version__}"
+    assert re.fullmatch(r"\d+(\.\d+)*(\.dev\d+)?(\+[a-z0-9.]+)?", __version__), __version__
 
 
 def test_dry_run_json_is_only_json_and_touches_nothing(rig_file):

@@ -1,13 +1,19 @@
 """The operator console: server-rendered pages (Jinja2) over the service's own state, with
 a little plain JavaScript for the live parts (the event stream) and the actions (the
 JSON API, with the bearer token the page keeps in the browser session). Every asset is
-served from the package: lab networks are often offline."""
+served from the package: lab networks are often offline.
+
+When reads need the token (``service.public_read`` off), a page asked for without it
+answers 401 with a sign-in form (``login_routes``): the token, given once, buys a session
+cookie (HttpOnly, SameSite=Strict) holding a keyed hash of it, never the token. Figures
+need the ``plots`` extra; without it they answer 404 saying so."""
 
 from __future__ import annotations
 
 import datetime as dt
 import math
 import threading
+import urllib.parse
 from pathlib import Path
 from typing import Any
 
@@ -20,10 +26,11 @@ from fastapi.templating import Jinja2Templates
 from pydantic import ValidationError
 
 from rigctl import __version__, drift, procedures
-from rigctl.console import compare, plots, views
+from rigctl.console import compare, views
 from rigctl.console.forms import form_fields
 from rigctl.console.history import series
 from rigctl.errors import RigError
+from rigctl.extras import missing_extra
 from rigctl.records import RunDirectory
 
 HERE = Path(__file__).parent
@@ -34,6 +41,29 @@ RUN_ID = PathParam(min_length=1, max_length=128)
 STATUSES = ("running", "succeeded", "failed", "aborted", "interrupted", "skipped")
 PLOT_NAME = r"^[A-Za-z0-9_.-]{1,100}\.png$"
 THUMB_WIDTH = 320
+MAX_LOGIN_BODY = 4096  # bytes of the sign-in form
+
+
+class LoginRequiredError(Exception):
+    """A console page asked for without the token while reads need it: answered 401
+    with the sign-in form (``mount_static`` registers the handler)."""
+
+    def __init__(self, path: str) -> None:
+        super().__init__(path)
+        self.path = path
+
+
+def plots_module():
+    """``rigctl.console.plots`` (matplotlib); a 404 naming the ``plots`` extra when it is
+    not installed."""
+    try:
+        from rigctl.console import plots
+    except ModuleNotFoundError as exc:
+        missing = missing_extra(exc)
+        if missing is None:
+            raise
+        raise HTTPException(404, f"figures: {missing}") from None
+    return plots
 
 
 class ResultCache:
@@ -82,12 +112,17 @@ def _fmt(value: Any, digits: int = 4) -> str:
     return str(value)
 
 
-def console_routes(service) -> APIRouter:
-    """The console's pages under ``/console`` (and ``/`` redirecting to it)."""
+def console_templates(service) -> Jinja2Templates:
+    """The console's templates, with its filters and the rig's name and version."""
     templates = Jinja2Templates(directory=HERE / "templates")
     templates.env.filters["when"] = _when
     templates.env.filters["fmt"] = _fmt
     templates.env.globals |= {"rig": service.config.name, "version": __version__}
+    return templates
+
+
+def console_routes(service, templates: Jinja2Templates) -> APIRouter:
+    """The console's pages under ``/console`` (and ``/`` redirecting to it)."""
     results = ResultCache()
 
     def page(request: Request, name: str, **context: Any) -> HTMLResponse:
@@ -212,13 +247,66 @@ def _image_routes(service, results: ResultCache) -> APIRouter:
         found = {r["run_id"]: results.get(r["run_dir"]) for r in rows}
         data = series(name, rows, {k: v for k, v in found.items() if v},
                       service.config.service.drift)
-        return Response(plots.history_png(name, data), media_type="image/png")
+        return Response(plots_module().history_png(name, data), media_type="image/png")
 
     return router
 
 
-def mount_static(app) -> None:
+def _safe_next(value: str | None) -> str:
+    """Where to go after signing in: a path of this service, never another site."""
+    if not value or not value.startswith("/") or value.startswith("//") or "\\" in value:
+        return "/console/"
+    return value
+
+
+def login_page(templates: Jinja2Templates, request: Request, next_path: str,
+               error: str = "", status_code: int = 401) -> HTMLResponse:
+    """The sign-in form, answering a page that needs the token."""
+    return templates.TemplateResponse(request, "login.html",
+                                      {"next": _safe_next(next_path), "error": error},
+                                      status_code=status_code)
+
+
+def login_routes(access, templates: Jinja2Templates, cookie: str) -> APIRouter:
+    """``/console/login`` (the form; posting the token sets the session cookie) and
+    ``/console/logout``; open to all, left out of the API's schema."""
+    router = APIRouter()
+
+    @router.get("/console/login", response_class=HTMLResponse, include_in_schema=False)
+    def login_form(request: Request,
+                   next_path: str = Query("/console/", alias="next", max_length=2000)
+                   ) -> HTMLResponse:
+        return login_page(templates, request, next_path, status_code=200)
+
+    @router.post("/console/login", include_in_schema=False)
+    async def login(request: Request) -> Response:
+        body = await request.body()
+        form = urllib.parse.parse_qs(body[:MAX_LOGIN_BODY].decode("utf-8", "replace"))
+        target = _safe_next((form.get("next") or [""])[0])
+        if not access.token_matches((form.get("token") or [""])[0]):
+            return login_page(templates, request, target, "wrong token")
+        response = RedirectResponse(target, status_code=303)
+        response.set_cookie(cookie, access.session, httponly=True, samesite="strict",
+                            path="/")
+        return response
+
+    @router.post("/console/logout", include_in_schema=False)
+    def logout() -> Response:
+        response = RedirectResponse("/console/login", status_code=303)
+        response.delete_cookie(cookie, path="/")
+        return response
+
+    return router
+
+
+def mount_static(app, templates: Jinja2Templates) -> None:
+    """The console's static files, and its answer to a page that needs the token."""
     app.mount("/console/static", StaticFiles(directory=HERE / "static"), name="console-static")
+
+    @app.exception_handler(LoginRequiredError)
+    async def sign_in(request: Request, exc: LoginRequiredError) -> HTMLResponse:
+        query = f"?{request.url.query}" if request.url.query else ""
+        return login_page(templates, request, exc.path + query)
 
 
 def _model_defaults(model) -> dict[str, Any]:
@@ -333,14 +421,14 @@ def _difference(service, results: ResultCache, row: dict) -> dict[str, Any] | No
                               if k != "fitted_rotation_deg"}  # 0: nothing fitted there
             out["summary"] |= {"max_px_after_best_rotation": fitted.summary()["max_px"],
                                "best_rotation_deg": fitted.fitted_rotation_deg}
-            out["png"] = lambda: plots.projection_difference_png(pd, w, h)
+            out["png"] = lambda: plots_module().projection_difference_png(pd, w, h)
     elif procedure == "robot-kinematics":
         run = views.run_directory(row)
         q = [c.meta["arm"]["q"] for c in run.captures() if (c.meta.get("arm") or {}).get("q")]
         if q and "links" in old:
             ad = compare.arm_difference(new, old, q)
             out["summary"] = ad.summary()
-            out["png"] = lambda: plots.arm_difference_png(ad)
+            out["png"] = lambda: plots_module().arm_difference_png(ad)
     if "T_flange_cam" in new and "T_flange_cam" in old:
         out["summary"] |= {f"hand_eye_{k}": v
                            for k, v in compare.hand_eye_difference(new, old).items()}

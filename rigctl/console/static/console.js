@@ -1,5 +1,6 @@
 // rigctl console: the live parts (the service's event stream) and the actions (its JSON
-// API). The bearer token stays in this browser session only (sessionStorage).
+// API). The bearer token stays in this browser session only (sessionStorage); giving it
+// also signs in (/console/login: a session cookie, for the pages when reads need it).
 "use strict";
 
 const TOKEN_KEY = "rigctl-token";
@@ -49,6 +50,9 @@ function setupToken() {
     if (value) sessionStorage.setItem(TOKEN_KEY, value); else sessionStorage.removeItem(TOKEN_KEY);
     document.getElementById("token").value = "";
     show();
+    const body = new URLSearchParams({ token: value, next: "/console/" });
+    fetch(value ? "/console/login" : "/console/logout", { method: "POST", body, redirect: "manual" })
+      .catch(() => {});
   });
 }
 
