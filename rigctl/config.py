@@ -451,7 +451,12 @@ class RigConfig(_Strict):
     source_text: str = Field("", exclude=True)
 
     def config_hash(self) -> str:
-        return hashlib.sha256(self.source_text.encode()).hexdigest()[:16]
+        """The rig file's hash as records keep it: of its text with the service token
+        redacted (``records.redact_rig_text``), so that no record narrows the token down."""
+        from rigctl.records import redact_rig_text
+
+        text = redact_rig_text(self.source_text, self.service.secrets())
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
 
     def records_dir(self) -> Path:
         base = Path(self.records.directory).expanduser()
