@@ -46,9 +46,11 @@ def _check_range(value: list[float], limit: float) -> list[float]:
 class HeadLimits(_Strict):
     """Soft limits per axis, degrees, in the head's own (offset and direction applied) frame."""
 
-    pan: list[float] = [-90.0, 90.0]
-    tilt: list[float] = [-45.0, 45.0]
-    roll: list[float] = [-180.0, 180.0]
+    pan: list[float] = Field([-90.0, 90.0], description="[min, max] soft limits of pan, degrees; "
+                             "every planned move is checked before anything moves")
+    tilt: list[float] = Field([-45.0, 45.0], description="[min, max] soft limits of tilt, degrees")
+    roll: list[float] = Field([-180.0, 180.0], description="[min, max] soft limits of roll, "
+                              "degrees")
 
     @field_validator("pan", "tilt", "roll")
     @classmethod
@@ -57,27 +59,30 @@ class HeadLimits(_Strict):
 
 
 class AxisMap(_Strict):
-    pan: int = 1
-    tilt: int = 2
-    roll: int = 3
+    pan: int = Field(1, description="Dynamixel ID of the pan servo")
+    tilt: int = Field(2, description="Dynamixel ID of the tilt servo")
+    roll: int = Field(3, description="Dynamixel ID of the roll servo")
 
 
 class AxisFloat(_Strict):
-    pan: float = 0.0
-    tilt: float = 0.0
-    roll: float = 0.0
+    pan: float = Field(0.0, description="pan, degrees")
+    tilt: float = Field(0.0, description="tilt, degrees")
+    roll: float = Field(0.0, description="roll, degrees")
 
 
 class AxisSign(_Strict):
-    pan: Literal[1, -1] = 1
-    tilt: Literal[1, -1] = 1
-    roll: Literal[1, -1] = 1
+    pan: Literal[1, -1] = Field(1, description="1 or -1: the pan servo's direction")
+    tilt: Literal[1, -1] = Field(1, description="1 or -1: the tilt servo's direction")
+    roll: Literal[1, -1] = Field(1, description="1 or -1: the roll servo's direction")
 
 
 class AxisModel(_Strict):
-    pan: str | None = None
-    tilt: str | None = None
-    roll: str | None = None
+    pan: str | None = Field(None, description="servo model of the pan axis (null: read from the "
+                            "servo)")
+    tilt: str | None = Field(None, description="servo model of the tilt axis (null: read from the "
+                             "servo)")
+    roll: str | None = Field(None, description="servo model of the roll axis (null: read from the "
+                             "servo)")
 
 
 def _known_servo(value: str | None) -> str | None:
@@ -89,15 +94,20 @@ def _known_servo(value: str | None) -> str | None:
 
 
 class HeadPark(_Strict):
-    policy: Literal["hold", "home", "torque_off", "home_then_torque_off"] = "home"
-    angles_deg: list[float] = [0.0, 0.0, 0.0]
+    policy: Literal["hold", "home", "torque_off", "home_then_torque_off"] = Field(
+        "home", description="what the head does when a run ends or stops: hold, home, "
+        "torque_off or home_then_torque_off")
+    angles_deg: list[float] = Field([0.0, 0.0, 0.0], description="where home parks it: [pan, tilt, "
+                                    "roll], degrees")
 
 
 class MountPose(_Strict):
     """A nominal transform, mm and degrees (rpy = Rz(yaw) Ry(pitch) Rx(roll))."""
 
-    xyz_mm: list[float] = Field(default_factory=lambda: [0.0, 0.0, 50.0])
-    rpy_deg: list[float] = Field(default_factory=lambda: [0.0, 0.0, 0.0])
+    xyz_mm: list[float] = Field(default_factory=lambda: [0.0, 0.0, 50.0], description="translation "
+                                "[x, y, z], millimetres")
+    rpy_deg: list[float] = Field(default_factory=lambda: [0.0, 0.0, 0.0], description="rotation "
+                                 "[roll, pitch, yaw], degrees: Rz(yaw) Ry(pitch) Rx(roll)")
 
     @field_validator("xyz_mm", "rpy_deg")
     @classmethod
@@ -108,29 +118,45 @@ class MountPose(_Strict):
 
 
 class HeadConfig(_Strict):
-    port: str
-    mount: MountPose = MountPose()  # nominal T_flange_head (head on the flange), planning
-    baud: int = 1_000_000
+    port: str = Field(description="serial port of the servo bus: the U2D2 (/dev/ttyUSB0, or a "
+                      "/dev/serial/by-id/ path)")
+    mount: MountPose = Field(MountPose(), description="nominal T_flange_head (the head on the "
+                             "arm's flange), for planning views")
+    baud: int = Field(1_000_000, description="bus baud rate; every servo must be set to it")
     # One servo model for all axes, one per axis, or None: read from each servo when the
     # driver pings it. A named model that differs from the servo's refuses the run.
-    model: str | AxisModel | None = None
-    ids: AxisMap = AxisMap()
-    limits: HeadLimits = HeadLimits()
-    zero_offset_deg: AxisFloat = AxisFloat()
-    direction: AxisSign = AxisSign()
-    speed_cap_dps: float = Field(60.0, gt=0, le=300)
-    accel_cap_dps2: float = Field(240.0, gt=0, le=5000)
-    move_timeout_s: float = Field(15.0, gt=0)
-    settle_s: float = Field(0.2, ge=0)
+    model: str | AxisModel | None = Field(None, description="servo model for all axes, or per axis "
+                                          "({pan, tilt, roll}); null: read from each servo. A "
+                                          "named model that differs from the servo's refuses the "
+                                          "run")
+    ids: AxisMap = Field(AxisMap(), description="Dynamixel IDs of the pan, tilt and roll servos "
+                         "(distinct, 0-252)")
+    limits: HeadLimits = Field(HeadLimits(), description="soft limits per axis, degrees, in the "
+                               "head's own frame (offset and direction applied)")
+    zero_offset_deg: AxisFloat = Field(AxisFloat(), description="servo angle (degrees from the "
+                                       "servo's centre) at the head's zero, per axis")
+    direction: AxisSign = Field(AxisSign(), description="1 or -1 per axis: head angle = direction "
+                                "* (servo angle - zero_offset_deg)")
+    speed_cap_dps: float = Field(60.0, gt=0, le=300, description="top speed of every head move "
+                                 "(Profile Velocity), degrees per second")
+    accel_cap_dps2: float = Field(240.0, gt=0, le=5000, description="acceleration of every head "
+                                  "move (Profile Acceleration), degrees per second squared")
+    move_timeout_s: float = Field(15.0, gt=0, description="longest time one head move may take "
+                                  "before it fails")
+    settle_s: float = Field(0.2, ge=0, description="wait after a head move before a capture, "
+                            "seconds")
     # Bus timing. ``packet_timeout_ms`` None keeps the SDK's own per-packet timeout (a few
     # ms plus twice the USB latency timer), right for servos that answer in microseconds;
     # a stand-in process on a loaded host needs a longer one. A failed transaction is
     # retried ``retries`` times, pausing ``retry_backoff_s`` before the first retry and
     # twice as long before each next one.
-    packet_timeout_ms: float | None = Field(None, gt=0, le=2000)
-    retries: int = Field(3, ge=0, le=10)
-    retry_backoff_s: float = Field(0.0, ge=0, le=1.0)
-    park: HeadPark = HeadPark()
+    packet_timeout_ms: float | None = Field(None, gt=0, le=2000, description="wait for one status "
+                                            "packet, ms; null: the SDK's own (about 34 ms with a "
+                                            "16 ms latency timer)")
+    retries: int = Field(3, ge=0, le=10, description="retries of a failed bus transaction")
+    retry_backoff_s: float = Field(0.0, ge=0, le=1.0, description="pause before the first retry, "
+                                   "doubling before each next one, seconds")
+    park: HeadPark = Field(HeadPark(), description="what the head does when a run ends or stops")
 
     @field_validator("baud")
     @classmethod
@@ -188,29 +214,48 @@ class HeadConfig(_Strict):
 
 
 class ArmPark(_Strict):
-    policy: Literal["hold", "home"] = "hold"
-    joints_deg: list[float] | None = None
+    policy: Literal["hold", "home"] = Field("hold", description="what the arm does when a run ends "
+                                            "or stops: hold (stay) or home (move to joints_deg, "
+                                            "else home_deg)")
+    joints_deg: list[float] | None = Field(None, description="where home parks it, six joint "
+                                           "angles in degrees; null: home_deg")
 
 
 class ArmConfig(_Strict):
-    host: str = "127.0.0.1"
-    model: str = "ur5e"  # any row of rigctl.hardware.ur_models, as ur_description spells it
-    joint_limits_deg: list[list[float]] = Field(default_factory=lambda: [[-360.0, 360.0]] * 6)
-    home_deg: list[float] = [0.0, -90.0, 90.0, -90.0, -90.0, 0.0]
-    speed_cap_dps: float = Field(60.0, gt=0, le=180)
-    accel_cap_dps2: float = Field(80.0, gt=0, le=800)
-    linear_speed_mm_s: float = Field(100.0, gt=0, le=1000)
-    linear_accel_mm_s2: float = Field(300.0, gt=0, le=3000)
-    move_timeout_s: float = Field(30.0, gt=0)
-    settle_s: float = Field(0.2, ge=0)
-    connect_retries: int = Field(3, ge=1, le=20)
+    host: str = Field("127.0.0.1", description="address of the UR controller (RTDE 30004, "
+                      "dashboard 29999, primary 30001)")
+    model: str = Field("ur5e", description="the arm's model as ur_description spells it (ur5e, "
+                       "ur10e, ...); checked against what the controller reports")
+    joint_limits_deg: list[list[float]] = Field(
+        default_factory=lambda: [[-360.0, 360.0]] * 6,
+        description="six [min, max] soft limits, degrees, within the model's own limits")
+    home_deg: list[float] = Field([0.0, -90.0, 90.0, -90.0, -90.0, 0.0], description="the six "
+                                  "joint angles of home, degrees: the start of every arm procedure")
+    speed_cap_dps: float = Field(60.0, gt=0, le=180, description="top joint speed of moveJ, "
+                                 "degrees per second")
+    accel_cap_dps2: float = Field(80.0, gt=0, le=800, description="joint acceleration of moveJ, "
+                                  "degrees per second squared")
+    linear_speed_mm_s: float = Field(100.0, gt=0, le=1000, description="tool speed of moveL, "
+                                     "millimetres per second")
+    linear_accel_mm_s2: float = Field(300.0, gt=0, le=3000, description="tool acceleration of "
+                                      "moveL, millimetres per second squared")
+    move_timeout_s: float = Field(30.0, gt=0, description="longest time one arm move may take "
+                                  "before it fails")
+    settle_s: float = Field(0.2, ge=0, description="wait after an arm move before a capture, "
+                            "seconds")
+    connect_retries: int = Field(3, ge=1, le=20, description="attempts to connect the RTDE "
+                                 "interfaces")
     # The RTDE stream (500 Hz on a real controller) silent this long: connection lost.
-    stream_timeout_s: float = Field(1.0, gt=0, le=30)
+    stream_timeout_s: float = Field(1.0, gt=0, le=30, description="the RTDE stream silent this "
+                                    "long means the connection is lost, seconds")
     # Bound on each teardown call (stopScript, stopJ) into ur_rtde.
-    teardown_timeout_s: float = Field(3.0, gt=0, le=60)
+    teardown_timeout_s: float = Field(3.0, gt=0, le=60, description="bound on each teardown call "
+                                      "(stopScript, stopJ) into ur_rtde, seconds")
     # Reading the version and the controller's kinematics from the primary interface.
-    primary_timeout_s: float = Field(5.0, gt=0, le=60)
-    park: ArmPark = ArmPark()
+    primary_timeout_s: float = Field(5.0, gt=0, le=60, description="bound on reading the version "
+                                     "and the controller's own kinematics (primary interface), "
+                                     "seconds")
+    park: ArmPark = Field(ArmPark(), description="what the arm does when a run ends or stops")
 
     @field_validator("joint_limits_deg")
     @classmethod
@@ -270,27 +315,42 @@ class ArmConfig(_Strict):
 
 
 class CameraConfig(_Strict):
-    device: str | int  # /dev/videoN, an index, or a stream URL (http://, rtsp://)
-    width: int = Field(1280, gt=0, le=16384)
-    height: int = Field(720, gt=0, le=16384)
-    fourcc: str = "MJPG"
-    fps: float | None = Field(None, gt=0)
-    controls: dict[str, float] = Field(default_factory=dict)
+    device: str | int = Field(description="/dev/videoN, a camera index, or a stream URL (http://, "
+                              "rtsp://)")
+    width: int = Field(1280, gt=0, le=16384, description="image width, pixels; frames of another "
+                       "size are refused")
+    height: int = Field(720, gt=0, le=16384, description="image height, pixels")
+    fourcc: str = Field("MJPG", description="pixel format asked of the camera (four characters, "
+                        "e.g. MJPG, YUYV)")
+    fps: float | None = Field(None, gt=0, description="frame rate asked of the camera; null: the "
+                              "camera's default")
+    controls: dict[str, float] = Field(default_factory=dict, description="OpenCV capture "
+                                       "properties: exposure, gain, focus, white_balance, "
+                                       "brightness, contrast")
     # V4L2 controls by their v4l2-ctl names (either side of Linux 5.16's renames, e.g.
     # focus_absolute, exposure_time_absolute or exposure_absolute), set through the
     # kernel's ioctls on a /dev/video device and read back
-    v4l2_controls: dict[str, int] = Field(default_factory=dict)
+    v4l2_controls: dict[str, int] = Field(default_factory=dict, description="V4L2 controls by "
+                                          "their v4l2-ctl names (focus_absolute, "
+                                          "exposure_time_absolute, ...), set through the kernel "
+                                          "and read back")
     # turn automatic focus, exposure and white balance off (calibration needs them fixed)
-    auto_off: bool = True
-    timeout_s: float = Field(3.0, gt=0)  # open, and wait for a fresh frame
+    auto_off: bool = Field(True, description="turn automatic focus, exposure and white balance off "
+                           "(calibration needs them fixed)")
+    timeout_s: float = Field(3.0, gt=0, description="wait to open the camera, and for a fresh "
+                             "frame, seconds")
     # longest time from exposure to a frame's arrival beyond one frame period (encode,
     # transport, decode): a frame counts as taken after a motion only if it arrived this
     # much later than one period after the motion ended
-    latency_s: float = Field(0.0, ge=0, le=5)
-    open_retries: int = Field(0, ge=0, le=10)  # reopen attempts after a failed open
+    latency_s: float = Field(0.0, ge=0, le=5, description="longest exposure-to-arrival time beyond "
+                             "one frame period; a frame after a motion counts only if it arrived "
+                             "this much later, seconds")
+    open_retries: int = Field(0, ge=0, le=10, description="reopen attempts after a failed open")
     # after a motion a frame counts only once the next frame differs from it by less than
     # this mean grey level (8x downsampled): the image is still. 0 turns the check off.
-    still_threshold: float = Field(1.0, ge=0, le=50)
+    still_threshold: float = Field(1.0, ge=0, le=50, description="after a motion a frame counts "
+                                   "only once the next differs from it by less than this mean grey "
+                                   "level (8x downsampled); 0: off")
 
     @field_validator("fourcc")
     @classmethod
@@ -322,21 +382,32 @@ class TargetConfig(_Strict):
     """The calibration checkerboard and its approximate placement (for planning views;
     the calibration estimates the exact pose)."""
 
-    rows: int = Field(7, ge=3)
-    cols: int = Field(10, ge=3)
-    square_mm: float = Field(30.0, gt=0)
-    pose: MountPose = MountPose(xyz_mm=[350.0, 100.0, 0.0], rpy_deg=[180.0, 0.0, 0.0])
+    rows: int = Field(7, ge=3, description="squares of the checkerboard along its rows direction "
+                      "(inner corners: rows - 1)")
+    cols: int = Field(10, ge=3, description="squares along its columns direction (inner corners: "
+                      "cols - 1)")
+    square_mm: float = Field(30.0, gt=0, description="side of one square, millimetres, as measured "
+                             "on the print")
+    pose: MountPose = Field(
+        MountPose(xyz_mm=[350.0, 100.0, 0.0], rpy_deg=[180.0, 0.0, 0.0]),
+        description="approximate T_base_target (for planning views; the calibration estimates it)")
 
 
 class DevicesConfig(_Strict):
-    head: HeadConfig | None = None
-    arm: ArmConfig | None = None
-    camera: CameraConfig | None = None
+    head: HeadConfig | None = Field(None, description="the Dynamixel pan/tilt/roll head; leave out "
+                                    "for a rig without one")
+    arm: ArmConfig | None = Field(None, description="the Universal Robots arm; leave out for a rig "
+                                  "without one")
+    camera: CameraConfig | None = Field(None, description="the camera; leave out for a rig without "
+                                        "one")
 
 
 class RecordsConfig(_Strict):
-    directory: str = "records"
-    database_url: str | None = None  # default: sqlite:///<directory>/index.sqlite
+    directory: str = Field("records", description="where run directories go; relative to the rig "
+                           "file")
+    database_url: str | None = Field(None, description="SQLAlchemy URL of the run index "
+                                     "(postgresql+psycopg://... for a lab-wide one); null: "
+                                     "sqlite:///<directory>/index.sqlite")
 
 
 def parse_duration(text: str) -> int:
@@ -354,11 +425,15 @@ def parse_duration(text: str) -> int:
 
 
 class Schedule(_Strict):
-    procedure: str
-    cron: str | None = None
-    interval_s: float | None = Field(None, gt=0)
-    params: dict[str, Any] = Field(default_factory=dict)
-    max_delay: str = "1h"  # a run that cannot start within this long after its time is skipped
+    procedure: str = Field(description="the procedure to run")
+    cron: str | None = Field(None, description="when, as a five-field cron expression (give this "
+                             "or interval_s)")
+    interval_s: float | None = Field(None, gt=0, description="every this many seconds (give this "
+                                     "or cron)")
+    params: dict[str, Any] = Field(default_factory=dict, description="the procedure's parameters "
+                                   "for these runs")
+    max_delay: str = Field("1h", description="a run that cannot start within this long after its "
+                           "time is skipped (1h, 30m, 45s)")
 
     @field_validator("cron")
     @classmethod
@@ -386,12 +461,18 @@ class Schedule(_Strict):
 
 
 class DriftThresholds(_Strict):
-    focal_pct: float = 0.5
-    principal_point_px: float = 3.0
-    link_mm: float = 0.5
-    link_deg: float = 0.05
-    hand_eye_mm: float = 2.0
-    hand_eye_deg: float = 0.2
+    focal_pct: float = Field(0.5, description="a focal length changed by more than this, percent, "
+                             "is drift (if also beyond 3 sigma)")
+    principal_point_px: float = Field(3.0, description="the principal point moved more than this, "
+                                      "pixels, is drift (if also beyond 3 sigma)")
+    link_mm: float = Field(0.5, description="a link length changed by more than this, millimetres, "
+                           "is drift (if also beyond 3 sigma)")
+    link_deg: float = Field(0.05, description="a link angle changed by more than this, degrees, is "
+                            "drift (if also beyond 3 sigma)")
+    hand_eye_mm: float = Field(2.0, description="the hand-eye transform moved more than this, "
+                               "millimetres, is drift")
+    hand_eye_deg: float = Field(0.2, description="the hand-eye transform turned more than this, "
+                                "degrees, is drift")
 
 
 LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "::1")
@@ -403,8 +484,9 @@ def is_loopback(host: str) -> bool:
 
 
 class ServiceConfig(_Strict):
-    bind: str = "127.0.0.1"
-    port: int = Field(8765, ge=1, le=65535)
+    bind: str = Field("127.0.0.1", description="address the service listens on; anything but "
+                      "loopback needs a token")
+    port: int = Field(8765, ge=1, le=65535, description="TCP port of the service")
     # the bearer token of mutating requests (and of every read when reads are not public);
     # the environment's RIGCTL_TOKEN when not set here. Never written by rigctl: a run
     # directory's copy of the rig file has it redacted.
@@ -416,10 +498,14 @@ class ServiceConfig(_Strict):
     public_read: bool | None = Field(
         None, description="reads (runs, captures, device configuration, the console) without "
         "the token; default: true on a loopback bind, false elsewhere")
-    webhook: str | None = None
-    auto_accept: bool = False
-    schedules: list[Schedule] = Field(default_factory=list)
-    drift: DriftThresholds = DriftThresholds()
+    webhook: str | None = Field(None, description="URL that gets a JSON POST when a calibration "
+                                "drifts")
+    auto_accept: bool = Field(False, description="accept a new calibration within the drift "
+                              "thresholds without an operator")
+    schedules: list[Schedule] = Field(default_factory=list, description="runs started on a "
+                                      "schedule (scheduled recalibration)")
+    drift: DriftThresholds = Field(DriftThresholds(), description="thresholds beyond which a new "
+                                   "calibration differs from the last accepted one")
 
     def bearer_token(self) -> str | None:
         """The token in force: ``token``, else the environment's ``RIGCTL_TOKEN``."""
@@ -438,13 +524,16 @@ class ServiceConfig(_Strict):
 
 
 class RigConfig(_Strict):
-    name: str = Field("rig", pattern=r"^[A-Za-z0-9_.-]+$")
-    devices: DevicesConfig = DevicesConfig()
-    records: RecordsConfig = RecordsConfig()
-    target: TargetConfig = TargetConfig()
-    procedures: dict[str, dict[str, Any]] = Field(default_factory=dict)
-    service: ServiceConfig = ServiceConfig()
-    world: str | None = None  # simulated rigs only: the ground-truth world file
+    name: str = Field("rig", pattern=r"^[A-Za-z0-9_.-]+$", description="the rig's name: its lock, "
+                      "and its rows in a shared index (unique per rig)")
+    devices: DevicesConfig = Field(DevicesConfig(), description="the devices of the rig")
+    records: RecordsConfig = Field(RecordsConfig(), description="where runs are recorded")
+    target: TargetConfig = Field(TargetConfig(), description="the calibration checkerboard")
+    procedures: dict[str, dict[str, Any]] = Field(default_factory=dict, description="per "
+                                                  "procedure, default parameters: "
+                                                  "procedures.<name>.<parameter>")
+    service: ServiceConfig = Field(ServiceConfig(), description="the HTTP service (rigctl serve)")
+    world: str | None = Field(None, description="simulated rigs only: the ground-truth world file")
 
     # Filled by ``load_rig``: where the file came from, and its text for provenance.
     source_path: Path | None = Field(None, exclude=True)

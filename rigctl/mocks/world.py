@@ -39,17 +39,19 @@ class _Strict(BaseModel):
 
 
 class CameraTruth(_Strict):
-    width: int = Field(1280, gt=0)
-    height: int = Field(720, gt=0)
-    fx: float = Field(900.0, gt=0)
-    fy: float = Field(905.0, gt=0)
-    cx: float = 652.3
-    cy: float = 371.8
-    distortion: list[float] = Field(default_factory=lambda: [0.0] * 5)
-    pixel_noise: float = Field(0.5, ge=0)
-    jpeg_quality: int = Field(95, ge=10, le=100)
-    fps: float = Field(15.0, gt=0, le=120)
-    blur_sigma: float = Field(0.6, ge=0)
+    width: int = Field(1280, gt=0, description="image width, pixels")
+    height: int = Field(720, gt=0, description="image height, pixels")
+    fx: float = Field(900.0, gt=0, description="focal length along x, pixels")
+    fy: float = Field(905.0, gt=0, description="focal length along y, pixels")
+    cx: float = Field(652.3, description="principal point x, pixels")
+    cy: float = Field(371.8, description="principal point y, pixels")
+    distortion: list[float] = Field(default_factory=lambda: [0.0] * 5, description="[k1, k2, p1, "
+                                    "p2, k3], OpenCV's convention")
+    pixel_noise: float = Field(0.5, ge=0, description="sigma of additive Gaussian noise, grey "
+                               "levels")
+    jpeg_quality: int = Field(95, ge=10, le=100, description="quality of the MJPEG frames")
+    fps: float = Field(15.0, gt=0, le=120, description="frame rate of the stream")
+    blur_sigma: float = Field(0.6, ge=0, description="Gaussian blur (optics), pixels")
 
     @field_validator("distortion")
     @classmethod
@@ -60,17 +62,31 @@ class CameraTruth(_Strict):
 
 
 class HeadTruth(_Strict):
-    mount: Literal["flange", "fixed"] = "flange"
-    roll_axis_tilt_deg: list[float] = Field(default_factory=lambda: [0.0, 0.0])
-    camera_offset_mm: list[float] = Field(default_factory=lambda: [0.0, 0.0, 0.0])
-    encoder_noise_deg: float = Field(0.0, ge=0)
-    fixed_xyz_mm: list[float] = Field(default_factory=lambda: [0.0, 0.0, 500.0])
-    fixed_rpy_deg: list[float] = Field(default_factory=lambda: [0.0, 0.0, 0.0])
+    mount: Literal["flange", "fixed"] = Field("flange", description="flange (head on the arm's "
+                                              "flange through hand_eye) or fixed")
+    roll_axis_tilt_deg: list[float] = Field(default_factory=lambda: [0.0, 0.0], description="the "
+                                            "roll axis is the camera z axis tilted about camera x, "
+                                            "then y, degrees")
+    camera_offset_mm: list[float] = Field(
+        default_factory=lambda: [0.0, 0.0, 0.0],
+        description="centre of projection off the rotation axes, in the camera frame, millimetres")
+    encoder_noise_deg: float = Field(0.0, ge=0, description="sigma of the head encoder readings, "
+                                     "degrees")
+    fixed_xyz_mm: list[float] = Field(
+        default_factory=lambda: [0.0, 0.0, 500.0],
+        description="T_base_head translation when mount is fixed, millimetres")
+    fixed_rpy_deg: list[float] = Field(
+        default_factory=lambda: [0.0, 0.0, 0.0],
+        description="T_base_head rotation [roll, pitch, yaw] when mount is fixed, degrees")
     # pan, tilt, roll servo models the bus stand-in plays (its own tables, dxl_models);
     # encoder "hardware": the true angle continuous, readings quantized to the model's
     # pulse with its noise; "ideal": every move ends on its goal pulse, read exactly
-    models: list[str] = Field(default_factory=lambda: ["xm430-w350"] * 3)
-    encoder: Literal["ideal", "hardware"] = "ideal"
+    models: list[str] = Field(default_factory=lambda: ["xm430-w350"] * 3, description="pan, tilt, "
+                              "roll servo models the bus stand-in plays")
+    encoder: Literal["ideal", "hardware"] = Field("ideal", description="ideal (moves end on the "
+                                                  "goal pulse, read exactly) or hardware (the true "
+                                                  "angle continuous, readings quantized to the "
+                                                  "model's pulse with its noise)")
 
     @field_validator("models")
     @classmethod
@@ -87,25 +103,34 @@ class HeadTruth(_Strict):
 
 
 class ArmErrors(_Strict):
-    theta_deg: list[float] = Field(default_factory=lambda: [0.0] * 6)
-    d_mm: list[float] = Field(default_factory=lambda: [0.0] * 6)
-    a_mm: list[float] = Field(default_factory=lambda: [0.0] * 6)
-    alpha_deg: list[float] = Field(default_factory=lambda: [0.0] * 6)
-    beta_deg: list[float] = Field(default_factory=lambda: [0.0] * 6)
+    theta_deg: list[float] = Field(default_factory=lambda: [0.0] * 6, description="encoder offsets "
+                                   "per joint: true joint angle = reading + offset, degrees")
+    d_mm: list[float] = Field(default_factory=lambda: [0.0] * 6, description="DH d deviations from "
+                              "nominal, per link, millimetres")
+    a_mm: list[float] = Field(default_factory=lambda: [0.0] * 6, description="DH a deviations from "
+                              "nominal, per link, millimetres")
+    alpha_deg: list[float] = Field(default_factory=lambda: [0.0] * 6, description="DH alpha "
+                                   "deviations from nominal, per link, degrees")
+    beta_deg: list[float] = Field(default_factory=lambda: [0.0] * 6, description="Hayati rotation "
+                                  "about y, per link, degrees")
 
 
 class FactoryErrors(_Strict):
     """What the controller believes (its factory calibration), as errors from nominal.
     Plain DH: a UR controller's kinematics have no beta."""
 
-    theta_deg: list[float] = Field(default_factory=lambda: [0.0] * 6)
-    d_mm: list[float] = Field(default_factory=lambda: [0.0] * 6)
-    a_mm: list[float] = Field(default_factory=lambda: [0.0] * 6)
-    alpha_deg: list[float] = Field(default_factory=lambda: [0.0] * 6)
+    theta_deg: list[float] = Field(default_factory=lambda: [0.0] * 6, description="the "
+                                   "controller's encoder offsets per joint, degrees")
+    d_mm: list[float] = Field(default_factory=lambda: [0.0] * 6, description="the controller's d "
+                              "deviations from nominal, millimetres")
+    a_mm: list[float] = Field(default_factory=lambda: [0.0] * 6, description="the controller's a "
+                              "deviations from nominal, millimetres")
+    alpha_deg: list[float] = Field(default_factory=lambda: [0.0] * 6, description="the "
+                                   "controller's alpha deviations from nominal, degrees")
 
 
 class ArmTruth(_Strict):
-    model: str = "ur5e"  # any model of rigctl.mocks.ur_models
+    model: str = Field("ur5e", description="the arm's model, as ur_description spells it")
 
     @field_validator("model")
     @classmethod
@@ -116,38 +141,61 @@ class ArmTruth(_Strict):
             raise ValueError(f"unknown UR model {value!r}; known: {', '.join(MODEL_NAMES)}")
         return value
 
-    home_deg: list[float] = Field(default_factory=lambda: [0.0, -90.0, 90.0, -90.0, -90.0, 0.0])
-    errors: ArmErrors = ArmErrors()
-    factory_errors: FactoryErrors | None = None
+    home_deg: list[float] = Field(
+        default_factory=lambda: [0.0, -90.0, 90.0, -90.0, -90.0, 0.0],
+        description="joints at start, degrees; the scene is laid out around the camera at this "
+        "pose")
+    errors: ArmErrors = Field(ArmErrors(), description="the true arm's deviations from the nominal "
+                              "model")
+    factory_errors: FactoryErrors | None = Field(None, description="what the controller believes "
+                                                 "(its factory calibration), as deviations from "
+                                                 "nominal; plain DH, no beta. Null: the controller "
+                                                 "uses nominal")
 
 
 class PoseTruth(_Strict):
-    xyz_mm: list[float] = Field(default_factory=lambda: [0.0, 0.0, 50.0])
-    rpy_deg: list[float] = Field(default_factory=lambda: [0.0, 0.0, 0.0])
+    xyz_mm: list[float] = Field(default_factory=lambda: [0.0, 0.0, 50.0], description="translation "
+                                "[x, y, z], millimetres")
+    rpy_deg: list[float] = Field(default_factory=lambda: [0.0, 0.0, 0.0], description="rotation "
+                                 "[roll, pitch, yaw], degrees: Rz(yaw) Ry(pitch) Rx(roll)")
 
 
 class TargetTruth(_Strict):
-    rows: int = Field(7, ge=3)
-    cols: int = Field(10, ge=3)
-    square_mm: float = Field(30.0, gt=0)
-    xyz_mm: list[float] = Field(default_factory=lambda: [600.0, 0.0, 0.0])
-    rpy_deg: list[float] = Field(default_factory=lambda: [180.0, 0.0, 0.0])
+    rows: int = Field(7, ge=3, description="squares of the checkerboard along its rows direction "
+                      "(inner corners: rows - 1)")
+    cols: int = Field(10, ge=3, description="squares along its columns direction (inner corners: "
+                      "cols - 1)")
+    square_mm: float = Field(30.0, gt=0, description="square size, millimetres")
+    xyz_mm: list[float] = Field(
+        default_factory=lambda: [600.0, 0.0, 0.0],
+        description="T_base_target translation, millimetres; the target frame is at the outer "
+        "board corner")
+    rpy_deg: list[float] = Field(
+        default_factory=lambda: [180.0, 0.0, 0.0],
+        description="T_base_target rotation [roll, pitch, yaw], degrees; x along columns, y along"
+        " rows, z into the board")
 
 
 class SceneTruth(_Strict):
-    depth_m: list[float] = Field(default_factory=lambda: [1.5, 6.0])
-    shapes: int = Field(40, ge=0, le=500)
-    cone_deg: float = Field(40.0, gt=0, le=80)
+    depth_m: list[float] = Field(default_factory=lambda: [1.5, 6.0], description="depth range of "
+                                 "the planar scene shapes from the camera at home, metres")
+    shapes: int = Field(40, ge=0, le=500, description="how many shapes (rectangles, triangles, "
+                        "ellipses)")
+    cone_deg: float = Field(40.0, gt=0, le=80, description="half-angle of the cone around the home "
+                            "optical axis where shapes lie, degrees")
 
 
 class WorldFile(_Strict):
-    seed: int = 1
-    camera: CameraTruth = CameraTruth()
-    head: HeadTruth = HeadTruth()
-    arm: ArmTruth = ArmTruth()
-    hand_eye: PoseTruth = PoseTruth()
-    target: TargetTruth = TargetTruth()
-    scene: SceneTruth = SceneTruth()
+    seed: int = Field(1, description="seeds the scene layout and the per-frame pixel noise")
+    camera: CameraTruth = Field(CameraTruth(), description="the camera's true intrinsics and image "
+                                "quality")
+    head: HeadTruth = Field(HeadTruth(), description="the head's true geometry and servos")
+    arm: ArmTruth = Field(ArmTruth(), description="the true arm and what its controller believes")
+    hand_eye: PoseTruth = Field(PoseTruth(), description="T_flange_head, the head on the arm's "
+                                "flange")
+    target: TargetTruth = Field(TargetTruth(), description="the checkerboard and its true pose")
+    scene: SceneTruth = Field(SceneTruth(), description="the planar shapes the active-camera "
+                              "calibration tracks")
 
 
 def rpy_matrix(rpy_deg) -> np.ndarray:
