@@ -263,3 +263,47 @@ def test_the_intrinsics_check_takes_partial_views():
     check = board_intrinsics(obj, corners, (1280, 720), used)
     assert check["views"] == 14 and check["agrees"], check["note"]
     assert abs(check["board"]["fx"] - 900) < 3 and abs(check["board"]["cx"] - 640) < 3
+
+
+def test_planned_views_let_a_charuco_board_run_off_the_image_with_enough_corners_in_view():
+    """hand-eye's plan on the default world and on its ChArUco twin: every ChArUco view
+    keeps 40 % of the corners (and 12) inside the image, some run off it, and together
+    they reach more of the image's cells than the checkerboard's whole-board views."""
+    from rigctl.geometry.kinematics import nominal_ur
+    from rigctl.procedures import get_procedure
+    from rigctl.procedures.planning import nominal_flange_cam, target_centre
+    from rigctl.runner import check_plan
+    from tests.test_e2e_charuco import coverage
+    from tests.test_planning_worlds import rig_for
+
+    shares = {}
+    for name in ("default", "charuco"):
+        data = yaml.safe_load((WORLDS / f"{name}.yaml").read_text())
+        config = rig_for(data)
+        cam = data["camera"]
+        intrinsics = {k: cam[k] for k in ("fx", "fy", "cx", "cy")}
+        proc = get_procedure("hand-eye")
+        steps = proc.plan(proc.params_model(poses=12, intrinsics=intrinsics), config)
+        assert not check_plan(config, steps, proc.devices)
+        K = np.array([[cam["fx"], 0, cam["cx"]], [0, cam["fy"], cam["cy"]], [0, 0, 1]])
+        obj = board_points(config.target.rows, config.target.cols,
+                           config.target.square_mm / 1000.0)
+        model, W = nominal_ur("ur5e"), target_centre(config)[0]
+        inside = []
+        for step in steps[1:]:
+            if type(step).__name__ != "MoveArmJoints" or step.label == "arm home":
+                continue
+            T = inv_T(model.fk(np.array(step.q)) @ nominal_flange_cam(config)) @ W
+            px = (K @ ((T[:3, :3] @ obj.T).T + T[:3, 3]).T).T
+            px = px[:, :2] / px[:, 2:3]
+            ok = (px[:, 0] > 0) & (px[:, 0] < cam["width"]) & (px[:, 1] > 0) & \
+                (px[:, 1] < cam["height"])
+            inside.append(px[ok])
+        assert len(inside) == 12
+        counts = [len(p) for p in inside]
+        if name == "default":
+            assert min(counts) == len(obj)
+        else:
+            assert min(counts) >= max(0.4 * len(obj), 12) and min(counts) < len(obj)
+        shares[name] = coverage(inside, cam["width"], cam["height"])
+    assert shares["charuco"] > shares["default"] + 0.15, shares
