@@ -379,18 +379,53 @@ class CameraConfig(_Strict):
 
 
 class TargetConfig(_Strict):
-    """The calibration checkerboard and its approximate placement (for planning views;
-    the calibration estimates the exact pose)."""
+    """The calibration target and its approximate placement (for planning views; the
+    calibration estimates the exact pose): a checkerboard, or a ChArUco board as OpenCV's
+    ``CharucoBoard`` takes it (``dictionary``: OpenCV's name, e.g. DICT_5X5_100;
+    ``marker_mm``; ``legacy_pattern``: the layout OpenCV printed before 4.6)."""
 
-    rows: int = Field(7, ge=3, description="squares of the checkerboard along its rows direction "
-                      "(inner corners: rows - 1)")
+    type: Literal["checkerboard", "charuco"] = Field(
+        "checkerboard", description="checkerboard, or charuco (a ChArUco board: needs "
+        "dictionary and marker_mm)")
+    rows: int = Field(7, ge=3, description="squares of the board along its rows direction "
+                      "(a checkerboard's inner corners: rows - 1)")
     cols: int = Field(10, ge=3, description="squares along its columns direction (inner corners: "
                       "cols - 1)")
     square_mm: float = Field(30.0, gt=0, description="side of one square, millimetres, as measured "
                              "on the print")
+    dictionary: str | None = Field(None, description="ChArUco only: OpenCV's name of the "
+                                   "markers' dictionary, e.g. DICT_5X5_100")
+    marker_mm: float | None = Field(None, gt=0, description="ChArUco only: side of one marker, "
+                                    "millimetres, as measured on the print")
+    legacy_pattern: bool = Field(False, description="ChArUco only: the layout OpenCV printed "
+                                 "before 4.6 (CharucoBoard.setLegacyPattern)")
     pose: MountPose = Field(
         MountPose(xyz_mm=[350.0, 100.0, 0.0], rpy_deg=[180.0, 0.0, 0.0]),
         description="approximate T_base_target (for planning views; the calibration estimates it)")
+
+    @field_validator("dictionary")
+    @classmethod
+    def _known_dictionary(cls, value: str | None) -> str | None:
+        from rigctl.calib.charuco import check_dictionary
+
+        return None if value is None else check_dictionary(value)
+
+    @model_validator(mode="after")
+    def _charuco_keys(self) -> TargetConfig:
+        if self.type != "charuco":
+            if self.dictionary is not None or self.marker_mm is not None:
+                raise ValueError("dictionary and marker_mm are keys of a ChArUco target "
+                                 "(type: charuco)")
+            return self
+        if self.dictionary is None or self.marker_mm is None:
+            raise ValueError("a ChArUco target (type: charuco) needs dictionary and marker_mm")
+        if self.marker_mm >= self.square_mm:
+            raise ValueError(f"marker_mm {self.marker_mm:g} must be below square_mm "
+                             f"{self.square_mm:g}")
+        from rigctl.calib.charuco import CharucoSpec, board
+
+        board(CharucoSpec.of(self))  # a dictionary too small for the board: named
+        return self
 
 
 class DevicesConfig(_Strict):

@@ -228,25 +228,54 @@ class Capture:
     def board_path(self) -> Path | None:
         return None if self.image_path is None else self.image_path.with_suffix(".board.json")
 
-    def board_corners(self, rows: int, cols: int) -> np.ndarray | None:
-        """The checkerboard's inner corners in this capture (None: not found), from the
-        ``NNN.board.json`` the runner wrote while the rig moved on, else detected now."""
-        from rigctl.calib.board import detect_board
+    def board_detection(self, target):
+        """The target's corners in this capture (``rigctl.calib.board.Detection``: id
+        order, NaN where not seen; None with a note when not found), from the
+        ``NNN.board.json`` the runner wrote for the same target while the rig moved on,
+        else detected now."""
+        from rigctl.calib.board import Detection, detect_target, target_key
 
         path = self.board_path
         if path is not None and path.exists():
             saved = json.loads(path.read_text())
-            if (saved.get("rows"), saved.get("cols")) == (rows, cols):
-                corners = saved.get("corners")
-                return None if corners is None else np.asarray(corners, float)
-        return detect_board(self.load_image(), rows, cols)
+            # a run recorded before ChArUco boards: a checkerboard's rows and cols
+            key = saved.get("target") or {"type": "checkerboard", "rows": saved.get("rows"),
+                                          "cols": saved.get("cols")}
+            if key == target_key(target):
+                return _saved_detection(saved, target, Detection)
+        return detect_target(self.load_image(), target)
 
-    def save_board_corners(self, rows: int, cols: int, image: np.ndarray | None = None) -> None:
-        """Detect the board in this capture and write ``NNN.board.json``."""
-        from rigctl.calib.board import detect_board
+    def board_corners(self, target) -> np.ndarray | None:
+        """The target's corners in this capture (``board_detection``), None: not found."""
+        return self.board_detection(target).corners
 
-        corners = detect_board(self.load_image() if image is None else image, rows, cols)
-        write_json(self.board_path, {"rows": rows, "cols": cols, "corners": corners})
+    def save_board_corners(self, target, image: np.ndarray | None = None) -> None:
+        """Detect the target in this capture and write ``NNN.board.json`` (the corners
+        seen with their ids, or the note saying why none are used)."""
+        from rigctl.calib.board import detect_target, seen, target_key
+
+        found = detect_target(self.load_image() if image is None else image, target)
+        out: dict[str, Any] = {"target": target_key(target), "ids": None, "corners": None,
+                               "note": found.note}
+        if found.corners is not None:
+            mask = seen(found.corners)
+            out |= {"ids": np.flatnonzero(mask).tolist(), "corners": found.corners[mask]}
+        write_json(self.board_path, out)
+
+
+def _saved_detection(saved: dict, target, detection):
+    """A ``Detection`` from a ``NNN.board.json``: ids and corners (a checkerboard's file
+    from before ChArUco boards holds every corner, without ids)."""
+    corners = saved.get("corners")
+    if corners is None:
+        return detection(None, saved.get("note"))
+    corners = np.asarray(corners, float).reshape(-1, 2)
+    ids = saved.get("ids")
+    if ids is None:
+        return detection(corners)
+    out = np.full(((target.rows - 1) * (target.cols - 1), 2), np.nan)
+    out[np.asarray(ids, int)] = corners
+    return detection(out)
 
 
 class RunDirectory:

@@ -329,7 +329,7 @@ class Runner:
         if root.level > logging.INFO or root.level == logging.NOTSET:
             root.setLevel(logging.INFO)
         rig = Rig(self.config, self.factories)
-        self._board = (BoardDetection(self.config.target.rows, self.config.target.cols)
+        self._board = (BoardDetection(self.config.target)
                        if procedure.detects_board and self.config.target else None)
         self._emit(type="started", run_id=run_id, procedure=procedure.name,
                    total=len(plan.steps))
@@ -535,14 +535,14 @@ STEP_HANDLERS: dict[type, Callable[..., None]] = {
 
 
 class BoardDetection:
-    """Detects the checkerboard in each capture on one worker thread while the rig moves
-    on (OpenCV releases the GIL), writing ``NNN.board.json``; a failure there is logged
-    and the solve detects that capture itself."""
+    """Detects the target (checkerboard or ChArUco board) in each capture on one worker
+    thread while the rig moves on (OpenCV releases the GIL), writing ``NNN.board.json``;
+    a failure there is logged and the solve detects that capture itself."""
 
-    def __init__(self, rows: int, cols: int) -> None:
+    def __init__(self, target) -> None:
         from concurrent.futures import ThreadPoolExecutor
 
-        self.rows, self.cols = rows, cols
+        self.target = target
         self.pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="board")
 
     def submit(self, capture, image) -> None:
@@ -550,7 +550,7 @@ class BoardDetection:
 
     def _detect(self, capture, image) -> None:
         try:
-            capture.save_board_corners(self.rows, self.cols, image)
+            capture.save_board_corners(self.target, image)
         except Exception as exc:
             log.warning("board detection in capture %03d: %s", capture.index, exc)
 

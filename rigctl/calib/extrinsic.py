@@ -133,7 +133,11 @@ def estimate_pose(obj: np.ndarray, pixels: np.ndarray, K: np.ndarray, dist=None,
                   fallback: bool = True) -> PoseEstimate:
     """Tsai's closed form, refined by LM. ``rms_px`` is the RMS corner distance. Where
     Tsai refuses the view (fronto-parallel, or no consistent sign), OpenCV's planar IPPE
-    solver starts the LM instead (``fallback``); the estimate records which method."""
+    solver starts the LM instead (``fallback``); the estimate records which method.
+    Corners not seen (NaN rows of an id-ordered array, a ChArUco board seen in part) are
+    left out with their board points."""
+    seen = np.all(np.isfinite(np.reshape(pixels, (-1, 2))), axis=1)
+    obj, pixels = np.asarray(obj)[seen], np.reshape(pixels, (-1, 2))[seen]
     method = "tsai"
     try:
         T0 = tsai_planar(obj, pixels, K, dist)

@@ -189,27 +189,34 @@ def refine_pixels(F, corners: list[np.ndarray], obj: np.ndarray, K, dist, X0,
                   W0: np.ndarray | None = None, C: list[np.ndarray] | None = None
                   ) -> HandEyeResult:
     """Least squares of X and W on board-corner reprojection error over every sample,
-    with 1-sigma cluster-robust over the samples (``covariance.robust_covariance``)."""
+    with 1-sigma cluster-robust over the samples (``covariance.robust_covariance``).
+    ``corners``: each sample's in the order of ``obj``, NaN rows for corners not seen."""
     if W0 is None:
         if C is None:
             raise SolveError("hand-eye refinement: give W0 or the camera poses C")
         W0 = average_W(F, C, X0)
     dist = np.zeros(5) if dist is None else np.asarray(dist, float)
+    # each view's corners with their board points (id order; NaN: a corner not seen)
+    views = []
+    for c in corners:
+        px = np.reshape(np.asarray(c, float), (-1, 2))
+        seen = np.all(np.isfinite(px), axis=1)
+        views.append((np.asarray(obj, float)[seen].reshape(-1, 1, 3), px[seen]))
 
     def fun(p):
         X, W = _unpack(p)
         res = []
-        for F_k, px in zip(F, corners, strict=True):
+        for F_k, (pts, px) in zip(F, views, strict=True):
             T_cam_target = inv_T(F_k @ X) @ W
             rv = R_to_rotvec(T_cam_target[:3, :3])
-            proj, _ = cv2.projectPoints(obj.reshape(-1, 1, 3), rv, T_cam_target[:3, 3], K, dist)
+            proj, _ = cv2.projectPoints(pts, rv, T_cam_target[:3, 3], K, dist)
             res.append((proj.reshape(-1, 2) - px).ravel())
         return np.concatenate(res)
 
     sol = least_squares(fun, _params(X0, W0), loss="soft_l1", f_scale=1.0, x_scale="jac")
     X, W = _unpack(sol.x)
     # a view's corners share its error (the arm's pose, detection bias): one cluster each
-    clusters = view_clusters(len(corners), [2 * len(np.reshape(c, (-1, 2))) for c in corners])
+    clusters = view_clusters(len(corners), [2 * len(px) for _, px in views])
     # scipy returns the Jacobian weighted by the soft_l1 loss (sqrt rho'); weigh the
     # residuals alike so the sandwich pairs rows that match
     weight = (1.0 + sol.fun ** 2) ** -0.25

@@ -20,13 +20,17 @@ KEYS = ("fx", "fy", "cx", "cy")
 
 def board_intrinsics(obj: np.ndarray, corners: list[np.ndarray], image_size: tuple[int, int],
                      used: dict) -> dict:
-    """Intrinsics from ``corners`` (one N x 2 array per view of the board ``obj``) with
+    """Intrinsics from ``corners`` (one N x 2 array per view of the board ``obj``, id
+    order, NaN where a view has not the corner) with
     their 1-sigma, and the difference ``used - board`` in pixels and in sigmas, for each
     of fx, fy, cx, cy. ``image_size`` is (width, height)."""
     if len(corners) < MIN_VIEWS:
         raise SolveError(f"intrinsics check: {len(corners)} board views; need {MIN_VIEWS}")
-    object_points = [np.asarray(obj, np.float32).reshape(-1, 1, 3)] * len(corners)
-    image_points = [np.asarray(c, np.float32).reshape(-1, 1, 2) for c in corners]
+    # each view's corners with their board points (NaN rows: corners a view has not)
+    seen = [np.all(np.isfinite(np.reshape(c, (-1, 2))), axis=1) for c in corners]
+    object_points = [np.asarray(obj, np.float32)[m].reshape(-1, 1, 3) for m in seen]
+    image_points = [np.asarray(c, np.float32).reshape(-1, 2)[m].reshape(-1, 1, 2)
+                    for c, m in zip(corners, seen, strict=True)]
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)  # OpenCV's threaded sums differ in the last digits run to run
     try:  # one thread: a re-solve of the run reproduces the check exactly

@@ -405,7 +405,31 @@ def residuals(model, X, W, meas: Measurements, K: np.ndarray | None = None,
                       lambda: np.array([np.asarray(c, float).reshape(-1, 2) for c in meas.corners]))
     proj = project_batch(invert_batch(T_base_cam) @ W, meas.obj,
                          meas.K if K is None else K, meas.dist if dist is None else dist)
-    return (proj - corners).ravel()
+    seen = _seen(meas)
+    if seen is None:  # every view has every corner
+        return (proj - corners).ravel()
+    return (proj - corners)[seen].ravel()  # view by view, the corners each view has
+
+
+def _seen(meas: Measurements) -> np.ndarray | None:
+    """Which corners each view has (views x corners; NaN rows of the id-ordered corner
+    arrays are corners not seen), or None when every view has all of them."""
+    def build():
+        ok = np.array([np.all(np.isfinite(np.reshape(c, (-1, 2))), axis=1)
+                       for c in meas.corners])
+        return None if ok.all() else ok
+    return _cached(meas, "_seen_mask", build)
+
+
+def rows_per_view(meas: Measurements) -> list[int]:
+    """How many residual rows ``residuals`` gives each view: 6 (a pose), or 2 per corner
+    the view has."""
+    if meas.corners is None:
+        return [6] * len(meas.q)
+    seen = _seen(meas)
+    if seen is None:
+        return [2 * len(np.reshape(meas.corners[0], (-1, 2)))] * len(meas.q)
+    return (2 * seen.sum(axis=1)).tolist()
 
 
 def _cached(meas, name: str, build):
@@ -446,23 +470,24 @@ def refine(model0: KinematicModel, X0, W0, meas: Measurements, mask=None,
     J = sol.jac
     sv = scaled_singular_values(J)
     condition = condition_number(sv)
-    cov = _view_robust(J, sol.fun, len(meas.q), np.zeros((len(p0), len(p0))))
+    cov = _view_robust(J, sol.fun, rows_per_view(meas), np.zeros((len(p0), len(p0))))
     sigma = np.sqrt(np.clip(np.diag(cov), 0, None))
     return RefineResult(model, X, W, names, sol.x, sigma, condition, sv,
                         float(np.sqrt(np.mean(sol.fun ** 2))),
                         _kinematic_condition(J, 12 if free_XW else 0), cov)
 
 
-def _view_robust(J: np.ndarray, r: np.ndarray, n_views: int, P: np.ndarray,
+def _view_robust(J: np.ndarray, r: np.ndarray, rows: list[int], P: np.ndarray,
                  s2: float | None = None) -> np.ndarray:
-    """Covariance of a refinement over ``n_views`` captures (residual rows laid out view
-    by view) with prior information ``P``: cluster-robust with one cluster per view,
-    since a view's corners share its error (detection bias, the arm's pose), by the
-    delete-one-view jackknife (``covariance.robust_covariance``)."""
-    if len(r) % n_views:
-        raise SolveError(f"robot refinement: {len(r)} residual rows do not split evenly "
-                         f"into {n_views} views")
-    return robust_covariance(J, r, view_clusters(n_views, len(r) // n_views), P, s2)
+    """Covariance of a refinement over captures whose residual rows are laid out view by
+    view (``rows``: each view's count, ``rows_per_view``) with prior information ``P``:
+    cluster-robust with one cluster per view, since a view's corners share its error
+    (detection bias, the arm's pose), by the delete-one-view jackknife
+    (``covariance.robust_covariance``)."""
+    if len(r) != sum(rows):
+        raise SolveError(f"robot refinement: {len(r)} residual rows do not split into "
+                         f"{len(rows)} views of {sum(rows)} rows")
+    return robust_covariance(J, r, view_clusters(len(rows), rows), P, s2)
 
 
 CAMERA_KEYS = ("fx", "fy", "cx", "cy")
@@ -553,7 +578,7 @@ def refine_with_camera(ref: RefineResult, meas: Measurements, prior_sigma: dict[
                           max_nfev=max_nfev)
     n_px = len(board.fun)
     s2_board = float(np.sum(board.fun ** 2) / max(n_px - len(board.x), 1))
-    board_cov = _view_robust(board.jac, board.fun, len(meas.q),
+    board_cov = _view_robust(board.jac, board.fun, rows_per_view(meas),
                              np.zeros((len(board.x), len(board.x))), s2_board)
     inflation = prior_inflation(board.x[n_arm:n_arm + 4],
                                 board_cov[n_arm:n_arm + 4, n_arm:n_arm + 4], prior, sig)
@@ -568,7 +593,8 @@ def refine_with_camera(ref: RefineResult, meas: Measurements, prior_sigma: dict[
     J = sol.jac
     J_prior = J[n_px:]
     s2 = float(np.sum(sol.fun[:n_px] ** 2) / max(n_px - len(sol.x), 1))
-    cov = _view_robust(J[:n_px], sol.fun[:n_px], len(meas.q), J_prior.T @ J_prior, s2)
+    cov = _view_robust(J[:n_px], sol.fun[:n_px], rows_per_view(meas), J_prior.T @ J_prior,
+                       s2)
     sigma = np.sqrt(np.clip(np.diag(cov), 0, None))
     sv = scaled_singular_values(J[:n_px, :n_arm])
     result = RefineResult(model, X, W, names, sol.x[:n_arm], sigma[:n_arm],

@@ -186,8 +186,9 @@ def outlier_views(ref: robot.RefineResult, meas: robot.Measurements) -> dict[int
     """Training views (index into the measurements: RMS px) whose corner residual at the
     refined model exceeds ``OUTLIER_FACTOR`` times the median view's and
     ``OUTLIER_MIN_PX``."""
-    r = robot.residuals(ref.model, ref.X, ref.W, meas).reshape(len(meas.q), -1, 2)
-    per_view = np.sqrt(np.mean(np.sum(r ** 2, axis=2), axis=1))
+    r = robot.residuals(ref.model, ref.X, ref.W, meas)
+    ends = np.cumsum(robot.rows_per_view(meas))[:-1]
+    per_view = np.array([np.sqrt(2 * np.mean(v ** 2)) for v in np.split(r, ends)])
     limit = max(OUTLIER_FACTOR * float(np.median(per_view)), OUTLIER_MIN_PX)
     return {k: float(e) for k, e in enumerate(per_view) if e > limit}
 

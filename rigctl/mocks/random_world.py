@@ -22,7 +22,8 @@ that every solver and planner can be judged on a distribution of rigs rather tha
 - hand-eye: any yaw, a few degrees of tilt, tens of millimetres of offset;
 - scene: shapes from 0.6-2 m out to 2-5 times that, in a cone just wider than the view;
 - target: a checkerboard sized for the arm, on or near the table anywhere in the arm's
-  comfortable reach around the front half, turned about its normal and tilted.
+  comfortable reach around the front half, turned about its normal and tilted; or
+  (``target="charuco"``) a ChArUco board of the same squares (``_charuco``).
 """
 
 from __future__ import annotations
@@ -109,6 +110,22 @@ def _target(rng: np.random.Generator, model: str) -> dict:
             "xyz_mm": (1000 * origin).round(1).tolist(), "rpy_deg": np.round(rpy, 3).tolist()}
 
 
+# ChArUco dictionaries of printed lab boards (OpenCV's names), by the smallest that holds
+# a board's markers
+CHARUCO_DICTIONARIES = ("DICT_4X4_50", "DICT_5X5_100", "DICT_6X6_250")
+
+
+def _charuco(rng: np.random.Generator, target: dict) -> dict:
+    """The checkerboard ``target`` made a ChArUco board of the same squares and place:
+    a dictionary of ``CHARUCO_DICTIONARIES``, markers 60-80 % of the square, OpenCV's
+    current layout or (a board with an even row count, one in four) its pre-4.6 one."""
+    name = CHARUCO_DICTIONARIES[rng.integers(len(CHARUCO_DICTIONARIES))]
+    legacy = bool(target["rows"] % 2 == 0 and rng.uniform() < 0.25)
+    return {**target, "type": "charuco", "dictionary": name,
+            "marker_mm": round(target["square_mm"] * rng.uniform(0.6, 0.8), 2),
+            "legacy_pattern": legacy}
+
+
 # Pan/tilt and roll servos of lab heads: one family, or a mixed bus
 HEAD_SETS = (
     (("xm430-w350", "xh430-w350", "xm540-w270", "xh540-w270", "xw540-t260"),
@@ -141,8 +158,11 @@ def _arm_model(seed: int, rng: np.random.Generator) -> str:
     return legacy if seed < ALL_MODELS_FROM else MODEL_NAMES[seed % len(MODEL_NAMES)]
 
 
-def random_world(seed: int) -> dict:
-    """One plausible rig drawn from ``seed`` (deterministic), as world-file data."""
+def random_world(seed: int, target: str = "checkerboard") -> dict:
+    """One plausible rig drawn from ``seed`` (deterministic), as world-file data.
+    ``target``: "checkerboard", "charuco" (the same board's squares and place, with
+    markers drawn from a stream of their own: the rest of the world is the seed's
+    checkerboard world), or "either" (one of them, drawn from that stream too)."""
     rng = np.random.default_rng([seed, 20261123])
     model = _arm_model(seed, rng)
     near = rng.uniform(0.6, 2.0)  # the nearest scene shapes, metres from the camera
@@ -169,5 +189,12 @@ def random_world(seed: int) -> dict:
         "scene": {"depth_m": [round(near, 2), round(near * rng.uniform(2, 5), 2)],
                   "shapes": int(rng.integers(30, 60)), "cone_deg": round(cone, 1)},
     }
+    own = np.random.default_rng([seed, 41])  # the target type's draws: nothing else moves
+    if target == "either":
+        target = ("checkerboard", "charuco")[own.integers(2)]
+    if target == "charuco":
+        data["target"] = _charuco(own, data["target"])
+    elif target != "checkerboard":
+        raise ValueError(f"target {target!r}: expected checkerboard, charuco or either")
     WorldFile.model_validate(data)
     return data

@@ -84,11 +84,21 @@ def rig_text(world_path: Path, host: str, workdir: Path, camera_url: str, record
                        "fps": cam.fps, **STAND_IN_TIMING["camera"]},
         },
         "target": {"rows": world.spec.target.rows, "cols": world.spec.target.cols,
-                   "square_mm": world.spec.target.square_mm,
+                   "square_mm": world.spec.target.square_mm, **_charuco_keys(world),
                    "pose": {"xyz_mm": [round(v, -1) for v in world.spec.target.xyz_mm],
                             "rpy_deg": list(world.spec.target.rpy_deg)}},
         "records": {"directory": records},
     }
+
+
+def _charuco_keys(world) -> dict:
+    """The rig file's ChArUco keys for a world's ChArUco target (none for a checkerboard,
+    whose rig file stays as it was)."""
+    tg = world.spec.target
+    if tg.type != "charuco":
+        return {}
+    return {"type": "charuco", "dictionary": tg.dictionary, "marker_mm": tg.marker_mm,
+            "legacy_pattern": tg.legacy_pattern}
 
 
 def up(world_file: str, rig_out: str, host: str = "127.0.0.1", records: str = "records",

@@ -20,7 +20,7 @@ from typing import Literal
 import cv2
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from rigctl.errors import ConfigError
 from rigctl.mocks.ur_kinematics import ArmModel
@@ -161,11 +161,19 @@ class PoseTruth(_Strict):
 
 
 class TargetTruth(_Strict):
-    rows: int = Field(7, ge=3, description="squares of the checkerboard along its rows direction "
-                      "(inner corners: rows - 1)")
+    type: Literal["checkerboard", "charuco"] = Field(
+        "checkerboard", description="checkerboard, or charuco (a ChArUco board: needs "
+        "dictionary and marker_mm)")
+    rows: int = Field(7, ge=3, description="squares of the board along its rows direction "
+                      "(a checkerboard's inner corners: rows - 1)")
     cols: int = Field(10, ge=3, description="squares along its columns direction (inner corners: "
                       "cols - 1)")
     square_mm: float = Field(30.0, gt=0, description="square size, millimetres")
+    dictionary: str | None = Field(None, description="ChArUco only: OpenCV's name of the "
+                                   "markers' dictionary, e.g. DICT_5X5_100")
+    marker_mm: float | None = Field(None, gt=0, description="ChArUco only: a marker's side, "
+                                    "millimetres")
+    legacy_pattern: bool = Field(False, description="ChArUco only: OpenCV's layout before 4.6")
     xyz_mm: list[float] = Field(
         default_factory=lambda: [600.0, 0.0, 0.0],
         description="T_base_target translation, millimetres; the target frame is at the outer "
@@ -174,6 +182,38 @@ class TargetTruth(_Strict):
         default_factory=lambda: [180.0, 0.0, 0.0],
         description="T_base_target rotation [roll, pitch, yaw], degrees; x along columns, y along"
         " rows, z into the board")
+
+    @field_validator("dictionary")
+    @classmethod
+    def _known_dictionary(cls, value: str | None) -> str | None:
+        names = sorted(n for n in dir(cv2.aruco) if n.startswith("DICT_"))
+        if value is not None and value not in names:
+            raise ValueError(f"unknown ArUco dictionary {value!r}; known: {', '.join(names)}")
+        return value
+
+    @model_validator(mode="after")
+    def _charuco_keys(self) -> TargetTruth:
+        if self.type == "charuco":
+            if self.dictionary is None or self.marker_mm is None:
+                raise ValueError("a ChArUco target (type: charuco) needs dictionary and "
+                                 "marker_mm")
+            if self.marker_mm >= self.square_mm:
+                raise ValueError(f"marker_mm {self.marker_mm:g} must be below square_mm "
+                                 f"{self.square_mm:g}")
+            have = _dictionary(self.dictionary).bytesList.shape[0]
+            if self.rows * self.cols // 2 > have:
+                raise ValueError(f"{self.dictionary} has {have} markers; a board of "
+                                 f"{self.rows} x {self.cols} squares needs "
+                                 f"{self.rows * self.cols // 2}")
+        elif self.dictionary is not None or self.marker_mm is not None:
+            raise ValueError("dictionary and marker_mm are keys of a ChArUco target "
+                             "(type: charuco)")
+        return self
+
+
+def _dictionary(name: str):
+    """OpenCV's predefined ArUco dictionary ``name`` (its marker bits)."""
+    return cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name))
 
 
 class SceneTruth(_Strict):
@@ -322,13 +362,49 @@ class World:
                             [cols * s + margin, rows * s + margin, 0],
                             [-margin, rows * s + margin, 0]])
         items.append((self._polygon(outline, 16), 235))
+        tg = self.spec.target
+        # a ChArUco board printed by OpenCV before 4.6 with an even number of rows starts
+        # with a white square (opencv/opencv issue 23152); every other board with a black
+        dark = 1 if tg.type == "charuco" and tg.legacy_pattern and rows % 2 == 0 else 0
+        marker = 0
         for i in range(rows):
             for j in range(cols):
-                if (i + j) % 2 == 0:
+                if (i + j) % 2 == dark:
                     sq = np.array([[j * s, i * s, 0], [(j + 1) * s, i * s, 0],
                                    [(j + 1) * s, (i + 1) * s, 0], [j * s, (i + 1) * s, 0]])
                     items.append((self._polygon(sq, 4), 20))
+                elif tg.type == "charuco":  # white squares carry the markers, row by row
+                    items += self._marker(marker, j * s, i * s)
+                    marker += 1
         return [((T[:3, :3] @ pts.T).T + T[:3, 3], shade) for pts, shade in items]
+
+    def _marker(self, marker_id: int, x0: float, y0: float) -> list[tuple[np.ndarray, int]]:
+        """ArUco marker ``marker_id`` centred in the square at (x0, y0) (target frame,
+        metres): a black square of ``marker_mm``, then a white cell for each 1 bit of the
+        dictionary's code (a run of white cells in a row as one polygon), one black cell
+        of border around them; the marker's bit rows run along the board's y."""
+        tg = self.spec.target
+        d = _dictionary(tg.dictionary)
+        bits = cv2.aruco.Dictionary.getBitsFromByteList(d.bytesList[marker_id:marker_id + 1],
+                                                       d.markerSize)
+        side = tg.marker_mm / 1000.0
+        cell = side / (d.markerSize + 2)
+        left = x0 + (tg.square_mm / 1000.0 - side) / 2
+        top = y0 + (tg.square_mm / 1000.0 - side) / 2
+
+        def rect(x_a, y_a, x_b, y_b, per_edge):
+            return self._polygon(np.array([[x_a, y_a, 0], [x_b, y_a, 0], [x_b, y_b, 0],
+                                           [x_a, y_b, 0]]), per_edge)
+
+        items = [(rect(left, top, left + side, top + side, 4), 20)]
+        for r in range(d.markerSize):
+            row = np.r_[0, bits[r].astype(int), 0]
+            starts = np.flatnonzero(np.diff(row) == 1)
+            ends = np.flatnonzero(np.diff(row) == -1)
+            for a, b in zip(starts, ends, strict=True):
+                items.append((rect(left + (a + 1) * cell, top + (r + 1) * cell,
+                                   left + (b + 1) * cell, top + (r + 2) * cell, 2), 235))
+        return items
 
     def _make_scene(self) -> list[tuple[np.ndarray, int]]:
         """Planar shapes at random directions and depths around the camera at home."""
@@ -461,5 +537,10 @@ class World:
             "T_flange_cam": T_flange_cam.tolist(),
             "T_base_target": self.T_base_target.tolist(),
             "target": {"rows": self.spec.target.rows, "cols": self.spec.target.cols,
-                       "square_m": self.spec.target.square_mm / 1000.0},
+                       "square_m": self.spec.target.square_mm / 1000.0,
+                       "type": self.spec.target.type,
+                       **({"dictionary": self.spec.target.dictionary,
+                           "marker_m": self.spec.target.marker_mm / 1000.0,
+                           "legacy_pattern": self.spec.target.legacy_pattern}
+                          if self.spec.target.type == "charuco" else {})},
         }

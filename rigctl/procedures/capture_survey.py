@@ -81,7 +81,7 @@ class CaptureSurvey(Procedure):
 
             sharpness.append(float(cv2.Laplacian(image, cv2.CV_64F).var()))
         for capture in targets:
-            if capture.board_corners(tg.rows, tg.cols) is not None:
+            if capture.board_corners(tg) is not None:
                 detections += 1
         summary = {"captures": len(captures), "target_views": len(targets),
                    "board_detected": detections,

@@ -18,7 +18,7 @@ from rigctl.geometry.kinematics import nominal_ur
 from .base import Params, Procedure, SolveContext
 from .intrinsics import camera_model, intrinsics_from
 from .planning import planning_arm, planning_K, view_steps
-from .robot_common import board_observations, controller_model
+from .robot_common import board_observations, controller_model, left_out_views
 
 
 class HandEyeParams(Params):
@@ -59,9 +59,11 @@ class HandEye(Procedure):
     def solve(self, ctx: SolveContext) -> dict[str, Any]:
         intr = ctx.input("intrinsics")
         K, dist = camera_model(intr)
-        found = [o for o in board_observations(ctx, intr) if o["found"]]
+        obs = board_observations(ctx, intr)
+        found, left_out = [o for o in obs if o["found"]], left_out_views(obs)
         if len(found) < 3:
-            raise SolveError(f"hand-eye: the board was found in {len(found)} views (need 3)")
+            raise SolveError(f"hand-eye: the board was found in {len(found)} views (need 3)"
+                             + "".join(f"; {k}: {v}" for k, v in list(left_out.items())[:2]))
         controller, robot_hash = controller_model(ctx)
         if not ctx.params.use_controller_model:
             controller = None  # its hash is still recorded: the drift check compares it
@@ -82,7 +84,7 @@ class HandEye(Procedure):
                 "closed_form_vs_refined_deg_mm": spread, "intrinsics": intr,
                 "order": handeye.order_samples(F), "summary": summary,
                 "arm_model_used": "controller" if controller else "nominal",
-                "robot_hash": robot_hash}
+                "robot_hash": robot_hash, "left_out_views": left_out}
 
 
 PROCEDURE = HandEye()

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from rigctl.calib import pose_selection
-from rigctl.calib.board import target_points
+from rigctl.calib.board import is_charuco, target_points
 from rigctl.config import RigConfig
 from rigctl.drivers.ur_primary import PrimaryInfo, read_primary_info
 from rigctl.errors import ConfigError, DeviceError, SolveError
@@ -216,6 +216,9 @@ def plan_target_views(config: RigConfig, n: int, distance_m: float = 0.45,
     shoulder, reach = reach_sphere(model, nominal_flange_cam(config))
     limits = arm.joint_limits_rad()
     rng = np.random.default_rng(seed)
+    # a ChArUco board may run off the image: each view but the first aims at a point of
+    # the board drawn from a stream of its own, so that its corners reach the image's
+    aim = _aim_points(config, seed) if is_charuco(config.target) else None
     poses, notes = [], []
     previous = None
     attempts = 0
@@ -240,7 +243,8 @@ def plan_target_views(config: RigConfig, n: int, distance_m: float = 0.45,
             notes.append(f"view {attempts}: eye {np.round(eye, 3).tolist()} m beyond the "
                          f"arm's reach ({reach:.2f} m from the shoulder); skipped")
             continue
-        T_base_flange = look_at(eye, centre, up) @ T_cam_flange
+        looked_at = centre if aim is None or not poses else next(aim)
+        T_base_flange = look_at(eye, looked_at, up) @ T_cam_flange
         seeds = ([previous] if previous is not None else []) + \
             [np.radians(s) for s in VIEW_SEEDS_DEG]
         q = None
@@ -262,6 +266,18 @@ def plan_target_views(config: RigConfig, n: int, distance_m: float = 0.45,
         poses.append(q)
         previous = q
     return poses, notes
+
+
+def _aim_points(config: RigConfig, seed: int):
+    """Endless points (base frame) spread over a ChArUco board's corner grid, for views
+    that look at part of the board."""
+    tg = config.target
+    T_base_target, _ = target_centre(config)
+    s = tg.square_mm / 1000.0
+    rng = np.random.default_rng([seed, 41])
+    while True:
+        p = [rng.uniform(s, (tg.cols - 1) * s), rng.uniform(s, (tg.rows - 1) * s), 0.0, 1.0]
+        yield (T_base_target @ p)[:3]
 
 
 def _leaning(normal: np.ndarray, toward: np.ndarray, lean: float) -> np.ndarray:
@@ -319,14 +335,16 @@ def reachable_views(config: RigConfig, count: int, distance_m: float, max_tilt_d
 
 def fit_distance(config: RigConfig, K: np.ndarray, margin: float = 0.03) -> float:
     """The nearest viewing distance at which the board's corner grid, seen square-on and
-    aligned with the image, fits inside ``margin`` of the image's edges (pinhole ``K``)."""
+    aligned with the image, fits inside ``margin`` of the image's edges (pinhole ``K``);
+    for a ChArUco board, at which the share of it that ``board_visible`` needs does."""
     tg = config.target
     span_x, span_y = (tg.cols - 2) * tg.square_mm / 1000.0, (tg.rows - 2) * tg.square_mm / 1000.0
     w, h = config.devices.camera.width, config.devices.camera.height
     usable = 1.0 - 2.0 * margin
     aligned = max(span_x * K[0, 0] / (w * usable), span_y * K[1, 1] / (h * usable))
     crossed = max(span_y * K[0, 0] / (w * usable), span_x * K[1, 1] / (h * usable))
-    return min(aligned, crossed)
+    # a ChArUco board needs only a share of its corners in view (``board_visible``)
+    return min(aligned, crossed) * (math.sqrt(CHARUCO_MIN_SHARE) if is_charuco(tg) else 1.0)
 
 
 def aligned_spin(config: RigConfig) -> dict:
@@ -473,22 +491,34 @@ def informative_views(config: RigConfig, params, K: np.ndarray, planned_q: list,
     return [poses[i] for i in pose_selection.order_by_travel(poses, start)], notes
 
 
+# A ChArUco board may run off the image: a view needs this share of its corners, and at
+# least CHARUCO_MIN_CORNERS, inside the margin (each corner is identified on its own)
+CHARUCO_MIN_SHARE = 0.4
+CHARUCO_MIN_CORNERS = 12
+
+
 def board_visible(config: RigConfig, model: KinematicModel, q, K: np.ndarray,
                   margin: float = 0.03) -> bool:
     """Does the camera at joints q (arm ``model``) see every board corner, inside a
-    margin?"""
+    margin? A ChArUco board needs only ``CHARUCO_MIN_SHARE`` of them (and
+    ``CHARUCO_MIN_CORNERS``)."""
     tg = config.target
     T_base_target, _ = target_centre(config)
     T_cam_target = inv_T(model.fk(q) @ nominal_flange_cam(config)) @ T_base_target
     pts = target_points(tg)
     cam = (T_cam_target[:3, :3] @ pts.T).T + T_cam_target[:3, 3]
-    if np.any(cam[:, 2] < 0.1):
+    partial = is_charuco(tg)
+    if np.any(cam[:, 2] < 0.1) and not partial:
         return False
+    front = cam[:, 2] >= 0.1
     px = (K @ cam.T).T
-    px = px[:, :2] / px[:, 2:3]
+    px = px[:, :2] / np.where(front, px[:, 2], 1.0)[:, None]
     w, h = config.devices.camera.width, config.devices.camera.height
-    return bool(np.all((px[:, 0] > margin * w) & (px[:, 0] < (1 - margin) * w) &
-                       (px[:, 1] > margin * h) & (px[:, 1] < (1 - margin) * h)))
+    inside = front & (px[:, 0] > margin * w) & (px[:, 0] < (1 - margin) * w) & \
+        (px[:, 1] > margin * h) & (px[:, 1] < (1 - margin) * h)
+    if partial:
+        return bool(inside.sum() >= max(CHARUCO_MIN_SHARE * len(pts), CHARUCO_MIN_CORNERS))
+    return bool(np.all(inside))
 
 
 def planning_K(config: RigConfig, given: dict | None) -> np.ndarray:

@@ -3,9 +3,11 @@ recorded it, the board observations of the captures, the export format."""
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 
-from rigctl.calib.board import orient_to_prediction, target_points
+from rigctl.calib.board import is_charuco, orient_to_prediction, target_points
 from rigctl.calib.extrinsic import estimate_pose
 from rigctl.config import RigConfig
 from rigctl.geometry.kinematics import KinematicModel, nominal_ur
@@ -13,6 +15,8 @@ from rigctl.geometry.transforms import inv_T
 
 from .intrinsics import camera_model
 from .planning import controller_dh_model, nominal_flange_cam, target_centre
+
+log = logging.getLogger(__name__)
 
 
 def controller_model(ctx) -> tuple[KinematicModel | None, str | None]:
@@ -34,7 +38,9 @@ def controller_model(ctx) -> tuple[KinematicModel | None, str | None]:
 
 
 def board_observations(ctx, intr: dict) -> list[dict]:
-    """Per capture with the board found: label, kind, joints, corners and T_cam_target."""
+    """Per capture with the board found: label, kind, joints, corners (id order, NaN
+    where not seen) and T_cam_target; per capture without: the note saying why (a
+    ChArUco board that is not the configured one is named there)."""
     tg = ctx.config.target
     obj = target_points(tg)
     K, dist = camera_model(intr)
@@ -42,15 +48,19 @@ def board_observations(ctx, intr: dict) -> list[dict]:
     for capture in ctx.captures():
         if capture.image_path is None or "arm" not in capture.meta:
             continue
-        corners = capture.board_corners(tg.rows, tg.cols)
+        found = capture.board_detection(tg)
+        corners = found.corners
         extra = capture.meta.get("extra", {})
         if corners is None:
+            if found.note and "view left out" in found.note:
+                log.warning("capture %s: %s", capture.meta["label"], found.note)
             out.append({"label": capture.meta["label"], "kind": extra.get("kind"),
-                        "found": False})
+                        "found": False, "note": found.note})
             continue
         q = np.asarray(capture.meta["arm"]["q"], float)
-        corners = orient_to_prediction(corners, _predicted_corners(ctx.config, q, obj, K),
-                                       tg.rows, tg.cols)
+        if not is_charuco(tg):  # a ChArUco corner's id leaves no turn of the board open
+            corners = orient_to_prediction(corners, _predicted_corners(ctx.config, q, obj, K),
+                                           tg.rows, tg.cols)
         pose = estimate_pose(obj, corners, K, dist)
         out.append({"label": capture.meta["label"], "kind": extra.get("kind"),
                     "joint": extra.get("joint"), "found": True,
@@ -68,6 +78,13 @@ def _predicted_corners(config: RigConfig, q, obj: np.ndarray, K: np.ndarray) -> 
     cam = (T_cam_target[:3, :3] @ obj.T).T + T_cam_target[:3, 3]
     px = (K @ cam.T).T
     return px[:, :2] / px[:, 2:3]
+
+
+def left_out_views(observations: list[dict]) -> dict[str, str]:
+    """The views left out because they showed another board than the configured one
+    (label: the note naming what they showed)."""
+    return {o["label"]: o["note"] for o in observations
+            if not o["found"] and o.get("note") and "view left out" in o["note"]}
 
 
 def export_model(model: KinematicModel, X, W, uncertainty: dict, heldout: dict) -> dict:

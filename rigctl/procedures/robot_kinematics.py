@@ -61,7 +61,7 @@ from .planning import (
     planning_K,
     visible_views,
 )
-from .robot_common import board_observations, controller_model, export_model
+from .robot_common import board_observations, controller_model, export_model, left_out_views
 
 # A refined model that leaves more than this on the board corners (their noise is a few
 # tenths of a pixel) explains the views badly: the run fails rather than export it
@@ -324,6 +324,8 @@ class RobotKinematics(Procedure):
                 "robot_hash": robot_hash, "planned_with": _planned_with(ctx),
                 "intrinsics_check": check, "summary": _summary(sol),
                 "lost_views": [o["label"] for o in obs if not o["found"]],
+                # views showing another board than the configured one (label: what)
+                "left_out_views": left_out_views(obs),
                 # training views the refined model missed by far, left out (label: RMS px)
                 "rejected_views": sol.rejected_views}
 

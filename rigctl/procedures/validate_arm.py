@@ -34,7 +34,7 @@ from rigctl.records import RecordIndex, RunDirectory
 from .base import Params, Procedure, SolveContext
 from .intrinsics import camera_model, intrinsics_from
 from .planning import planning_arm, planning_K, view_steps
-from .robot_common import board_observations
+from .robot_common import board_observations, left_out_views
 
 
 class ValidateArmParams(Params):
@@ -83,9 +83,11 @@ class ValidateArm(Procedure):
     def solve(self, ctx: SolveContext) -> dict[str, Any]:
         cal = ctx.input("calibration")
         intr = ctx.input("intrinsics")
-        found = [o for o in board_observations(ctx, intr) if o["found"]]
+        obs = board_observations(ctx, intr)
+        found, left_out = [o for o in obs if o["found"]], left_out_views(obs)
         if not found:
-            raise SolveError("validate-arm: the board was not found in any view")
+            raise SolveError("validate-arm: the board was not found in any view"
+                             + "".join(f"; {k}: {v}" for k, v in list(left_out.items())[:2]))
         model = KinematicModel.from_export(cal)
         nominal = nominal_ur(ctx.config.devices.arm.model)
         states = {"before": (nominal, np.array(cal["before"]["T_flange_cam"]),
@@ -95,7 +97,7 @@ class ValidateArm(Procedure):
         tg = ctx.config.target
         obj = target_points(tg)
         out: dict[str, Any] = {"calibration_run": ctx.input("calibration_run"),
-                               "views": len(found)}
+                               "views": len(found), "left_out_views": left_out}
 
         def rms(values) -> float:
             return float(np.sqrt(np.mean(np.square(values))))
@@ -109,8 +111,8 @@ class ValidateArm(Procedure):
                 target.append(np.linalg.norm(C_pred[:3, 3] - o["C"][:3, 3]))
                 proj, _ = cv2.projectPoints(obj.reshape(-1, 1, 3), R_to_rotvec(C_pred[:3, :3]),
                                             C_pred[:3, 3], K, dist)
-                px.append(rms(np.linalg.norm(proj.reshape(-1, 2) -
-                                             o["corners"].reshape(-1, 2), axis=1)))
+                miss = np.linalg.norm(proj.reshape(-1, 2) - o["corners"].reshape(-1, 2), axis=1)
+                px.append(rms(miss[np.isfinite(miss)]))  # the corners the view has
             out[name] = {"position_rms_mm": 1000 * rms(pos),
                          "position_max_mm": 1000 * float(np.max(pos)),
                          "rotation_rms_deg": math.degrees(rms(rot)),
