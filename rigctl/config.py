@@ -19,6 +19,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from rigctl.errors import ConfigError
+from rigctl.redaction import redact_rig_text
 
 HEAD_AXES = ("pan", "tilt", "roll")
 SERVO_RANGE_DEG = 180.0  # position mode: 4096 pulses over one turn, centred at 2048
@@ -576,9 +577,7 @@ class RigConfig(_Strict):
 
     def config_hash(self) -> str:
         """The rig file's hash as records keep it: of its text with the service token
-        redacted (``records.redact_rig_text``), so that no record narrows the token down."""
-        from rigctl.records import redact_rig_text
-
+        redacted (``redaction.redact_rig_text``), so that no record narrows the token down."""
         text = redact_rig_text(self.source_text, self.service.secrets())
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 

@@ -25,19 +25,16 @@ from __future__ import annotations
 import contextlib
 import datetime as dt
 import json
-import logging
 import os
 import re
 import secrets
 import socket
 import subprocess
-from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import yaml
 from sqlalchemy import (
     JSON,
     Column,
@@ -462,80 +459,3 @@ def _built_provenance(version: str, commit: str | None = None) -> dict[str, Any]
     else:  # clean when the version says where it comes from: a commit, or a bare tag
         dirty = False if commit or not parts else None
     return {"version": version, "commit": commit, "dirty": dirty, "from": "build"}
-
-
-# -- secrets ---------------------------------------------------------------------------
-
-REDACTED = "<redacted>"
-# a secret this short is only replaced where the rig file's own key holds it: replacing
-# every occurrence of a few characters would garble the copy
-MIN_LITERAL = 6
-
-
-def redact_text(text: str, hidden: Iterable[str]) -> str:
-    """``text`` with every occurrence of each secret (``MIN_LITERAL`` characters or
-    more) replaced by ``REDACTED``."""
-    for secret in sorted({s for s in hidden if s and len(s) >= MIN_LITERAL}, key=len,
-                         reverse=True):
-        text = text.replace(secret, REDACTED)
-    return text
-
-
-def redact_rig_text(text: str, hidden: Iterable[str]) -> str:
-    """The rig file's text as a run directory keeps it (``rig.yaml``): the value of
-    ``service.token`` replaced by ``REDACTED`` whatever its YAML style, comments and
-    layout kept, and any other occurrence of a secret replaced too (``redact_text``).
-    The copy still loads (a re-solve reads it); its token is only a placeholder."""
-    hidden = [s for s in hidden if s]
-    node = _yaml_value(_yaml_value(_compose(text), "service"), "token")
-    if isinstance(node, yaml.ScalarNode) and node.tag != "tag:yaml.org,2002:null":
-        start, end = node.start_mark.index, node.end_mark.index
-        tail = "\n" if text[start:end].endswith("\n") else ""
-        text = f'{text[:start]}"{REDACTED}"{tail}{text[end:]}'
-    return redact_text(text, hidden)
-
-
-def _compose(text: str) -> yaml.Node | None:
-    try:
-        return yaml.compose(text, Loader=yaml.SafeLoader)
-    except yaml.YAMLError:
-        return None
-
-
-def _yaml_value(node: yaml.Node | None, key: str) -> yaml.Node | None:
-    if not isinstance(node, yaml.MappingNode):
-        return None
-    for k, v in node.value:
-        if isinstance(k, yaml.ScalarNode) and k.value == key:
-            return v
-    return None
-
-
-def scrub(value: Any, hidden: Iterable[str]) -> Any:
-    """``value`` (JSON-like: dicts, lists, strings) with each secret in its strings and
-    keys replaced by ``REDACTED`` (``redact_text``)."""
-    hidden = [s for s in hidden if s]
-    if not hidden:
-        return value
-    if isinstance(value, str):
-        return redact_text(value, hidden)
-    if isinstance(value, dict):
-        return {scrub(k, hidden): scrub(v, hidden) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [scrub(v, hidden) for v in value]
-    return value
-
-
-class RedactingFormatter(logging.Formatter):
-    """A log formatter whose lines (message, arguments, traceback) never carry a secret:
-    the run's ``run.log`` is written with it."""
-
-    def __init__(self, fmt: str, hidden: Iterable[str]) -> None:
-        super().__init__(fmt)
-        self.hidden = [s for s in hidden if s]
-
-    def format(self, record: logging.LogRecord) -> str:
-        text = super().format(record)
-        for secret in self.hidden:  # a short secret too: a log line has no layout to keep
-            text = text.replace(secret, REDACTED)
-        return text

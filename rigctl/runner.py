@@ -63,17 +63,15 @@ from rigctl.procedures.base import (
 )
 from rigctl.records import (
     RecordIndex,
-    RedactingFormatter,
     RunDirectory,
     new_run_id,
-    redact_rig_text,
     run_row,
-    scrub,
     software_provenance,
     summarize,
     utcnow,
     write_json,
 )
+from rigctl.redaction import RedactingFormatter, redact_rig_text, scrub
 from rigctl.rig import Rig
 
 log = logging.getLogger("rigctl.run")

@@ -15,7 +15,8 @@ import rigctl.console
 from rigctl import service as service_module
 from rigctl.config import load_rig, parse_rig
 from rigctl.errors import ConfigError
-from rigctl.records import REDACTED, RedactingFormatter, RunDirectory, redact_rig_text
+from rigctl.records import RunDirectory
+from rigctl.redaction import REDACTED, RedactingFormatter, redact_rig_text
 from rigctl.runner import _write_versions
 from rigctl.service import Access, RigService, check_bind, create_app
 

@@ -20,7 +20,8 @@ import yaml
 
 from rigctl.config import load_rig
 from rigctl.loopback import free_port
-from rigctl.records import REDACTED, RunDirectory
+from rigctl.records import RunDirectory
+from rigctl.redaction import REDACTED
 from rigctl.runner import recorded_config, solve_recorded
 from tests.mockproc import ROOT
 from tests.service_stack import REQUEST_TIMEOUT_S, start_sim
