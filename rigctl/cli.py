@@ -726,6 +726,10 @@ def bench_active_worlds(as_json: bool = typer.Option(False, "--json"),
                             0.0, "--second-station-mm", min=0, max=500,
                             help="the active-camera procedure's second_station_mm: the "
                             "camera moved this far back, some rotations repeated (0: none)"),
+                        ideal_encoders: bool = typer.Option(
+                            False, "--ideal-encoders",
+                            help="the head's encoders read the commanded angles exactly "
+                            "(default: as each world's servos read them, quantized and noisy)"),
                         ) -> None:
     """The active-camera pipeline on N random worlds (rendered directly, no stand-ins):
     focal and centre error against truth, and error / sigma of each intrinsic."""
@@ -736,7 +740,8 @@ def bench_active_worlds(as_json: bool = typer.Option(False, "--json"),
         _fail(ConfigError(f"--distortion-terms: -1 (automatic) or 0 to 5, got "
                           f"{distortion_terms}"), as_json)
     result = active_worlds.run(n, first_seed, None if distortion_terms < 0 else distortion_terms,
-                               workers, shift_mm / 1000.0, second_station_mm / 1000.0)
+                               workers, shift_mm / 1000.0, second_station_mm / 1000.0,
+                               ideal_encoders)
     if as_json:
         _print_json(result)
         return

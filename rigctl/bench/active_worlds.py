@@ -24,6 +24,7 @@ from rigctl.calib.active_pipeline import SHIFT, STATION_PREFIX, ActiveSettings, 
 from rigctl.errors import SolveError
 from rigctl.geometry.kinematics import nominal_ur
 from rigctl.geometry.transforms import xyz_rpy_to_T
+from rigctl.mocks.dxl_models import SPEC_BY_NAME as SERVO_SPECS
 from rigctl.mocks.random_world import random_world
 from rigctl.mocks.sim import rig_mount
 from rigctl.mocks.world import World, WorldFile
@@ -49,16 +50,42 @@ def _delivered(image: np.ndarray, quality: int) -> np.ndarray:
     return cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
 
 
-def render_views(world: World, poses_deg: dict) -> tuple[dict, dict]:
-    """What the stand-in camera would deliver at each head pose (arm at home)."""
+def render_views(world: World, poses_deg: dict, rng=None, ideal_encoders: bool = False
+                 ) -> tuple[dict, dict]:
+    """What the stand-in camera would deliver at each head pose (arm at home), and the
+    head angles the procedure would record there (``encoder_reading``; ``rng`` draws
+    where each move ends and the readings' noise)."""
     images, angles = {}, {}
     quality = world.spec.camera.jpeg_quality
+    rng = np.random.default_rng(0) if rng is None else rng
     for k, (label, deg) in enumerate(poses_deg.items()):
-        a = tuple(math.radians(v) for v in deg)
-        images[label] = _delivered(world.render(world.T_base_cam(world.home_q, a),
+        goal = tuple(math.radians(v) for v in deg)
+        true, read = encoder_reading(world, goal, rng, ideal_encoders)
+        images[label] = _delivered(world.render(world.T_base_cam(world.home_q, true),
                                                 frame_index=k), quality)
-        angles[label] = a
+        angles[label] = read
     return images, angles
+
+
+def encoder_reading(world: World, goal: tuple, rng, ideal: bool = False
+                    ) -> tuple[tuple, tuple]:
+    """Where the head is and what its encoders read after a move to ``goal`` (rad), as the
+    bus stand-in plays servos with hardware encoders (``head.encoder: hardware``): the
+    shaft stops within half a pulse of the goal, its reading is that angle plus the
+    model's noise and the world's (``encoder_noise_deg``), quantized to one pulse (0.088
+    deg on the X series). An ideal encoder (or ``ideal``) reads the goal exactly."""
+    head = world.spec.head
+    if ideal or head.encoder != "hardware":
+        return goal, goal
+    true, read = [], []
+    for angle, model in zip(goal, head.models, strict=True):
+        spec = SERVO_SPECS[model]
+        pulse = 2 * math.pi / spec.pulses_per_rev
+        sigma = math.hypot(spec.noise_ticks, math.radians(head.encoder_noise_deg) / pulse)
+        shaft = angle + rng.uniform(-0.5, 0.5) * pulse
+        true.append(shaft)
+        read.append(round(shaft / pulse + rng.normal(0.0, sigma)) * pulse)
+    return tuple(true), tuple(read)
 
 
 def _nominal_flange_cam(world: World) -> np.ndarray:
@@ -101,14 +128,20 @@ def render_second_station(world: World, back_m: float, shift_m: float) -> tuple[
 
 
 def world_trial(args) -> dict:
+    """One world's active-camera solve against its truth; ``args``: seed, distortion
+    terms, the sideways move (m), optionally the second station (m) and whether the head's
+    encoders read the commanded angles exactly (else as the world's servos do)."""
     seed, distortion_terms, shift_m, *rest = args
     back_m = rest[0] if rest else 0.0
+    ideal_encoders = bool(rest[1]) if len(rest) > 1 else False
     spec = WorldFile.model_validate(random_world(seed))
     world = World(spec)
     cam = spec.camera
     row = {"seed": seed, "model": spec.arm.model, "fx_true": cam.fx,
            "k": cam.distortion, "camera_offset_mm": spec.head.camera_offset_mm}
-    images, angles = render_views(world, POSES_DEG)
+    images, angles = render_views(world, POSES_DEG, np.random.default_rng([seed, 7]),
+                                  ideal_encoders)
+    row["encoders"] = "ideal" if ideal_encoders else spec.head.encoder
     if shift_m > 0:
         images[SHIFT], angles[SHIFT] = render_shift(world, shift_m)
     if back_m > 0 and shift_m > 0:
@@ -164,8 +197,10 @@ def summarise(rows: list[dict]) -> dict:
 
 
 def run(n: int = 20, first_seed: int = 0, distortion_terms: int | None = None,
-        workers: int = 1, shift_m: float = 0.010, second_station_m: float = 0.0) -> dict:
-    jobs = [(first_seed + i, distortion_terms, shift_m, second_station_m) for i in range(n)]
+        workers: int = 1, shift_m: float = 0.010, second_station_m: float = 0.0,
+        ideal_encoders: bool = False) -> dict:
+    jobs = [(first_seed + i, distortion_terms, shift_m, second_station_m, ideal_encoders)
+            for i in range(n)]
     if workers > 1:
         with ProcessPoolExecutor(workers) as pool:
             rows = list(pool.map(world_trial, jobs))
