@@ -34,7 +34,8 @@ def controller_model(ctx) -> tuple[KinematicModel | None, str | None]:
 
 
 def board_observations(ctx, intr: dict) -> list[dict]:
-    """Per capture with the board found: label, kind, joints, corners and T_cam_target."""
+    """Per capture with the board found: label, kind, capture index, joints, corners and
+    T_cam_target (``found`` False and no more for a capture without the board)."""
     tg = ctx.config.target
     obj = target_points(tg)
     K, dist = camera_model(intr)
@@ -46,14 +47,14 @@ def board_observations(ctx, intr: dict) -> list[dict]:
         extra = capture.meta.get("extra", {})
         if corners is None:
             out.append({"label": capture.meta["label"], "kind": extra.get("kind"),
-                        "found": False})
+                        "index": capture.index, "found": False})
             continue
         q = np.asarray(capture.meta["arm"]["q"], float)
         corners = orient_to_prediction(corners, _predicted_corners(ctx.config, q, obj, K),
                                        tg.rows, tg.cols)
         pose = estimate_pose(obj, corners, K, dist)
         out.append({"label": capture.meta["label"], "kind": extra.get("kind"),
-                    "joint": extra.get("joint"), "found": True,
+                    "index": capture.index, "joint": extra.get("joint"), "found": True,
                     "q": q, "corners": corners,
                     "C": pose.T_cam_target, "rms_px": pose.rms_px, "pnp": pose.method})
     return out
@@ -78,3 +79,17 @@ def export_model(model: KinematicModel, X, W, uncertainty: dict, heldout: dict) 
             "T_base_target": np.asarray(W).tolist(), "uncertainty": uncertainty,
             "heldout": heldout}
 
+
+
+def capture_use(ctx, obs: list[dict], rejected: dict[int, str] | None = None
+                ) -> dict[str, list]:
+    """Every capture of the run by index: ``used`` by the solve, ``excluded`` by the
+    operator (``rigctl solve --exclude``: the run directory the solve read leaves them
+    out) and ``rejected`` by the solver (``rejected``: index -> why; a capture without
+    the board found is rejected as such)."""
+    why = {o["index"]: "board not found" for o in obs if not o["found"]} | dict(rejected or {})
+    labels = {o["index"]: o["label"] for o in obs}
+    return {"used": [o["index"] for o in obs if o["found"] and o["index"] not in why],
+            "excluded": sorted(getattr(ctx.run, "excluded", ())),
+            "rejected": [{"index": i, "label": labels.get(i), "reason": r}
+                         for i, r in sorted(why.items())]}
