@@ -633,12 +633,13 @@ def solve_recorded(run_path, index: RecordIndex | None = None,
         result = {**result, "excluded": run.excluded}
         result.setdefault("captures", {"used": [c.index for c in run.captures()],
                                        "excluded": run.excluded, "rejected": None})
+    had_result = (run.path / "result.json").exists()
     run.write_result(result)
     if run.excluded:  # the previous result was kept as the highest-numbered result.N.json
         kept = max(run.path.glob("result.*.json"), default=None,
                    key=lambda p: int(p.stem[7:]) if p.stem[7:].isdigit() else -1)
         run.append_decision("excluded", by or _whoami(), reason, excluded=run.excluded,
-                            previous_result=kept.name if kept else None)
+                            previous_result=kept.name if kept and had_result else None)
     if index is not None:
         try:
             index.get(run.run_id)
