@@ -269,13 +269,68 @@ def runs_show(run_id: str, rig: Path = typer.Option(..., "--rig"),
         out.print_json(json.dumps(_summary(row["result"]), default=str))
 
 
+def parse_indices(text: str | None) -> list[int]:
+    """Capture indices as ``--exclude`` takes them: ``12,17`` (``012`` is 12)."""
+    if not text:
+        return []
+    try:
+        indices = [int(part) for part in text.split(",") if part.strip()]
+    except ValueError:
+        raise ConfigError(f"--exclude {text!r}: expected capture indices as in "
+                          "captures/NNN, comma-separated (e.g. 12,17)") from None
+    if any(i < 0 for i in indices):
+        raise ConfigError(f"--exclude {text!r}: capture indices are 0 or more")
+    return indices
+
+
+@runs_app.command("poses")
+def runs_poses(run: str = typer.Argument(..., help="Run directory, or run id with --rig."),
+               output: Path = typer.Option(..., "--out", help="The pose file to write."),
+               rig: Path | None = typer.Option(None, "--rig"),
+               exclude: str | None = typer.Option(None, "--exclude",
+                                                  help="Captures to leave out: 12,17.")
+               ) -> None:
+    """Write the arm poses of a run's captures as a pose file (joint angles in degrees)
+    for `--param poses_file=...` of hand-eye and robot-kinematics."""
+    from rigctl.procedures.planning import pose_file_text
+    from rigctl.records import RecordIndex, RunDirectory
+
+    try:
+        run_path = Path(run)
+        if not run_path.is_dir():
+            if rig is None:
+                raise ConfigError(f"{run}: not a run directory (give --rig to look up a run id)")
+            config = load_rig(rig)
+            run_path = Path(RecordIndex(config.database_url()).get(run, rig_name=config.name)
+                            ["run_dir"])
+        text = pose_file_text(RunDirectory(run_path), set(parse_indices(exclude)))
+        output.write_text(text)
+    except RigError as exc:
+        _fail(exc, False)
+    except OSError as exc:
+        _fail(ConfigError(f"{output}: cannot write: {exc.strerror}"), False)
+    poses = sum(line.startswith("- ") for line in text.splitlines())
+    err.print(f"wrote {output} ({poses} poses)", highlight=False)
+
+
 @app.command()
 def solve(run_dir: Path = typer.Argument(..., help="A run directory."),
+          exclude: str | None = typer.Option(
+              None, "--exclude", help="Capture indices to leave out, as in captures/NNN: 12,17."),
+          reason: str = typer.Option("", "--reason", help="Why (kept in the run's decisions)."),
+          operator: str | None = typer.Option(None, "--operator",
+                                              help="Who excludes (default: the user)."),
           as_json: bool = typer.Option(False, "--json")) -> None:
-    """Solve a recorded run again, offline; the old result is kept as result.N.json."""
+    """Solve a recorded run again, offline; the old result is kept as result.N.json.
+    With --exclude, without those captures; who excluded what, and why, goes into the
+    run's decisions, and the result names them (exit 2 for a capture the run lacks)."""
     from rigctl.records import RecordIndex, RunDirectory
     from rigctl.runner import recorded_config, solve_recorded
 
+    try:
+        excluded = parse_indices(exclude)
+    except ConfigError as exc:
+        _fail(exc, as_json)
     try:
         index = None
         try:
@@ -287,7 +342,9 @@ def solve(run_dir: Path = typer.Argument(..., help="A run directory."),
             index_path = run_dir.resolve().parent / "index.sqlite"
             if index_path.exists():
                 index = RecordIndex(f"sqlite:///{index_path}")
-        result = solve_recorded(run_dir, index)
+        result = solve_recorded(run_dir, index, exclude=excluded, by=operator, reason=reason)
+    except ConfigError as exc:  # the run directory or an excluded index is wrong
+        _fail(exc, as_json, EXIT_REFUSED if excluded else EXIT_FAILED)
     except RigError as exc:
         _fail(exc, as_json, EXIT_FAILED)
     if as_json:

@@ -596,16 +596,43 @@ def recorded_config(run: RunDirectory) -> RigConfig:
     return parse_rig(text, name=str(copy), path=Path(source) if source else copy)
 
 
+class CuratedRun(RunDirectory):
+    """A run directory whose captures leave out those the operator ``excluded`` (their
+    indices, as in ``captures/NNN``): what a re-solve without them reads."""
+
+    def __init__(self, path, excluded=()) -> None:
+        super().__init__(path)
+        self.excluded = sorted(set(excluded))
+
+    def captures(self):
+        return [c for c in super().captures() if c.index not in self.excluded]
+
+    def check_excluded(self) -> None:
+        """``ConfigError`` naming each excluded index that is not a capture of the run."""
+        held = {c.index for c in super().captures()}
+        unknown = [i for i in self.excluded if i not in held]
+        if unknown:
+            have = f"{min(held):03d}-{max(held):03d}" if held else "none"
+            raise ConfigError(f"{self.captures_dir}: no capture {', '.join(map(str, unknown))} "
+                              f"to exclude (this run's captures: {have})")
+
+
 def solve_recorded(run_path, index: RecordIndex | None = None,
-                   timings_s: dict[str, float] | None = None) -> dict[str, Any]:
+                   timings_s: dict[str, float] | None = None, exclude=(),
+                   by: str | None = None, reason: str = "") -> dict[str, Any]:
     """Solve a recorded run again, offline, from its run directory alone.
 
     The previous ``result.json`` is kept as ``result.<n>.json``. ``timings_s``, when
-    given, receives the time of each stage of the solve.
+    given, receives the time of each stage of the solve. ``exclude``: capture indices
+    the solve leaves out (``CuratedRun``; ``ConfigError`` before solving for one the run
+    does not have); who (``by``, the user by default) excluded which and why
+    (``reason``) is appended to the run's decisions, and the result names them
+    (``excluded``).
     """
-    run = RunDirectory(run_path)
+    run = CuratedRun(run_path, exclude)
     if not run.path.is_dir():
         raise ConfigError(f"{run.path}: not a run directory")
+    run.check_excluded()
     params_doc = run.params()
     config = recorded_config(run)
     procedure = procedures.get_procedure(params_doc["procedure"])
@@ -614,7 +641,17 @@ def solve_recorded(run_path, index: RecordIndex | None = None,
     ctx = SolveContext(run, config, params, inputs)
     with one_blas_thread():
         result = procedure.solve(ctx)
+    if run.excluded:
+        result = {**result, "excluded": run.excluded}
+        result.setdefault("captures", {"used": [c.index for c in run.captures()],
+                                       "excluded": run.excluded, "rejected": None})
+    had_result = (run.path / "result.json").exists()
     run.write_result(result)
+    if run.excluded:  # the previous result was kept as the highest-numbered result.N.json
+        kept = max(run.path.glob("result.*.json"), default=None,
+                   key=lambda p: int(p.stem[7:]) if p.stem[7:].isdigit() else -1)
+        run.append_decision("excluded", by or _whoami(), reason, excluded=run.excluded,
+                            previous_result=kept.name if kept and had_result else None)
     if index is not None:
         try:
             index.get(run.run_id)

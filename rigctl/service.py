@@ -47,8 +47,8 @@ from rigctl.console.pages import (
 )
 from rigctl.errors import BusyError, ConfigError, RigError, SafetyError
 from rigctl.locks import rig_lock
-from rigctl.records import RecordIndex, RunDirectory, new_run_id, run_row, utcnow
-from rigctl.runner import Runner, prepare_run, refuse_violations
+from rigctl.records import RecordIndex, RunDirectory, new_run_id, run_row, to_jsonable, utcnow
+from rigctl.runner import Runner, prepare_run, refuse_violations, solve_recorded
 
 log = logging.getLogger("rigctl.service")
 DECISION_WAIT_S = 30.0  # how long an operator's decision waits for the service's drift check
@@ -431,6 +431,13 @@ class AbortRequest(BaseModel):
     operator: str | None = Field(None, max_length=100, description="who aborts; recorded")
 
 
+class SolveRequest(BaseModel):
+    exclude: list[int] = Field(default_factory=list, max_length=10_000,
+                               description="capture indices to leave out (captures/NNN)")
+    reason: str = Field("", max_length=2000, description="why; kept in decisions.jsonl")
+    operator: str | None = Field(None, max_length=100, description="who; recorded")
+
+
 def _row(row: dict) -> dict:
     return {k: (v.isoformat() if isinstance(v, dt.datetime) else v) for k, v in row.items()
             if k not in ("pid", "host")}
@@ -643,6 +650,32 @@ def _run_routes(service: RigService, guarded: list) -> APIRouter:
         request's ``operator`` (default "operator", as for accept and reject)."""
         operator = (request.operator if request else None) or "operator"
         return {"run_id": run_id, "status": service.abort(run_id, operator)}
+
+    solving = threading.Lock()  # one re-solve at a time: each renames result.json
+
+    @router.post("/runs/{run_id}/solve", dependencies=guarded)
+    def solve_run(run_id: str = RUN_ID, request: SolveRequest | None = None) -> dict:
+        """Solve a finished run again from its records (``rigctl solve``), leaving out
+        the ``exclude``d captures; who excluded which, and why, goes into its decisions,
+        the previous result is kept, and the result names the captures used, excluded and
+        rejected. 422 for a capture the run does not have or a solve that cannot run."""
+        request = request or SolveRequest()
+        row = _own_run(service, run_id)
+        current = service.current
+        if row["status"] == "running" or (current and current.run_id == row["run_id"]):
+            raise HTTPException(409, f"run {row['run_id']} is still running")
+        if not row["run_dir"] or not Path(row["run_dir"]).is_dir():
+            raise HTTPException(409, f"run {row['run_id']} has no run directory to solve")
+        with solving:
+            try:
+                result = solve_recorded(row["run_dir"], service.index, exclude=request.exclude,
+                                        by=request.operator or "operator",
+                                        reason=request.reason)
+            except RigError as exc:  # an unknown capture, a solve with too few views
+                raise HTTPException(422, f"{type(exc).__name__}: {exc}") from None
+        service.events.publish({"type": "solved", "run_id": row["run_id"],
+                                "excluded": request.exclude})
+        return {"run_id": row["run_id"], "result": to_jsonable(result)}
 
     @router.get("/runs/{run_id}/captures/{n}")
     def capture_image(run_id: str = RUN_ID, n: int = PathParam(ge=0, le=99_999)

@@ -2,7 +2,14 @@
 held at home): OpenCV ``calibrateHandEye`` (every method), then a joint refinement of both
 transforms on pixel reprojection error, with the arm's own model as its controller reports
 it (the nominal model when the run recorded none). The views are planned with that model
-too, read from the controller when the run is planned (``inputs.json``: ``arm_model``)."""
+too, read from the controller when the run is planned (``inputs.json``: ``arm_model``).
+
+With ``poses_file`` (a YAML list of joint angles in degrees, one list of six per pose, as
+``rigctl runs poses`` writes from any run) the views are the operator's, not planned:
+each is checked against the soft limits before anything moves, and the plan and the
+result report how well the set determines ``T_flange_cam`` and ``T_base_target``
+against the planner's D-optimal choice of as many views (``pose_set``), with a warning
+when it cannot (every pose turned about one joint, say)."""
 
 from __future__ import annotations
 
@@ -17,8 +24,18 @@ from rigctl.geometry.kinematics import nominal_ur
 
 from .base import Params, Procedure, SolveContext
 from .intrinsics import camera_model, intrinsics_from
-from .planning import planning_arm, planning_K, view_steps
-from .robot_common import board_observations, controller_model, left_out_views
+from .planning import (
+    load_pose_file,
+    planning_arm,
+    planning_K,
+    pose_file_record,
+    pose_file_steps,
+    pose_set_note,
+    pose_set_report,
+    poses_out_of_view,
+    view_steps,
+)
+from .robot_common import board_observations, capture_use, controller_model, left_out_views
 
 
 class HandEyeParams(Params):
@@ -33,6 +50,8 @@ class HandEyeParams(Params):
     max_tilt_deg: float = Field(30.0, ge=0, le=50)
     settle_s: float = Field(0.2, ge=0)
     seed: int = 10
+    # the operator's poses instead of planned ones: a YAML list of 6 joint angles (deg)
+    poses_file: str | None = Field(None, min_length=1, max_length=4096)
 
 
 class HandEye(Procedure):
@@ -44,17 +63,39 @@ class HandEye(Procedure):
     detects_board = True
 
     def plan(self, params: HandEyeParams, config) -> list:
+        if params.poses_file:
+            return self._plan_from_file(params, config)
         return view_steps(config, params.poses, params.view_distance_m, params.max_tilt_deg,
                           params.seed, "view", "view", params.settle_s,
                           K=planning_K(config, params.intrinsics),
                           arm=planning_arm(config, params.use_controller_model))
 
+    def _plan_from_file(self, params: HandEyeParams, config) -> list:
+        """The pose file's poses in its order, with the pose set's identifiability
+        (``pose_set_report``) and the poses predicted to cut the board as notes."""
+        poses = load_pose_file(params.poses_file, config, min_poses=3)
+        K = planning_K(config, params.intrinsics)
+        arm = planning_arm(config, params.use_controller_model)
+        report = pose_set_report(config, poses, K, arm.model, False, params.view_distance_m,
+                                 params.max_tilt_deg, params.seed)
+        notes = [arm.note, f"poses from {params.poses_file}: {pose_set_note(report)}"]
+        cut = poses_out_of_view(config, arm.model, poses, K)
+        if cut:
+            notes.append(f"poses {', '.join(map(str, cut))} of {params.poses_file}: part of "
+                         "the board predicted outside the image (nominal mount and target)")
+        return pose_file_steps(config, poses, "view", params.settle_s, notes)
+
     def resolve_inputs(self, params: HandEyeParams, config) -> dict[str, Any]:
-        """The intrinsics, and the arm model the plan used (``planning_arm``)."""
-        return {"intrinsics": intrinsics_from(config, params.intrinsics,
-                                              params.allow_settings_change),
-                "arm_model": planning_arm(config, params.use_controller_model,
-                                          fresh=False).record()}
+        """The intrinsics, the arm model the plan used (``planning_arm``), and the pose
+        file's poses when there is one."""
+        inputs = {"intrinsics": intrinsics_from(config, params.intrinsics,
+                                                params.allow_settings_change),
+                  "arm_model": planning_arm(config, params.use_controller_model,
+                                            fresh=False).record()}
+        if params.poses_file:
+            inputs["pose_file"] = pose_file_record(
+                params.poses_file, load_pose_file(params.poses_file, config))
+        return inputs
 
     def solve(self, ctx: SolveContext) -> dict[str, Any]:
         intr = ctx.input("intrinsics")
@@ -78,7 +119,20 @@ class HandEye(Procedure):
         spread = {name: handeye.transform_error(X, refined.X) for name, X in closed.items()}
         summary = {"views": len(found), "residual_rms_px": refined.rms,
                    "t_mm": (1000 * refined.X[:3, 3]).tolist()}
-        return {"T_flange_cam": refined.X.tolist(), "T_base_target": refined.W.tolist(),
+        used = capture_use(ctx, obs)
+        extra: dict[str, Any] = {}
+        if ctx.params.poses_file:
+            with ctx.stage("pose set"):
+                extra["pose_set"] = pose_set_report(
+                    ctx.config, [o["q"] for o in found], K, arm, False,
+                    ctx.params.view_distance_m, ctx.params.max_tilt_deg, ctx.params.seed,
+                    refined.X, refined.W, max(refined.rms, 0.1))
+            summary["pose_set"] = pose_set_note(extra["pose_set"])
+            if extra["pose_set"]["warning"]:
+                summary["warning"] = extra["pose_set"]["warning"]
+                extra["warnings"] = [extra["pose_set"]["warning"]]
+        return {**extra, "captures": used, "excluded": used["excluded"],
+                "T_flange_cam": refined.X.tolist(), "T_base_target": refined.W.tolist(),
                 "sigma": refined.sigma.tolist(), "residual_rms_px": refined.rms,
                 "closed_form": {k: v.tolist() for k, v in closed.items()},
                 "closed_form_vs_refined_deg_mm": spread, "intrinsics": intr,

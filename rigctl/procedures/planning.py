@@ -8,16 +8,19 @@ procedures read it when the run is planned and record it in ``inputs.json``."""
 
 from __future__ import annotations
 
+import hashlib
 import math
 import threading
 import time
 from dataclasses import dataclass
 from functools import lru_cache
+from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 
-from rigctl.calib import pose_selection
+from rigctl.calib import pose_selection, robot
 from rigctl.calib.board import is_charuco, target_points
 from rigctl.config import RigConfig
 from rigctl.drivers.ur_primary import PrimaryInfo, read_primary_info
@@ -451,16 +454,9 @@ def informative_views(config: RigConfig, params, K: np.ndarray, planned_q: list,
     model = arm_model(config, model)
     X = nominal_flange_cam(config)
     W, _ = target_centre(config)
-    candidates, notes = [], []
-    nearest = fit_distance(config, K)
-    base = max(params.view_distance_m, nearest)  # never nearer than the board fits
-    for k, factor in enumerate((0.8, 1.0, 1.25)):
-        if base * factor < nearest:
-            continue
-        for spin in ({}, aligned_spin(config)):
-            qs, _ = plan_target_views(config, 3 * n, base * factor, params.max_tilt_deg,
-                                      seed + 17 * k, model=model, **spin)
-            candidates += [q for q in qs if board_visible(config, model, q, K)]
+    notes: list[str] = []
+    candidates, base = view_candidates(config, K, n, params.view_distance_m,
+                                       params.max_tilt_deg, seed, model)
     if len(candidates) < n:
         notes.append(f"pose selection: only {len(candidates)} candidate views; using "
                      "random views")
@@ -489,6 +485,25 @@ def informative_views(config: RigConfig, params, K: np.ndarray, planned_q: list,
     poses = [candidates[i] for i in chosen]
     start = planned_q[-1] if planned_q else poses[0]
     return [poses[i] for i in pose_selection.order_by_travel(poses, start)], notes
+
+
+def view_candidates(config: RigConfig, K: np.ndarray, n: int, distance_m: float,
+                    max_tilt_deg: float, seed: int, model: KinematicModel
+                    ) -> tuple[list[np.ndarray], float]:
+    """The candidate views of ``informative_views``: reachable, inside the soft limits,
+    the whole board in view, at 0.8, 1 and 1.25 times ``distance_m`` (never nearer than
+    the board fits the image), spun freely and aligned; and the base distance used."""
+    candidates = []
+    nearest = fit_distance(config, K)
+    base = max(distance_m, nearest)  # never nearer than the board fits
+    for k, factor in enumerate((0.8, 1.0, 1.25)):
+        if base * factor < nearest:
+            continue
+        for spin in ({}, aligned_spin(config)):
+            qs, _ = plan_target_views(config, 3 * n, base * factor, max_tilt_deg,
+                                      seed + 17 * k, model=model, **spin)
+            candidates += [q for q in qs if board_visible(config, model, q, K)]
+    return candidates, base
 
 
 # A ChArUco board may run off the image: a view needs this share of its corners, and at
@@ -617,3 +632,239 @@ def plan_sweeps(config: RigConfig, bases: list[np.ndarray], K: np.ndarray, steps
                      f"from {lo:+g} to {hi:+g} deg; sweep "
                      f"{', '.join(f'{o:+g}' for o in offsets)} deg")
     return plan, notes
+
+
+# -- poses the operator chooses (``poses_file``) and what they determine -----------------
+
+# A pose set whose scaled identification Jacobian has a condition number above this
+# cannot determine the model: some combination of its parameters moves no board corner
+# in any of the views (the views leave it free).
+UNDETERMINED_CONDITION = 1e4
+PLANNING_PIXEL_SIGMA = 0.3  # px: the corner noise assumed when predicting uncertainty
+MAX_FILE_POSES = 500
+_SAME_JOINT_RAD = 1e-4  # joints closer than this in every pose count as not moved
+
+
+def load_pose_file(path: str | Path, config: RigConfig, min_poses: int = 1
+                   ) -> list[np.ndarray]:
+    """The joint configurations (rad) of a pose file: a YAML list with one list of six
+    joint angles in degrees per pose (``rigctl runs poses`` writes one from any run).
+    Each is checked against the rig file's soft limits and kept clear of the target
+    plane (``clearance_m``) before anything moves; ``ConfigError`` names the file, the
+    line and the pose (1-based) otherwise."""
+    arm = config.devices.arm
+    if arm is None:
+        raise ConfigError(f"{path}: a pose file needs devices.arm in the rig file")
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{path}: cannot read the pose file "
+                          f"({getattr(exc, 'strerror', None) or exc})") from None
+    try:
+        node = yaml.compose(text, Loader=yaml.SafeLoader)
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        # where the broken construct began (a pose's "["), else where parsing stopped
+        mark = getattr(exc, "context_mark", None) or getattr(exc, "problem_mark", None)
+        where = f"{path}:{mark.line + 1}" if mark else str(path)
+        raise ConfigError(f"{where}: not a YAML pose file "
+                          f"({getattr(exc, 'problem', None) or 'malformed'})") from None
+    if not isinstance(data, list) or not data:
+        raise ConfigError(f"{path}: expected a YAML list of poses, each a list of 6 joint "
+                          "angles in degrees (as `rigctl runs poses` writes)")
+    if len(data) > MAX_FILE_POSES:
+        raise ConfigError(f"{path}: {len(data)} poses; at most {MAX_FILE_POSES}")
+    if len(data) < min_poses:
+        raise ConfigError(f"{path}: {len(data)} poses; the procedure needs at least "
+                          f"{min_poses}")
+    limits = arm.joint_limits_rad()
+    model = nominal_ur(arm.model)
+    poses = []
+    for k, entry in enumerate(data):
+        where = f"{path}:{node.value[k].start_mark.line + 1}: pose {k + 1}"
+        poses.append(_pose_entry(config, model, limits, entry, where))
+    return poses
+
+
+def _pose_entry(config: RigConfig, model: KinematicModel, limits, entry, where: str
+                ) -> np.ndarray:
+    """One pose file entry in radians, checked (``load_pose_file``)."""
+    numbers = isinstance(entry, list) and all(
+        isinstance(v, (int, float)) and not isinstance(v, bool) for v in entry)
+    if not numbers or len(entry) != 6:
+        raise ConfigError(f"{where}: expected a list of 6 joint angles in degrees, got "
+                          f"{str(entry)[:80]}")
+    if not all(math.isfinite(v) for v in entry):
+        raise ConfigError(f"{where}: joint angles must be finite numbers (degrees)")
+    q = np.radians(np.asarray(entry, float))
+    for i, (value, (lo, hi)) in enumerate(zip(q, limits, strict=True)):
+        if not lo <= value <= hi:
+            raise ConfigError(f"{where}: joint {i + 1} at {math.degrees(value):.2f} deg is "
+                              f"outside the soft limits [{math.degrees(lo):.1f}, "
+                              f"{math.degrees(hi):.1f}] deg (devices.arm.joint_limits_deg)")
+    clearance = clearance_m(config, model, q)
+    if clearance < MIN_CLEARANCE_M:
+        raise ConfigError(f"{where}: the arm would come {100 * clearance:.1f} cm from the "
+                          f"target plane (at least {100 * MIN_CLEARANCE_M:.0f} cm on the "
+                          "camera's side; nominal model)")
+    return q
+
+
+def pose_file_record(path: str | Path, poses: list[np.ndarray]) -> dict[str, Any]:
+    """What ``inputs.json`` keeps of a pose file: its path, digest and the poses (deg)."""
+    path = Path(path)
+    return {"path": str(path.resolve()),
+            "sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
+            "poses_deg": [np.degrees(q).round(6).tolist() for q in poses]}
+
+
+def pose_file_steps(config: RigConfig, poses: list[np.ndarray], kind: str, settle_s: float,
+                    notes: list[str]) -> list:
+    """Steps visiting the poses of a pose file in its order (``notes`` first, logged
+    before anything moves; then the head at home when there is a head), each settled and
+    captured as ``pose N`` of ``kind``, then back to the arm's home."""
+    steps: list = [Note(n) for n in notes]
+    if config.devices.head is not None:
+        steps.append(MoveHead(0.0, 0.0, 0.0, "head home"))
+    for k, q in enumerate(poses):
+        name = f"pose {k + 1}"
+        steps += [MoveArmJoints(tuple(float(v) for v in q), name), Settle(settle_s),
+                  CaptureStep(name, extra={"kind": kind, "pose": k + 1})]
+    steps.append(MoveArmJoints(config.devices.arm.home_rad(), "arm home"))
+    return steps
+
+
+def poses_out_of_view(config: RigConfig, model: KinematicModel, poses, K: np.ndarray
+                      ) -> list[int]:
+    """The poses (1-based) at which the nominal mount and target put part of the board
+    outside the image (``board_visible``)."""
+    return [k + 1 for k, q in enumerate(poses) if not board_visible(config, model, q, K)]
+
+
+def identifiability(config: RigConfig, qs, K: np.ndarray, model: KinematicModel,
+                    links: bool, workspace, X: np.ndarray | None = None,
+                    W: np.ndarray | None = None, sigma_px: float = PLANNING_PIXEL_SIGMA
+                    ) -> dict[str, Any]:
+    """How well the views at ``qs`` determine the model: ``T_flange_cam`` and
+    ``T_base_target`` (``X``, ``W``; the rig file's nominal ones when None), with
+    ``links`` the arm's identifiable link parameters too (``robot.identifiable_mask``).
+    From the board corners' pixel Jacobian (``pose_selection.view_jacobians``): the
+    condition number of its scaled columns, and with corner noise ``sigma_px`` the
+    predicted 1-sigma of the camera's position over the ``workspace`` configurations
+    (median and max, mm; None when the views leave a direction free). ``free`` names
+    the parameters the weakest direction moves most."""
+    X = nominal_flange_cam(config) if X is None else np.asarray(X, float)
+    W = target_centre(config)[0] if W is None else np.asarray(W, float)
+    mask = robot.identifiable_mask(model) if links else robot.frames_only_mask(model)
+    names = robot._pack(model, X, W, mask, True)[1]
+    J = pose_selection.view_jacobians(model, X, W, list(qs), mask, obj=target_points(
+        config.target), K=K)
+    J = J.reshape(-1, J.shape[2])
+    scale = np.linalg.norm(J, axis=0)
+    scale[scale == 0] = 1.0
+    _, sv, vt = np.linalg.svd(J / scale, full_matrices=False)
+    cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else math.inf
+    determined = cond < UNDETERMINED_CONDITION
+    weakest = np.abs(vt[-1])
+    free = [names[i] for i in np.argsort(weakest)[::-1][:4] if weakest[i] > 0.2]
+    sigma_mm = None
+    if determined:
+        cov = sigma_px ** 2 * np.linalg.inv((J / scale).T @ (J / scale)) / np.outer(scale,
+                                                                                   scale)
+        sig = robot.camera_position_sigma(model, X, W, names, cov, list(workspace))
+        norm = 1000 * np.linalg.norm(sig, axis=1)
+        sigma_mm = {"median": float(np.median(norm)), "max": float(norm.max()),
+                    "configurations": len(norm)}
+    return {"views": len(qs), "condition_number": cond if math.isfinite(cond) else None,
+            "determined": determined, "camera_position_sigma_mm": sigma_mm,
+            "weakest_direction": free}
+
+
+def d_optimal_views(config: RigConfig, K: np.ndarray, n: int, distance_m: float,
+                    max_tilt_deg: float, seed: int, model: KinematicModel, links: bool
+                    ) -> list[np.ndarray]:
+    """The planner's D-optimal choice of ``n`` views (``view_candidates``,
+    ``pose_selection.select_informative``) for the same model as ``identifiability``."""
+    candidates, _ = view_candidates(config, K, n, distance_m, max_tilt_deg, seed, model)
+    if len(candidates) < n:
+        return []
+    mask = robot.identifiable_mask(model) if links else robot.frames_only_mask(model)
+    J = pose_selection.view_jacobians(model, nominal_flange_cam(config),
+                                      target_centre(config)[0], candidates, mask,
+                                      obj=target_points(config.target), K=K)
+    return [candidates[i] for i in pose_selection.select_informative(J, n)]
+
+
+def pose_set_report(config: RigConfig, qs, K: np.ndarray, model: KinematicModel, links: bool,
+                    distance_m: float, max_tilt_deg: float, seed: int,
+                    X: np.ndarray | None = None, W: np.ndarray | None = None,
+                    sigma_px: float = PLANNING_PIXEL_SIGMA) -> dict[str, Any]:
+    """The identifiability of the operator's pose set ``qs`` against the planner's
+    D-optimal plan of as many views (``d_optimal_views``), the camera's predicted
+    uncertainty compared over the configurations of both; ``warning`` says when the set
+    cannot determine the model (None otherwise)."""
+    qs = [np.asarray(q, float) for q in qs]
+    reference = d_optimal_views(config, K, len(qs), distance_m, max_tilt_deg, seed, model,
+                                links)
+    workspace = qs + reference
+    own = identifiability(config, qs, K, model, links, workspace, X, W, sigma_px)
+    best = identifiability(config, reference, K, model, links, workspace, X, W, sigma_px) \
+        if reference else None
+    return {**own, "d_optimal": best, "sigma_px": sigma_px,
+            "warning": identifiability_warning(own, best, qs)}
+
+
+def pose_set_note(report: dict[str, Any]) -> str:
+    """One line on a pose set's identifiability (``pose_set_report``) for plans and
+    summaries: its warning, or its numbers against the D-optimal plan's."""
+    if report["warning"]:
+        return "WARNING: " + report["warning"]
+    sig, best = report["camera_position_sigma_mm"], report["d_optimal"]
+    text = (f"{report['views']} views, condition number {report['condition_number']:.0f}, "
+            f"camera position 1-sigma {sig['median']:.2f} mm median, {sig['max']:.2f} mm "
+            f"max (predicted, {report['sigma_px']:.2f} px corners)")
+    if best and best["camera_position_sigma_mm"]:
+        text += (f"; the D-optimal plan of {best['views']} views: "
+                 f"{best['condition_number']:.0f}, "
+                 f"{best['camera_position_sigma_mm']['median']:.2f} mm")
+    return text
+
+
+def identifiability_warning(own: dict, best: dict | None, qs) -> str | None:
+    """The operator's warning when a pose set cannot determine the model, naming why."""
+    if own["determined"]:
+        return None
+    moved = [j + 1 for j in range(6) if np.ptp([q[j] for q in qs]) > _SAME_JOINT_RAD]
+    why = ("every pose differs from the others in joint "
+           f"{moved[0]} only" if len(moved) == 1 else
+           "the poses do not move the arm" if not moved else
+           f"the poses vary joints {', '.join(map(str, moved))} in too few directions")
+    cond = own["condition_number"]
+    ref = f"; the D-optimal plan of {best['views']} views: {best['condition_number']:.0f}" \
+        if best and best["condition_number"] else ""
+    return (f"the pose set cannot determine the model: {why} (condition number "
+            f"{'infinite' if cond is None else f'{cond:.3g}'}{ref}); the views leave "
+            f"{', '.join(own['weakest_direction']) or 'a direction'} free: add poses that "
+            "turn the camera about other axes")
+
+
+def pose_file_text(run, exclude=()) -> str:
+    """A pose file (``load_pose_file``) of the joints each capture of the recorded
+    ``run`` (a ``RunDirectory``) was taken at, as the arm reported them, in capture
+    order; captures in ``exclude`` or without arm joints are left out. Each pose names
+    its capture in a comment. ``ConfigError`` when no capture has arm joints."""
+    lines = []
+    for capture in run.captures():
+        q = (capture.meta.get("arm") or {}).get("q")
+        if capture.index in exclude or not q or len(q) != 6:
+            continue
+        angles = ", ".join(f"{math.degrees(v):.4f}" for v in q)
+        label = " ".join(str(capture.meta.get("label", "")).split())
+        lines.append(f"- [{angles}]  # capture {capture.index:03d}: {label}")
+    if not lines:
+        raise ConfigError(f"{run.captures_dir}: no capture with the arm's joints; nothing "
+                          "to write")
+    head = (f"# {len(lines)} poses of run {run.run_id}: joint angles in degrees, one list "
+            "of six per pose\n# (rigctl runs poses; use with --param poses_file=THIS_FILE)\n")
+    return head + "\n".join(lines) + "\n"

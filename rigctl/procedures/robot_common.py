@@ -38,9 +38,9 @@ def controller_model(ctx) -> tuple[KinematicModel | None, str | None]:
 
 
 def board_observations(ctx, intr: dict) -> list[dict]:
-    """Per capture with the board found: label, kind, joints, corners (id order, NaN
-    where not seen) and T_cam_target; per capture without: the note saying why (a
-    ChArUco board that is not the configured one is named there)."""
+    """Per capture with the board found: label, kind, capture index, joints, corners (id
+    order, NaN where not seen) and T_cam_target; per capture without: its index and the
+    note saying why (a ChArUco board that is not the configured one is named there)."""
     tg = ctx.config.target
     obj = target_points(tg)
     K, dist = camera_model(intr)
@@ -55,7 +55,8 @@ def board_observations(ctx, intr: dict) -> list[dict]:
             if found.note and "view left out" in found.note:
                 log.warning("capture %s: %s", capture.meta["label"], found.note)
             out.append({"label": capture.meta["label"], "kind": extra.get("kind"),
-                        "found": False, "note": found.note})
+                        "index": capture.index, "found": False,
+                        "note": found.note})
             continue
         q = np.asarray(capture.meta["arm"]["q"], float)
         if not is_charuco(tg):  # a ChArUco corner's id leaves no turn of the board open
@@ -63,7 +64,7 @@ def board_observations(ctx, intr: dict) -> list[dict]:
                                            tg.rows, tg.cols)
         pose = estimate_pose(obj, corners, K, dist)
         out.append({"label": capture.meta["label"], "kind": extra.get("kind"),
-                    "joint": extra.get("joint"), "found": True,
+                    "index": capture.index, "joint": extra.get("joint"), "found": True,
                     "q": q, "corners": corners,
                     "C": pose.T_cam_target, "rms_px": pose.rms_px, "pnp": pose.method})
     return out
@@ -95,3 +96,17 @@ def export_model(model: KinematicModel, X, W, uncertainty: dict, heldout: dict) 
             "T_base_target": np.asarray(W).tolist(), "uncertainty": uncertainty,
             "heldout": heldout}
 
+
+
+def capture_use(ctx, obs: list[dict], rejected: dict[int, str] | None = None
+                ) -> dict[str, list]:
+    """Every capture of the run by index: ``used`` by the solve, ``excluded`` by the
+    operator (``rigctl solve --exclude``: the run directory the solve read leaves them
+    out) and ``rejected`` by the solver (``rejected``: index -> why; a capture without
+    the board found is rejected as such)."""
+    why = {o["index"]: "board not found" for o in obs if not o["found"]} | dict(rejected or {})
+    labels = {o["index"]: o["label"] for o in obs}
+    return {"used": [o["index"] for o in obs if o["found"] and o["index"] not in why],
+            "excluded": sorted(getattr(ctx.run, "excluded", ())),
+            "rejected": [{"index": i, "label": labels.get(i), "reason": r}
+                         for i, r in sorted(why.items())]}

@@ -17,6 +17,13 @@ sweeps; the joint refinement over all training captures on pixels from each star
 (link-by-link, nominal, axis-based, the controller's model), the lowest cost winning
 (``summary.refinement_start``); errors on the held-out views for nominal, factory and
 calibrated, and how far the calibration moved the camera from the controller's model.
+
+With ``poses_file`` (a YAML list of joint angles in degrees, one list of six per pose, as
+``rigctl runs poses`` writes) nothing is planned: every pose of the file is a training
+view (no sweeps, so no link-by-link start; nothing held out: ``validate-arm`` checks the
+result), each checked against the soft limits before anything moves, and the plan and
+the result report the set's identifiability against the planner's D-optimal choice of
+as many views (``pose_set``), with a warning when it cannot determine the model.
 """
 
 from __future__ import annotations
@@ -31,7 +38,12 @@ from pydantic import Field
 from rigctl.calib import robot
 from rigctl.calib.board import target_points
 from rigctl.calib.intrinsics_check import board_intrinsics
-from rigctl.calib.robot_pipeline import BoardView, RobotSolution, solve_robot
+from rigctl.calib.robot_pipeline import (
+    MIN_TRAINING_VIEWS,
+    BoardView,
+    RobotSolution,
+    solve_robot,
+)
 from rigctl.errors import SolveError
 from rigctl.geometry.kinematics import nominal_ur
 
@@ -55,13 +67,25 @@ from .planning import (
     closest_plan,
     fit_distance,
     informative_views,
+    load_pose_file,
     plan_sweeps,
     plan_target_views,
     planning_arm,
     planning_K,
+    pose_file_record,
+    pose_file_steps,
+    pose_set_note,
+    pose_set_report,
+    poses_out_of_view,
     visible_views,
 )
-from .robot_common import board_observations, controller_model, export_model, left_out_views
+from .robot_common import (
+    board_observations,
+    capture_use,
+    controller_model,
+    export_model,
+    left_out_views,
+)
 
 # A refined model that leaves more than this on the board corners (their noise is a few
 # tenths of a pixel) explains the views badly: the run fails rather than export it
@@ -92,6 +116,8 @@ class RobotKinematicsParams(Params):
     # nominal; off: nominal throughout (the robot's hash is recorded either way)
     use_controller_model: bool = True
     seed: int = 0
+    # the operator's poses instead of planned ones: a YAML list of 6 joint angles (deg)
+    poses_file: str | None = Field(None, min_length=1, max_length=4096)
 
 
 BASE_LEANS_DEG = (15.0, 30.0, 45.0)  # sweep-base leans tried when no straight view is reachable
@@ -224,6 +250,8 @@ class RobotKinematics(Procedure):
     detects_board = True
 
     def plan(self, params: RobotKinematicsParams, config) -> list:
+        if params.poses_file:
+            return plan_from_file(params, config)
         steps: list = []
         if config.devices.head is not None:
             steps.append(MoveHead(0.0, 0.0, 0.0, "head home"))
@@ -278,11 +306,16 @@ class RobotKinematics(Procedure):
         return steps
 
     def resolve_inputs(self, params: RobotKinematicsParams, config) -> dict[str, Any]:
-        """The intrinsics, and the arm model the plan used (``planning_arm``)."""
-        return {"intrinsics": intrinsics_from(config, params.intrinsics,
-                                              params.allow_settings_change),
-                "arm_model": planning_arm(config, params.use_controller_model,
-                                          fresh=False).record()}
+        """The intrinsics, the arm model the plan used (``planning_arm``), and the pose
+        file's poses when there is one."""
+        inputs = {"intrinsics": intrinsics_from(config, params.intrinsics,
+                                                params.allow_settings_change),
+                  "arm_model": planning_arm(config, params.use_controller_model,
+                                            fresh=False).record()}
+        if params.poses_file:
+            inputs["pose_file"] = pose_file_record(
+                params.poses_file, load_pose_file(params.poses_file, config))
+        return inputs
 
     def solve(self, ctx: SolveContext) -> dict[str, Any]:
         """Thesis 4.3 on the run's board views (``rigctl.calib.robot_pipeline``)."""
@@ -320,14 +353,56 @@ class RobotKinematics(Procedure):
         exported = _export(sol, intr)
         if exported["factory"] is not None:
             exported["factory"]["links"] = controller.links()
-        return {**exported, "arm_model": ctx.config.devices.arm.model,
+        summary, extra = _summary(sol), {}
+        if ctx.params.poses_file:
+            with ctx.stage("pose set"):
+                extra = _pose_set(ctx, sol, K, summary)
+        by_label = {o["label"]: o["index"] for o in obs}
+        used = capture_use(ctx, obs, {by_label[label]: f"outlier: {rms:.1f} px RMS"
+                                      for label, rms in sol.rejected_views.items()})
+        return {**exported, **extra, "captures": used, "excluded": used["excluded"],
+                "arm_model": ctx.config.devices.arm.model,
                 "robot_hash": robot_hash, "planned_with": _planned_with(ctx),
-                "intrinsics_check": check, "summary": _summary(sol),
+                "intrinsics_check": check, "summary": summary,
                 "lost_views": [o["label"] for o in obs if not o["found"]],
                 # views showing another board than the configured one (label: what)
                 "left_out_views": left_out_views(obs),
                 # training views the refined model missed by far, left out (label: RMS px)
                 "rejected_views": sol.rejected_views}
+
+
+def plan_from_file(params: RobotKinematicsParams, config) -> list:
+    """Every pose of ``params.poses_file`` as a training view, in the file's order, with
+    the set's identifiability (``pose_set_report``: link parameters, X and W) and the
+    poses predicted to cut the board as notes. Fewer poses than the solve needs
+    (``MIN_TRAINING_VIEWS``) is refused here."""
+    poses = load_pose_file(params.poses_file, config, min_poses=MIN_TRAINING_VIEWS)
+    K = planning_K(config, params.intrinsics)
+    arm = planning_arm(config, params.use_controller_model)
+    report = pose_set_report(config, poses, K, arm.model, True, params.view_distance_m,
+                             params.max_tilt_deg, params.seed)
+    notes = [arm.note, f"poses from {params.poses_file}: {pose_set_note(report)}",
+             "poses from a file: no sweeps (no link-by-link start) and no held-out views"]
+    cut = poses_out_of_view(config, arm.model, poses, K)
+    if cut:
+        notes.append(f"poses {', '.join(map(str, cut))} of {params.poses_file}: part of "
+                     "the board predicted outside the image (nominal mount and target)")
+    return pose_file_steps(config, poses, "train", params.settle_s, notes)
+
+
+def _pose_set(ctx: SolveContext, sol: RobotSolution, K, summary: dict) -> dict[str, Any]:
+    """The identifiability of the training views the solve used (``pose_set_report``,
+    at the refined model, with its residual as the corner noise), into ``summary`` as
+    well; with its warning when the set cannot determine the model."""
+    ref, p = sol.ref, ctx.params
+    report = pose_set_report(ctx.config, list(sol.meas.q), K, ref.model, True,
+                             p.view_distance_m, p.max_tilt_deg, p.seed, ref.X, ref.W,
+                             max(ref.rms, 0.1))
+    summary["pose_set"] = pose_set_note(report)
+    if report["warning"]:
+        summary["warning"] = report["warning"]
+        return {"pose_set": report, "warnings": [report["warning"]]}
+    return {"pose_set": report}
 
 
 def _planned_with(ctx: SolveContext) -> dict[str, Any] | None:
