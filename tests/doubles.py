@@ -15,12 +15,17 @@ from rigctl.drivers.base import Camera, DeviceError, Frame, Head, HeadAngles, St
 
 
 class DoubleHead(Head):
-    """Moves at ``speed`` rad/s in a thread; records every call."""
+    """Moves at ``speed`` rad/s in a thread; records every call. Move number
+    ``hold_on_move`` (1 = the first) stops half-way and stays under way until ``stop``
+    (a latched fault: ``held`` is set once it stands there)."""
 
-    def __init__(self, cfg, speed: float = 2.0, fail_on_move: int | None = None) -> None:
+    def __init__(self, cfg, speed: float = 2.0, fail_on_move: int | None = None,
+                 hold_on_move: int | None = None) -> None:
         self.cfg = cfg
         self.speed = speed
         self.fail_on_move = fail_on_move
+        self.hold_on_move = hold_on_move
+        self.held = threading.Event()
         self.calls: list[str] = []
         self.angles = np.zeros(3)
         self._stop = threading.Event()
@@ -64,6 +69,7 @@ class DoubleHead(Head):
             return status
         target = np.array([pan, tilt, roll])
         self._stop.clear()
+        hold = self.moves == self.hold_on_move
 
         def motion():
             start = self.angles.copy()
@@ -71,6 +77,9 @@ class DoubleHead(Head):
             t0 = time.monotonic()
             while not self._stop.is_set():
                 f = min((time.monotonic() - t0) / duration, 1.0)
+                if hold and f >= 0.5:
+                    f = 0.5
+                    self.held.set()
                 self.angles = start + f * (target - start)
                 status.set_progress(f)
                 if f >= 1.0:

@@ -17,6 +17,7 @@ from rigctl.config import load_rig
 from rigctl.drivers.dynamixel import DynamixelHead
 from rigctl.errors import DeviceError
 from rigctl.mocks.sim import STAND_IN_TIMING
+from rigctl.records import RunDirectory
 from rigctl.runner import Runner
 from tests.mockproc import ROOT, control
 from tests.test_dynamixel import bus, head_config  # noqa: F401 (the bus fixture)
@@ -95,17 +96,21 @@ def test_dropped_rtde_connections_are_reported_as_a_lost_link(arm_proc):  # noqa
 def test_a_run_that_fails_or_is_aborted_still_records_its_devices(bus, tmp_path, end):  # noqa: F811
     """versions.json (each device's describe(): model, firmware, bus transaction counts)
     is written for a run that a device fault fails (servo 2's input voltage out of range
-    once the first capture is taken) or that the operator aborts at the same point: its
-    bus record is the evidence of what went wrong."""
+    when the second capture is taken) or that the operator aborts at the same point: its
+    bus record is the evidence of what went wrong. The captures taken before the end
+    stay on disk, listed by the record, and the head parks home (its default policy)."""
     rig = tmp_path / "rig.yaml"
     head = {"port": bus.ready["link"], "speed_cap_dps": 180, "accel_cap_dps2": 1000,
             **STAND_IN_TIMING["head"]}
     rig.write_text(yaml.safe_dump({"name": "dxl-rig", "records": {"directory": "rec"},
                                    "devices": {"head": head}}))
-    runner = None
+    runner, captures = None, []
 
     def on_event(event):
         if event["type"] == "step" and event["step"].startswith("capture"):
+            captures.append(event["index"])
+            if len(captures) < 2:
+                return
             if end == "failed":
                 control(bus.ready["control"], {"cmd": "set", "id": 2, "voltage": 9.0})
             else:
@@ -126,4 +131,21 @@ def test_a_run_that_fails_or_is_aborted_still_records_its_devices(bus, tmp_path,
     stats = described["bus_stats"]
     assert all(stats[str(i)]["transactions"] > 0 for i in (1, 2, 3))
     assert stats["group"]["transactions"] > 0
+    # the two captures taken (the second before its health check failed the run), on
+    # disk and listed by the record; nothing after them
+    kept = sorted(p.name for p in (Path(outcome.run_dir) / "captures").iterdir())
+    assert kept == ["000.json", "001.json"]
+    shown = subprocess.run([sys.executable, "-m", "rigctl.cli", "runs", "show",
+                            outcome.run_id, "--rig", str(rig), "--json"], capture_output=True,
+                           text=True, timeout=60, cwd=ROOT)
+    assert json.loads(shown.stdout)["captures"] == 2 and json.loads(shown.stdout)["status"] \
+        == end
+    commanded = [RunDirectory(outcome.run_dir).capture(i).meta["head_commanded"]["pan"]
+                 for i in (0, 1)]
+    assert commanded == pytest.approx([math.radians(-6), math.radians(6)])
+    # parked home: goal and present position at the centre on every servo
+    servos = control(bus.ready["control"], {"cmd": "dump"})["servos"]
+    for servo in servos:
+        assert servo["goal_position"] == 2048 and abs(servo["present_position"] - 2048) <= 1, \
+            servo
 

@@ -7,15 +7,16 @@ import math
 import subprocess
 import sys
 import threading
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from rigctl.config import load_rig
 from rigctl.drivers.dynamixel import DynamixelHead
 from rigctl.drivers.ur import URArm
+from rigctl.mocks.sim import STAND_IN_TIMING
 from rigctl.records import RunDirectory
 from rigctl.runner import Runner
 from tests.mockproc import ROOT, control
@@ -114,13 +115,24 @@ def _outcome(thread: threading.Thread, out: dict):
     return out["o"]
 
 
+def _held_mid_move(proc) -> dict:
+    """Wait until the move the stand-in was told to hold (``freeze`` armed before the run)
+    stands held half-way: still under way, however late the test looks. Returns the
+    stand-in's state then."""
+    return wait_until(lambda: (d := control(proc.ready["control"], {"cmd": "dump"}))
+                      ["frozen"] and d, timeout=60, what="joint 6 held half-way")
+
+
 def test_an_operator_abort_stops_the_arm_mid_move_and_parks_it_home(arm_proc, tmp_path):  # noqa: F811
-    """Through the runner and the real ur_rtde driver: abort while joint 6 turns; the run
-    is recorded aborted and the arm's park policy (home) brings it back."""
+    """Through the runner and the real ur_rtde driver: abort while joint 6 turns (held
+    half-way by the stand-in until something ends the move); the run is recorded aborted
+    and the arm's park policy (home) brings it back."""
     runner = Runner(load_rig(_arm_rig(tmp_path, arm_proc.ready["host"])), show_progress=False)
+    control(arm_proc.ready["control"], {"cmd": "freeze", "at_fraction": 0.5})
     thread, out = _sweep_in_thread(runner)
     dump = lambda: control(arm_proc.ready["control"], {"cmd": "dump"})  # noqa: E731
-    wait_until(lambda: abs(dump()["q"][5] - HOME[5]) > math.radians(3), what="joint 6 moving")
+    held = _held_mid_move(arm_proc)
+    assert held["q"][5] == pytest.approx(HOME[5] - math.radians(20), abs=math.radians(0.5))
     runner.abort("operator pressed abort")
     outcome = _outcome(thread, out)
     assert outcome.status == "aborted" and outcome.reason == "operator pressed abort"
@@ -133,14 +145,79 @@ def test_a_protective_stop_mid_run_aborts_it_and_nothing_moves_after(arm_proc, t
     """A fault (protective stop) while the runner moves the arm: the run is recorded
     aborted, naming it, and the park policy does not move a protective-stopped arm."""
     runner = Runner(load_rig(_arm_rig(tmp_path, arm_proc.ready["host"])), show_progress=False)
+    control(arm_proc.ready["control"], {"cmd": "freeze", "at_fraction": 0.5})
     thread, out = _sweep_in_thread(runner)
     dump = lambda: control(arm_proc.ready["control"], {"cmd": "dump"})  # noqa: E731
-    wait_until(lambda: abs(dump()["q"][5] - HOME[5]) > math.radians(3), what="joint 6 moving")
+    held = _held_mid_move(arm_proc)
     control(arm_proc.ready["control"], {"cmd": "protective_stop"})
     outcome = _outcome(thread, out)
     assert outcome.status == "aborted" and "protective stop" in outcome.reason.lower()
     assert RunDirectory(outcome.run_dir).captures() == []
-    stopped_at = dump()["q"][5]
-    assert abs(stopped_at - HOME[5]) > math.radians(3)  # not parked home
-    time.sleep(1.0)  # an observation window, not a wait: nothing may move in it
-    assert dump()["q"][5] == pytest.approx(stopped_at, abs=1e-6)  # still there a second on
+    # the run is over: every device it touched was stopped and closed (its park policy
+    # applied or refused). Nothing is left to move the arm, and it stands where the
+    # protective stop caught it, not parked home, no joint turning.
+    after = dump()
+    assert after["safety_mode"] == 3 and not after["frozen"]
+    assert np.allclose(after["q"], held["q"], atol=1e-9)
+    assert np.allclose(after["qd"], 0.0)
+
+
+def _head_rig(tmp_path, link: str, policy: str = "home") -> Path:
+    """A rig with the head alone on the stand-in's bus, at the timing `sim up` writes for
+    stand-in processes, parking per ``policy``."""
+    rig = tmp_path / "rig.yaml"
+    head = {"port": link, "speed_cap_dps": 120, "accel_cap_dps2": 600,
+            **STAND_IN_TIMING["head"], "park": {"policy": policy}}
+    rig.write_text(yaml.safe_dump({"name": "dxl-rig", "records": {"directory": "records"},
+                                   "devices": {"head": head}}))
+    return rig
+
+
+def servos(sock: str) -> dict[int, dict]:
+    """Each servo's state, by ID, from the stand-in's control socket."""
+    return {s["id"]: s for s in control(sock, {"cmd": "dump"})["servos"]}
+
+
+@pytest.mark.timeout(120)
+def test_an_abort_mid_move_parks_the_real_head_home_and_keeps_the_capture(bus, tmp_path):  # noqa: F811
+    """The runner with the real Dynamixel driver: the second move of a sweep is held
+    half-way by the stand-in (latched), the operator aborts; the run is recorded aborted
+    with the first capture kept, and the park policy (home) leaves every servo's goal
+    and present position at home, motion over, torque on."""
+    sock = bus.ready["control"]
+    heads = []
+
+    def on_event(event):  # the second head move: hold it half-way, whenever it comes
+        if event["type"] == "step" and event["step"].startswith("head"):
+            heads.append(event["index"])
+            if len(heads) == 2:
+                control(sock, {"cmd": "freeze", "id": 1, "at_fraction": 0.5})
+
+    runner = Runner(load_rig(_head_rig(tmp_path, bus.ready["link"])), show_progress=False,
+                    on_event=on_event)
+    out: dict = {}
+    thread = threading.Thread(target=lambda: out.update(o=runner.run(
+        "head-sweep", {"pan_deg": [-20, 10], "tilt_deg": [5], "settle_s": 0.0})), daemon=True)
+    thread.start()
+    try:
+        held = wait_until(lambda: servos(sock)[1]["frozen"] and servos(sock), timeout=60,
+                          what="the second move held half-way")
+    finally:
+        runner.abort("operator pressed abort")
+        thread.join(timeout=60)
+    assert not thread.is_alive()
+    # held away from home: pan half-way from -20 to +10 degrees, tilt at +5
+    assert held[1]["present_position"] == pytest.approx(2048 - 5 * PULSES_PER_DEG, abs=3)
+    assert held[2]["present_position"] == pytest.approx(2048 + 5 * PULSES_PER_DEG, abs=3)
+    outcome = out["o"]
+    assert outcome.status == "aborted" and outcome.reason == "operator pressed abort"
+    captures = RunDirectory(outcome.run_dir).captures()
+    assert [c.index for c in captures] == [0]
+    assert captures[0].meta["head"]["pan"] == pytest.approx(math.radians(-20), abs=1e-3)
+    assert not (Path(outcome.run_dir) / "result.json").exists()
+    parked = servos(sock)
+    for dxl_id in (1, 2, 3):  # home is the centre, 2048, on these servos
+        assert parked[dxl_id]["goal_position"] == 2048, parked[dxl_id]
+        assert abs(parked[dxl_id]["present_position"] - 2048) <= 1, parked[dxl_id]
+        assert parked[dxl_id]["moving"] == 0 and parked[dxl_id]["torque_enable"] == 1
+        assert not parked[dxl_id]["frozen"]

@@ -19,7 +19,7 @@ from rigctl.locks import RigLock
 from rigctl.records import RecordIndex, RunDirectory, utcnow
 from rigctl.runner import Runner, solve_recorded
 from tests.doubles import DoubleCamera, DoubleHead
-from tests.waiting import wait_until
+from tests.service_stack import LockHolder
 
 
 def make_runner(config, head=None, **kw):
@@ -166,48 +166,43 @@ def test_bad_parameter_names_the_parameter(rig_config):
 
 
 def test_second_run_on_same_rig_is_refused_naming_the_holder(rig_config, tmp_path):
-    # Hold the lock from another process, as a concurrent CLI run would.
+    # Hold the lock from another process, as a concurrent CLI run would, until released
+    # (not for a number of seconds that a slow test could outlast).
     lock_dir = rig_config.records_dir() / "locks"
-    code = (
-        "import sys, time; sys.path.insert(0, '.');"
-        "from pathlib import Path; from rigctl.locks import RigLock;"
-        f"l = RigLock(Path({str(lock_dir)!r}), 'test-rig'); l.acquire('run-X');"
-        "print('held', flush=True); time.sleep(30)"
-    )
-    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
-    try:
-        assert proc.stdout.readline().strip() == "held"
+    with LockHolder(lock_dir, "test-rig", "run-X") as holder:
         runner, built = make_runner(rig_config)
         with pytest.raises(BusyError) as info:
             runner.run("head-sweep", SMALL)
-        assert str(info.value) == f"rig 'test-rig' busy, held by run run-X (pid {proc.pid})"
+        assert str(info.value) == \
+            f"rig 'test-rig' busy, held by run run-X (pid {holder.proc.pid})"
         assert built == {}
-    finally:
-        proc.terminate()
-        proc.wait(timeout=5)
     # released when the holder dies
     lock = RigLock(lock_dir, "test-rig")
     lock.acquire("after")
     lock.release()
 
 
-def test_abort_mid_move_stops_parks_and_keeps_captures(rig_config):
+def test_abort_mid_move_stops_closes_and_keeps_captures(rig_config):
+    """The runner's part of an abort: stop, then close, every device it opened (what a
+    real driver's close does, its park policy, is checked with the real head driver in
+    tests/test_park.py)."""
     slow = {"pan_deg": [-20, 20], "tilt_deg": [0], "settle_s": 0.0}
-    built_head = DoubleHead(rig_config.devices.head, speed=math.radians(20))  # 2 s per move
+    # the second move stands half-way (latched) until the runner stops the head
+    built_head = DoubleHead(rig_config.devices.head, hold_on_move=2)
     runner, _built = make_runner(rig_config, head=built_head)
     result = {}
     thread = threading.Thread(target=lambda: result.update(o=runner.run("head-sweep", slow)))
     thread.start()
-    # first move done, capture taken, second move under way
-    wait_until(lambda: sum(c.startswith("move:") for c in built_head.calls) >= 2,
-               what="the second move")
-    runner.abort("operator pressed abort")
-    thread.join(timeout=10)
+    try:  # first move done, capture taken, second move held under way
+        assert built_head.held.wait(30), "the second move never got under way"
+    finally:
+        runner.abort("operator pressed abort")
+        thread.join(timeout=30)
     outcome = result["o"]
     assert outcome.status == "aborted"
     assert outcome.reason == "operator pressed abort"
-    calls = built_head.calls
-    assert "stop" in calls and calls[-2:] == ["close", "park:home"]
+    calls = [c for c in built_head.calls if not c.startswith("park:")]  # the double's own
+    assert calls == ["open", "move:-20.0,0.0", "move:20.0,0.0", "stop", "close"]
     assert len(RunDirectory(outcome.run_dir).captures()) == 1
     assert not (RunDirectory(outcome.run_dir).path / "result.json").exists()
     row = RecordIndex(rig_config.database_url()).get(outcome.run_id)
@@ -223,7 +218,9 @@ def test_device_fault_fails_run_with_reason_and_captures_intact(rig_config):
     assert outcome.status == "failed"
     assert outcome.reason == "DeviceError: head servo 2 (tilt): overload, torque off"
     assert len(RunDirectory(outcome.run_dir).captures()) == 2
-    assert "stop" in head.calls and head.calls[-1] == "park:home"
+    # stopped, then closed (the real drivers' park on close: tests/test_park.py)
+    calls = [c for c in head.calls if not c.startswith("park:")]
+    assert calls[-2:] == ["stop", "close"]
 
 
 def test_run_left_running_by_killed_process_shows_interrupted(rig_config):

@@ -10,7 +10,7 @@ import time
 import httpx
 import pytest
 
-from tests.mockproc import ROOT
+from tests.mockproc import ROOT, control
 from tests.service_stack import (
     REQUEST_TIMEOUT_S,
     LockHolder,
@@ -113,20 +113,33 @@ def test_two_requests_run_one_after_the_other(stack):
     assert ra["ended_at"] <= rb["started_at"]  # FIFO, never together
 
 
+def _head_control(stack) -> str:
+    return stack.sim.ready["head"]["control"]
+
+
+def _pan_held(stack) -> bool:
+    servos = control(_head_control(stack), {"cmd": "dump"})["servos"]
+    return next(s for s in servos if s["id"] == 1)["frozen"]
+
+
 def test_abort_mid_run_and_cli_sees_the_rig_busy(stack):
+    """Once the run's first capture is served, the bus stand-in holds the next pan move
+    half-way (latched): the run is known to be under way while the CLI is refused and
+    the abort comes, however slow the host."""
     params = {"pan_deg": [-20, 20, -20, 20, -20, 20], "tilt_deg": [0, 5], "settle_s": 0.5,
               "image": True}
     run_id = post(stack, "/runs", {"procedure": "head-sweep", "params": params}).json()["run_id"]
     try:
         wait_for(stack, run_id, statuses=("running",), timeout=60)
-        deadline = time.monotonic() + 30
         # served while the run writes its next captures: each one whole (a half-written
         # PNG once broke this response mid-body on a busy host)
-        while (capture := get(f"{stack.base}/runs/{run_id}/captures/0")).status_code \
-                != 200:
-            assert time.monotonic() < deadline
-            time.sleep(0.2)
+        capture = wait_until(lambda: (c := get(f"{stack.base}/runs/{run_id}/captures/0"))
+                             .status_code == 200 and c, timeout=60, poll=0.2,
+                             what="the first capture served")
         assert capture.content[:8] == b"\x89PNG\r\n\x1a\n"
+        control(_head_control(stack), {"cmd": "freeze", "id": 1, "at_fraction": 0.5})
+        wait_until(lambda: _pan_held(stack), timeout=60, what="a pan move held half-way")
+        assert get(f"{stack.base}/runs/{run_id}").json()["status"] == "running"
         cli = subprocess.run([sys.executable, "-m", "rigctl.cli", "run", "head-sweep", "--rig",
                               str(stack.rig)], capture_output=True, text=True, timeout=60,
                              cwd=ROOT)
@@ -138,34 +151,44 @@ def test_abort_mid_run_and_cli_sees_the_rig_busy(stack):
         assert get(f"{stack.base}/runs/{run_id}/captures/0").status_code == 200
     finally:  # a failure above must not leave the run holding the rig for the next test
         post(stack, f"/runs/{run_id}/abort")
+        control(_head_control(stack), {"cmd": "thaw", "id": 1})
         wait_for(stack, run_id)
 
 
+def _lock_holder(lock_dir) -> dict | None:
+    files = list(lock_dir.glob("*.lock"))
+    text = files[0].read_text() if files else ""
+    return json.loads(text) if text else None
+
+
 def test_service_run_while_cli_holds_the_rig_fails_busy(stack):
+    """The CLI run's first move is held half-way by the bus stand-in (latched) until the
+    service's run has been refused; then let go, the CLI run succeeds."""
+    sock = _head_control(stack)
+    control(sock, {"cmd": "freeze", "id": 1, "at_fraction": 0.5})
     cli = subprocess.Popen([sys.executable, "-m", "rigctl.cli", "run", "head-sweep", "--rig",
                             str(stack.rig), "--param", "pan_deg=[-20, 20, -20, 20]",
                             "--param", "settle_s=0.5"], cwd=ROOT, stdout=subprocess.DEVNULL,
                            stderr=subprocess.DEVNULL)
     try:
         lock = stack.tmp / "records" / "locks"
-        deadline = time.monotonic() + 20
-        holder = {}
-        while time.monotonic() < deadline:
-            files = list(lock.glob("*.lock"))
-            text = files[0].read_text() if files else ""
-            if text:
-                holder = json.loads(text)
-                if holder.get("pid") == cli.pid:
-                    break
-            time.sleep(0.1)
-        assert holder.get("pid") == cli.pid, "the CLI run never took the rig"
+        holder = wait_until(lambda: (h := _lock_holder(lock)) and h.get("pid") == cli.pid
+                            and h, timeout=60, poll=0.1, what="the CLI run to take the rig")
+        wait_until(lambda: _pan_held(stack), timeout=60, what="the CLI run's move held")
         body = {"procedure": "head-sweep", "params": {"pan_deg": [0], "tilt_deg": [0]}}
         run_id = post(stack, "/runs", body).json()["run_id"]
-        run = wait_for(stack, run_id, timeout=20)  # the id the API returned stays valid
+        run = wait_for(stack, run_id, timeout=60)  # the id the API returned stays valid
         assert run["status"] == "failed"
         assert f"busy, held by run {holder['run_id']} (pid {cli.pid})" in run["reason"]
+        assert cli.poll() is None  # still held, still running
     finally:
-        cli.wait(timeout=60)
+        control(sock, {"cmd": "thaw", "id": 1})
+        try:
+            cli.wait(timeout=120)
+        finally:
+            if cli.poll() is None:
+                cli.kill()
+                cli.wait(timeout=10)
     assert cli.returncode == 0
 
 

@@ -1,26 +1,73 @@
-"""SIGTERM mid-run: the CLI run and the service both stop the devices, record the run as
-aborted and exit; the captures taken so far are kept."""
+"""SIGTERM mid-run: the CLI run and the service both stop the devices, park them, record
+the run as aborted and exit; the captures taken so far are kept. The signal comes while
+a move is known to be under way: the bus stand-in holds it half-way (latched)."""
 
 from __future__ import annotations
 
 import json
+import math
 import signal
 import subprocess
 import sys
+from pathlib import Path
 
+import cv2
 import httpx
 import pytest
 import yaml
 
 from rigctl.loopback import free_port
 from rigctl.records import RecordIndex
-from tests.mockproc import ROOT
+from tests.mockproc import ROOT, control
 from tests.waiting import wait_until
 
 pytestmark = pytest.mark.integration
 
 SLOW_SWEEP = ["--param", "pan_deg=[-40,-20,0,20,40]", "--param", "tilt_deg=[-20,0,20]",
-              "--param", "settle_s=0.5"]
+              "--param", "settle_s=0.5", "--param", "image=true"]
+
+
+def _held_after_a_capture(sim, index) -> dict:
+    """Once the running run has written its first capture, tell the bus stand-in to hold
+    the pan servo's move under way (or its next) half-way, and wait until it stands
+    there: the run is then mid-move, with its captures so far on disk, for as long as
+    the test needs. Returns the running row and the captures on disk then."""
+    row = wait_until(lambda: (r := _running(index)) and
+                     (Path(r["run_dir"]) / "captures" / "000.json").exists() and r,
+                     timeout=120, what="the run's first capture")
+    sock = sim.ready["head"]["control"]
+    control(sock, {"cmd": "freeze", "id": 1, "at_fraction": 0.5})
+    wait_until(lambda: _servos(sock)[1]["frozen"], timeout=60, what="a pan move held")
+    row["captures_then"] = sorted(p.name for p in (Path(row["run_dir"]) / "captures").iterdir())
+    return row
+
+
+def _servos(sock: str) -> dict[int, dict]:
+    return {s["id"]: s for s in control(sock, {"cmd": "dump"})["servos"]}
+
+
+def _assert_parked_home(sim) -> None:
+    """Every servo's goal and present position at home (the centre), not moving."""
+    for dxl_id, servo in _servos(sim.ready["head"]["control"]).items():
+        assert abs(servo["actual_rad"]) < math.radians(0.1), (dxl_id, servo)
+        assert abs(servo["goal_position"] - servo["present_position"]) <= 1, (dxl_id, servo)
+        assert servo["moving"] == 0 and not servo["frozen"], (dxl_id, servo)
+
+
+def _assert_captures_kept(rig_path, row) -> None:
+    """The captures on disk when the signal came are all there, each image whole, and
+    the record lists them (`rigctl runs show`)."""
+    kept = sorted(p.name for p in (Path(row["run_dir"]) / "captures").iterdir())
+    assert kept == row["captures_then"] and "000.png" in kept
+    shown = subprocess.run([sys.executable, "-m", "rigctl.cli", "runs", "show", row["run_id"],
+                            "--rig", str(rig_path), "--json"], capture_output=True, text=True,
+                           timeout=60, cwd=ROOT)
+    listed = json.loads(shown.stdout)
+    assert listed["captures"] == len([n for n in kept if n.endswith(".json")]) >= 1
+    assert listed["status"] == "aborted" and listed["run_dir"] == row["run_dir"]
+    for name in kept:
+        if name.endswith(".png"):
+            assert cv2.imread(str(Path(row["run_dir"]) / "captures" / name)) is not None
 
 
 def _index(rig_path):
@@ -56,11 +103,14 @@ def test_sigterm_on_a_cli_run_exits_3_and_records_it_aborted(start_sim):
     index = _index(sim.rig_path)
     proc, (out, err), row = _sigterm_once(
         ["run", "head-sweep", "--rig", str(sim.rig_path), "--json", *SLOW_SWEEP],
-        lambda: _running(index), "the run to start", timeout=60)
+        lambda: _held_after_a_capture(sim, index), "a move held after a capture",
+        timeout=120)
     assert proc.returncode == 3, err[-2000:]
     assert json.loads(out)["status"] == "aborted"
-    row = index.get(row["run_id"])
-    assert row["status"] == "aborted" and row["reason"] == "SIGTERM received"
+    recorded = index.get(row["run_id"])
+    assert recorded["status"] == "aborted" and recorded["reason"] == "SIGTERM received"
+    _assert_captures_kept(sim.rig_path, row)
+    _assert_parked_home(sim)
 
 
 @pytest.mark.timeout(180)
@@ -83,11 +133,12 @@ def test_sigterm_on_the_service_mid_run_aborts_the_run_and_exits(start_sim, tmp_
                 return False
 
         wait_until(up, timeout=60, what="the service")
-        params = {"pan_deg": [-40, -20, 0, 20, 40], "tilt_deg": [-20, 0, 20], "settle_s": 0.5}
+        params = {"pan_deg": [-40, -20, 0, 20, 40], "tilt_deg": [-20, 0, 20], "settle_s": 0.5,
+                  "image": True}
         run_id = httpx.post(f"{url}/runs", json={"procedure": "head-sweep", "params": params},
                             timeout=30).json()["run_id"]
-        wait_until(lambda: httpx.get(f"{url}/runs/{run_id}", timeout=30).json()["status"]
-                   == "running", timeout=60, what="the run to start")
+        held = _held_after_a_capture(sim, _index(rig_path))
+        assert held["run_id"] == run_id
         server.send_signal(signal.SIGTERM)
         server.wait(timeout=60)
     finally:
@@ -96,6 +147,8 @@ def test_sigterm_on_the_service_mid_run_aborts_the_run_and_exits(start_sim, tmp_
             server.wait(timeout=10)
     row = _index(rig_path).get(run_id)
     assert row["status"] == "aborted" and "service shutting down" in row["reason"]
+    _assert_captures_kept(rig_path, held)
+    _assert_parked_home(sim)
 
 
 def _processes_naming(text: str) -> list[int]:

@@ -1,7 +1,8 @@
-"""A busy host descheduling a stand-in: each stand-in is paused (SIGSTOP) for 300 ms in the
-middle of a run, through the real clients. With the timing `rigctl sim up` writes, the
-run rides through; with the hardware defaults, the head's stall fails the run with a
-message that names the time spent, the host's load and the rig-file keys to raise."""
+"""A busy host descheduling a stand-in: each stand-in is paused (SIGSTOP) for at least
+300 ms in the middle of a run, on traffic it is known to carry, through the real
+clients. With the timing `rigctl sim up` writes, the run rides through; with the
+hardware defaults, the head's stall fails the run with a message that names the time
+spent, the host's load and the rig-file keys to raise."""
 
 from __future__ import annotations
 
@@ -16,46 +17,112 @@ import yaml
 
 from rigctl.config import load_rig
 from rigctl.runner import Runner
+from tests.mockproc import control
+from tests.waiting import wait_until
 
 pytestmark = pytest.mark.integration
 
 STALL_S = 0.3
 
 
-class Staller:
-    """Pauses a process for ``STALL_S`` from a thread when a run reaches given steps; always
-    resumes it (also from teardown)."""
+class RetriesSeen(logging.Handler):
+    """Sets ``seen`` when the head driver logs a retried transaction ("(try N/M)")."""
 
-    def __init__(self, triggers: dict[int, int]) -> None:
-        self.triggers = dict(triggers)  # step index -> pid
-        self.done: list[tuple[int, int]] = []
+    def __init__(self) -> None:
+        super().__init__(logging.INFO)
+        self.seen = threading.Event()
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if "(try " in record.getMessage():
+            self.seen.set()
+
+
+class Staller:
+    """Pauses stand-ins (SIGSTOP) from a thread when a run reaches given steps, each on
+    traffic it is known to carry, and always resumes them (also from teardown):
+
+    - the head (``head``: step index): servo 1 is told to hold the step's move half-way
+      (the bus stand-in's latched ``freeze``); once it stands there, the driver is known
+      to be polling the move, and the bus is paused until ``head_until()`` holds, then
+      resumed and the move let go (``thaw``);
+    - the arm (``arm``): paused once the stand-in's joints have left where the step found
+      them (the move is under way or done), for ``STALL_S``;
+    - the camera (``camera``): paused at once, for ``STALL_S``.
+    """
+
+    def __init__(self, sim, head: int, arm: int | None = None, camera: int | None = None,
+                 head_until=None) -> None:
+        self.ready = sim.ready
+        self.pids = dict(zip(("head", "arm", "camera"), sim.ready["children"], strict=True))
+        self.triggers = {i: kind for kind, i in (("head", head), ("arm", arm),
+                                                  ("camera", camera)) if i is not None}
+        self.head_until = head_until or (lambda: True)
+        self.done: list[int] = []
+        self.errors: list[BaseException] = []
         self.threads: list[threading.Thread] = []
         self.stopped: set[int] = set()
+        self.released = threading.Event()
 
     def on_event(self, event: dict) -> None:
         if event.get("type") != "step" or event.get("index") not in self.triggers:
             return
-        pid = self.triggers.pop(event["index"])
-        thread = threading.Thread(target=self._stall, args=(event["index"], pid), daemon=True)
+        kind = self.triggers.pop(event["index"])
+        if kind == "head":  # armed before the step's move is sent
+            control(self.ready["head"]["control"], {"cmd": "freeze", "id": 1,
+                                                    "at_fraction": 0.5})
+        before = control(self.ready["arm"]["control"], {"cmd": "dump"})["q"] \
+            if kind == "arm" else None
+        thread = threading.Thread(target=self._stall, args=(kind, before), daemon=True)
         thread.start()
         self.threads.append(thread)
 
-    def _stall(self, index: int, pid: int) -> None:
-        time.sleep(0.05)  # let the step's first transaction go out
-        os.kill(pid, signal.SIGSTOP)
-        self.stopped.add(pid)
+    def _stall(self, kind: str, before) -> None:
+        pid = self.pids[kind]
         try:
-            time.sleep(STALL_S)
-        finally:
-            os.kill(pid, signal.SIGCONT)
-            self.stopped.discard(pid)
-        self.done.append((index, pid))
+            if kind == "head":
+                wait_until(lambda: _servo(self.ready, 1)["frozen"], timeout=60,
+                           what="the head's move held half-way")
+            elif kind == "arm":
+                wait_until(lambda: control(self.ready["arm"]["control"], {"cmd": "dump"})["q"]
+                           != before, timeout=60, what="the arm's move under way")
+            paused = time.monotonic()
+            os.kill(pid, signal.SIGSTOP)
+            self.stopped.add(pid)
+            try:
+                until = self.head_until if kind == "head" else (lambda: True)
+                wait_until(lambda: time.monotonic() - paused >= STALL_S and until(),
+                           timeout=120, poll=0.01, what=f"the end of the {kind}'s stall")
+            finally:
+                os.kill(pid, signal.SIGCONT)
+                self.stopped.discard(pid)
+            if kind == "head":  # the socket's backlog may be full of the camera's asks
+                wait_until(lambda: _ask(self.ready["head"]["control"], {"cmd": "thaw", "id": 1}),
+                           timeout=60, poll=0.05, what="the head's move let go")
+            self.done.append(pid)
+        except BaseException as exc:  # shown by the test, not lost in the thread
+            self.errors.append(exc)
 
     def resume_all(self) -> None:
+        self.released.set()
         for thread in self.threads:
-            thread.join(timeout=5)
+            thread.join(timeout=30)
         for pid in list(self.stopped):
             os.kill(pid, signal.SIGCONT)
+        assert not self.errors, self.errors
+
+
+def _ask(path: str, request: dict) -> dict | None:
+    """One control request; None when the socket cannot take it now (EAGAIN: a backlog
+    left by a stall)."""
+    try:
+        return control(path, request)
+    except BlockingIOError:
+        return None
+
+
+def _servo(ready: dict, dxl_id: int) -> dict:
+    return next(s for s in control(ready["head"]["control"], {"cmd": "dump"})["servos"]
+                if s["id"] == dxl_id)
 
 
 def _survey_steps(config) -> tuple[list[str], Runner]:
@@ -72,32 +139,38 @@ def _first(steps: list[str], word: str, after: int = 0) -> int:
 
 
 @pytest.mark.timeout(240)
-def test_each_stand_in_paused_300ms_mid_run_and_the_run_succeeds(start_sim, caplog):
-    caplog.set_level(logging.INFO, logger="rigctl.drivers.dynamixel")
+def test_each_stand_in_paused_300ms_mid_run_and_the_run_succeeds(start_sim):
+    """Each stand-in paused for at least 300 ms on its own traffic: the head while it is
+    known to be mid-move (held there by the stand-in) until the driver has been seen
+    retrying a timed-out transaction, the arm once its move is under way, the camera at
+    a capture. With the stand-in timing the run rides through all three."""
+    retries = RetriesSeen()
+    logging.getLogger("rigctl.drivers.dynamixel").addHandler(retries)
     sim = start_sim(world="ideal")
     config = load_rig(sim.rig_path)
     steps, _ = _survey_steps(config)
-    pids = dict(zip(("head", "arm", "camera"), sim.ready["children"], strict=True))
     head_move = _first(steps, "head", after=1)
     capture = _first(steps, "capture", after=head_move)
     arm_move = _first(steps, "arm", after=capture + 1)
-    staller = Staller({head_move: pids["head"], capture: pids["camera"],
-                       arm_move: pids["arm"]})
+    staller = Staller(sim, head=head_move, arm=arm_move, camera=capture,
+                      head_until=retries.seen.is_set)
     runner = Runner(config, show_progress=False, on_event=staller.on_event)
     try:
         outcome = runner.run("capture-survey", PARAMS)
     finally:
+        logging.getLogger("rigctl.drivers.dynamixel").removeHandler(retries)
         staller.resume_all()
-    assert sorted(pid for _, pid in staller.done) == sorted(pids.values())
+    assert sorted(staller.done) == sorted(sim.ready["children"])
     assert outcome.status == "succeeded", outcome.reason
-    # the head's stall was felt: transactions timed out and were retried
-    assert any("(try " in r.getMessage() for r in caplog.records
-               if r.name == "rigctl.drivers.dynamixel")
+    assert retries.seen.is_set()  # the head's stall was felt, and ridden through
     assert outcome.result["captures"] == len([s for s in steps if "capture" in s.lower()])
 
 
 @pytest.mark.timeout(240)
 def test_a_stall_past_the_hardware_timing_fails_with_a_load_aware_message(start_sim, tmp_path):
+    """The head paused mid-move (held there by the stand-in, so the driver is polling it)
+    and kept paused until the run is over: with the hardware defaults the driver gives up
+    and the run fails, naming the time spent, the host's load and the keys to raise."""
     sim = start_sim(world="ideal")
     text = yaml.safe_load(sim.rig_path.read_text())
     head = text["devices"]["head"]
@@ -109,12 +182,13 @@ def test_a_stall_past_the_hardware_timing_fails_with_a_load_aware_message(start_
     assert config.devices.head.retry_budget_s() < STALL_S
     steps, _ = _survey_steps(config)
     head_move = _first(steps, "head", after=1)
-    staller = Staller({head_move: sim.ready["children"][0]})
+    staller = Staller(sim, head=head_move, head_until=lambda: staller.released.is_set())
     runner = Runner(config, show_progress=False, on_event=staller.on_event)
     try:
         outcome = runner.run("capture-survey", PARAMS)
     finally:
         staller.resume_all()
+    assert staller.done == [sim.ready["children"][0]]
     assert outcome.status == "failed"
     reason = outcome.reason
     assert "failed after 4 tries in" in reason, reason

@@ -128,6 +128,7 @@ class Servo:
         # a stuck shaft (a test's latched fault): the motion clock stops at ``frozen``,
         # armed to stop once a move has run ``freeze_at`` of its profile's time
         self.freeze_at: float | None = None
+        self.freeze_armed = 0.0  # when it was armed: a move over by then is not held
         self.frozen: float | None = None
         self.last_comm = self.clock()
         self.boot_time = self.clock()
@@ -157,19 +158,25 @@ class Servo:
 
     def _motion_now(self, now: float) -> float:
         """The time the motion has reached: ``now`` unless the shaft is frozen (an armed
-        freeze latches here, at its fraction of the profile, whenever it is looked at)."""
-        if self.frozen is None and self.freeze_at is not None and self.profile.t_total > 0 \
-                and now - self.profile.t0 >= self.freeze_at * self.profile.t_total:
-            self.frozen = self.profile.t0 + self.freeze_at * self.profile.t_total
+        freeze latches here, at its fraction of the profile, whenever it is looked at; a
+        move that had ended when the freeze was armed is not held, and one past the
+        fraction then is held where it was, never taken back)."""
+        p = self.profile
+        if self.frozen is None and self.freeze_at is not None and p.t_total > 0 \
+                and p.t0 + p.t_total > self.freeze_armed \
+                and now - p.t0 >= self.freeze_at * p.t_total:
+            self.frozen = max(p.t0 + self.freeze_at * p.t_total, self.freeze_armed)
             self.freeze_at = None
         return now if self.frozen is None else min(now, self.frozen)
 
     def freeze(self, at_fraction: float) -> None:
-        """Stop the shaft once the current or next move has run ``at_fraction`` of its
-        profile's time (0 to 1); it stays there, moving, until ``thaw``."""
+        """Hold the move under way, or the next one, once it has run ``at_fraction`` of
+        its profile's time (0 to 1): the shaft stays there, moving, until ``thaw`` or
+        until a new goal position ends that move (as a stop or a park writes one)."""
         if not 0.0 <= at_fraction < 1.0:
             raise ValueError(f"freeze at_fraction {at_fraction} outside [0, 1)")
-        self.freeze_at = at_fraction
+        self.update()
+        self.freeze_at, self.freeze_armed = at_fraction, self.clock()
         self.update()
 
     def thaw(self) -> None:
@@ -381,6 +388,7 @@ class Servo:
     def _start_move(self, target: float, now: float) -> None:
         pos, _ = self.profile.at(self._motion_now(now))
         self.actual = pos
+        self.frozen = None  # a new goal ends a held move: the new one starts where it is
         v, a = self.values["profile_velocity"], self.values["profile_acceleration"]
         if self.values["drive_mode"] & 0x04:  # time-based profile: v = total ms, a = accel ms
             t_total = v / 1000.0

@@ -22,8 +22,9 @@ Control socket (JSON lines, one reply line per request)::
     {"cmd": "set", "id": 1, "heating_c_per_s": 2.0}   (heat under load; 0 stops heating)
     {"cmd": "dump"}           {"cmd": "stats"}
     {"cmd": "freeze", "id": 1, "at_fraction": 0.5}   {"cmd": "thaw", "id": 1}
-        (a stuck shaft, latched: once the current or next move has run that fraction of
-        its profile's time it stays there, still moving, until thawed)
+        (a held move, latched: once the move under way or the next one has run that
+        fraction of its profile's time it stays there, still moving, until thawed or until
+        a new goal position ends that move)
 """
 
 from __future__ import annotations

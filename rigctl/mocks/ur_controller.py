@@ -19,7 +19,9 @@ handshake (see ``shared/reference/ur-controller-protocol.md``)::
 Prints one JSON ready line and runs until SIGTERM. Control socket (JSON lines):
 ``protective_stop``, ``emergency_stop``, ``release_estop``, ``drop_connections``,
 ``stall_stream`` (for ``seconds``, or until ``resume_stream`` when none is given: a
-latched fault), ``resume_stream``, ``dump``.
+latched fault), ``resume_stream``, ``freeze`` (``at_fraction``: the move under way or the
+next one holds once it has run that fraction of its time, latched until ``thaw`` or until
+a new motion command ends it), ``thaw``, ``dump``.
 """
 
 from __future__ import annotations
@@ -225,6 +227,10 @@ class Controller:
         self.watchdog_hz = 0.0
         self.last_input = time.monotonic()
         self.stall_until = 0.0
+        # a held move (a test's latched fault, ``freeze``): armed at a fraction of the
+        # next (or current) move's time; ``held`` is the move standing still
+        self.freeze_at: float | None = None
+        self.held = None
         self.estop = False
         self.messages: list[str] = []
         self.snapshot: dict = {}
@@ -465,8 +471,41 @@ class Controller:
             self._update_snapshot()
             self.tick_cond.notify_all()
 
+    def freeze(self, at_fraction: float) -> None:
+        """Hold the move under way, or the next joint or linear move, once it has run
+        ``at_fraction`` of its time: the arm stands still there, the move not done, until
+        ``thaw`` or until a new motion command (a stop, another move) replaces it."""
+        if not 0.0 <= at_fraction < 1.0:
+            raise ValueError(f"freeze at_fraction {at_fraction} outside [0, 1)")
+        with self.lock:
+            self.freeze_at, self.held = at_fraction, None
+
+    def thaw(self) -> None:
+        """Let a held move go on from where it stands (and disarm a freeze not yet due)."""
+        with self.lock:
+            self.freeze_at, self.held = None, None
+
+    def _holding(self) -> bool:
+        """Whether the move stands still this tick (latching an armed freeze when its
+        move has run far enough); a held move's clock stops with it."""
+        m = self.motion
+        if self.held is not None and self.held is not m:
+            self.held = None  # a new motion command ended the held move
+        if self.held is None and self.freeze_at is not None \
+                and isinstance(m, (JointMove, LinearMove)) and m.total > 0 \
+                and m.progress(self.t) >= self.freeze_at:
+            self.held, self.freeze_at = m, None
+            return False  # this tick's step lands where it holds
+        if self.held is None:
+            return False
+        m.t0 += PERIOD
+        return True
+
     def _advance_motion(self) -> None:
         if self.motion is None:
+            self.qd = np.zeros(6)
+            return
+        if self._holding():
             self.qd = np.zeros(6)
             return
         q, qd, done = self.motion.step(self.t)
@@ -569,6 +608,7 @@ class Controller:
                     "runtime_state": self.runtime_state, "robot_mode": self.robot_mode,
                     "safety_mode": self.safety_mode, "out_int": self.out_int[:4],
                     "messages": self.messages[-20:], "model": self.model_name,
+                    "frozen": self.held is not None and self.held is self.motion,
                     "version": list(self.version), "seen": self.seen,
                     "joint_speed_max": self.speed_max.tolist(),
                     "joint_limits": [None if math.isinf(v) else v for v in self.limits]}
@@ -870,6 +910,10 @@ class Server:
             ctrl.stall_until = math.inf if seconds is None else time.monotonic() + float(seconds)
         elif cmd == "resume_stream":
             ctrl.stall_until = 0.0
+        elif cmd == "freeze":
+            ctrl.freeze(float(request.get("at_fraction", 0.5)))
+        elif cmd == "thaw":
+            ctrl.thaw()
         elif cmd == "dump":
             return {"ok": True, **ctrl.dump()}
         else:
