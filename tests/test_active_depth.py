@@ -60,7 +60,7 @@ def test_active_camera_on_a_random_world_estimates_the_offset_from_the_axes():
     tangential distortion): with the depths the arm's move measured, the offset across
     the optical axis comes back to 0.1 mm, and the intrinsics meet the truth within
     their sigma. Without depths the centre was 6.5 px off (2 distortion terms: 0.1)."""
-    row = world_trial((2005, None, 0.010))
+    row = world_trial((2005, None, 0.010, 0.0, True))  # encoders reading the goal
     assert "error" not in row, row.get("error")
     assert row["parallax"]["estimated"]
     got, true = row["parallax"]["centre_offset_mm"], row["camera_offset_mm"]

@@ -21,7 +21,11 @@ and more were all predicted from it and lost (0-5 of 56 contours tracked), and t
 centre came out 7.4 px off with a sigma of 0.35 px (z 18). Rolls tracked 45 degrees at a
 time, each roll's predictions first moved together by one shift for the whole image: 0.4
 px. (Tiers alone broke seed 24, whose pans' centre is 30 px off: its +-45 degree rolls
-kept 3 of 24 contours, and the model predicting the larger ones came out 1 % off.)"""
+kept 3 of 24 contours, and the model predicting the larger ones came out 1 % off.)
+
+These trials give the solver the commanded head angles (``ideal`` encoders), as they
+were written for. The random worlds' servos read their angles quantized to a pulse with
+noise (``head.encoder: hardware``): what that costs is the last test here."""
 
 from __future__ import annotations
 
@@ -36,7 +40,7 @@ pytestmark = pytest.mark.heavy
 @pytest.mark.timeout(600)
 @pytest.mark.parametrize("seed", [24, 38, 26, 11015, 70038])
 def test_default_plan_meets_the_truth_of_an_unseen_world(seed):
-    row = world_trial((seed, None, 0.010))
+    row = world_trial((seed, None, 0.010, 0.0, True))
     assert "error" not in row, row.get("error")
     assert row["focal_pct"] < 0.05, row
     assert row["centre_px"] < 1.0, row
@@ -57,7 +61,7 @@ def test_an_offset_that_one_contour_carries_is_reported_uncertain():
     sees that one contour carries the offset: |z| < 3. (The error itself is a known
     limitation; the bounds on it catch a regression.) The result names that contour, the
     far one, for the operator."""
-    row = world_trial((62019, None, 0.010))
+    row = world_trial((62019, None, 0.010, 0.0, True))
     assert "error" not in row, row.get("error")
     assert row["focal_pct"] < 0.3 and row["centre_px"] < 5.0, row
     assert max(abs(z) for z in row["z"].values()) < 3.0, row["z"]
@@ -66,3 +70,20 @@ def test_an_offset_that_one_contour_carries_is_reported_uncertain():
     assert {"fx", "fy"} <= set(carried["parameters"]), carried
     assert carried["depth_m"] > 1.5 and carried["others_median_depth_m"] < 0.7, carried
 
+
+
+# a hang guard, as above
+@pytest.mark.timeout(600)
+def test_quantized_head_encoders_are_covered_by_the_reported_sigma():
+    """Seed 26 with its servos' own encoders (XM540 pan and tilt, XH430 roll: readings
+    quantized to 0.088 deg, with about half a pulse of noise): the refinement takes the
+    recorded angles as exact, so an error of a few hundredths of a degree on a 3-25 degree
+    rotation moves the focal length by about 0.5 % and the centre by a few px, against
+    0.003 % and 0.1 px with the commanded angles. A known limitation (the head's angles
+    are not yet estimated); the reported sigma grows with the misfit and covers the error,
+    which is what this holds."""
+    row = world_trial((26, None, 0.010))
+    assert "error" not in row, row.get("error")
+    assert row["encoders"] == "hardware"
+    assert row["focal_pct"] < 1.5 and row["centre_px"] < 15.0, row
+    assert max(abs(z) for z in row["z"].values()) < 4.0, row["z"]

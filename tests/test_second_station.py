@@ -84,7 +84,7 @@ def test_a_second_station_pins_the_offset_one_far_contour_carried():
     from one station the focal length comes out 0.11 % low and the centre 2.2 px off
     (``test_active_random_worlds``); with a second station 0.2 m back, 0.05 % and
     0.6 px, within 3 sigma."""
-    row = world_trial((62019, None, 0.010, 0.2))
+    row = world_trial((62019, None, 0.010, 0.2, True))  # encoders reading the goal
     assert "error" not in row, row.get("error")
     assert isinstance(row["second_station"], dict), row.get("second_station")
     assert sum(n > 0 for n in row["second_station"]["tracked"].values()) >= 6

@@ -114,15 +114,26 @@ def _search_shifts(emap: EdgeMap, base: np.ndarray, xs: np.ndarray, ys: np.ndarr
     """``_search`` over the integer shifts from xs[0] to xs[-1] and ys[0] to ys[-1], with
     the template's points rounded to whole pixels: one correlation of the template's
     raster with the near-edge map (``cv2.matchTemplate``) instead of an interpolation per
-    point and shift. Returns the scores and the shifts they are for."""
-    pts = np.round(base).astype(int)
+    point and shift. Returns the scores and the shifts they are for.
+
+    Points that no shift in the range brings into the image score nothing and are left
+    out of the correlation (they still count in the mean): a prediction far off the image
+    (a point turned behind the camera by a wrong model) would otherwise size the raster
+    by its own coordinates."""
+    near = _near(emap)
+    h, w = near.shape
+    n_points = len(base)
+    reach = (base[:, 0] + xs[-1] >= -1) & (base[:, 0] + xs[0] <= w) \
+        & (base[:, 1] + ys[-1] >= -1) & (base[:, 1] + ys[0] <= h)
+    x0, x1 = int(np.floor(xs[0])), int(np.ceil(xs[-1]))
+    y0, y1 = int(np.floor(ys[0])), int(np.ceil(ys[-1]))
+    if not reach.any():
+        return (np.zeros((y1 - y0 + 1, x1 - x0 + 1), np.float32),
+                np.arange(x0, x1 + 1, dtype=float), np.arange(y0, y1 + 1, dtype=float))
+    pts = np.round(base[reach]).astype(int)
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     kernel = np.zeros((hi[1] - lo[1] + 1, hi[0] - lo[0] + 1), np.float32)
     np.add.at(kernel, (pts[:, 1] - lo[1], pts[:, 0] - lo[0]), 1.0)
-    x0, x1 = int(np.floor(xs[0])), int(np.ceil(xs[-1]))
-    y0, y1 = int(np.floor(ys[0])), int(np.ceil(ys[-1]))
-    near = _near(emap)
-    h, w = near.shape
     top, left = lo[1] + y0, lo[0] + x0
     bottom, right = hi[1] + y1 + 1, hi[0] + x1 + 1
     region = np.zeros((bottom - top, right - left), np.float32)  # zero beyond the image
@@ -130,7 +141,7 @@ def _search_shifts(emap: EdgeMap, base: np.ndarray, xs: np.ndarray, ys: np.ndarr
     sy1, sx1 = min(bottom, h), min(right, w)
     if sy1 > sy0 and sx1 > sx0:
         region[sy0 - top:sy1 - top, sx0 - left:sx1 - left] = near[sy0:sy1, sx0:sx1]
-    scores = cv2.matchTemplate(region, kernel, cv2.TM_CCORR) / len(pts)
+    scores = cv2.matchTemplate(region, kernel, cv2.TM_CCORR) / n_points
     return scores, np.arange(x0, x1 + 1, dtype=float), np.arange(y0, y1 + 1, dtype=float)
 
 
