@@ -31,7 +31,7 @@ TEST_WORKERS ?= 2
 
 test: $(STAMP)
 	$(VENV)/bin/ruff check .
-	$(VENV)/bin/python -m pytest -q -n $(TEST_WORKERS) --dist loadgroup
+	$(VENV)/bin/python -m pytest -q -n $(TEST_WORKERS) --dist loadgroup --durations=25
 
 # The suite on a busy machine: 3 runs of everything with two cores kept busy, then 10 runs
 # of the end-to-end tests with one (tools/load_check.py; logs in load-check-logs/).

@@ -32,7 +32,9 @@ from rigctl.service import RigService, create_app
 from rigctl.simrig import SimulatedRig
 from tests.mockproc import ROOT
 
-pytestmark = pytest.mark.integration
+# one worker runs the module, so its simulated rig and first run are made once
+pytestmark = [pytest.mark.integration, pytest.mark.xdist_group("curate-poses"),
+              pytest.mark.heavy]
 
 # hand-eye targets in this world (tests/test_e2e_default_world.py: 5 mm, 2 deg with the
 # nominal arm); with the controller's model and the true intrinsics it does far better

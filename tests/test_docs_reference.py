@@ -35,6 +35,10 @@ def _load_hook() -> types.ModuleType:
     return module
 
 
+# one worker runs the module, so the site is generated once
+pytestmark = pytest.mark.xdist_group("docs-reference")
+
+
 @pytest.fixture(scope="module")
 def pages() -> dict[str, str]:
     """The generated reference pages (the service extra builds the API page)."""

@@ -16,7 +16,7 @@ import pytest
 
 from tests.mockproc import ROOT
 
-pytestmark = pytest.mark.integration
+pytestmark = [pytest.mark.integration, pytest.mark.heavy]
 
 
 def rigctl(*args, timeout=1200):  # a hang guard, not a timing claim

@@ -111,8 +111,8 @@ class FakeRun:
 
 
 def observations(views) -> list[dict]:
-    return [{"label": v.label, "kind": v.kind, "joint": v.joint, "found": True, "q": v.q,
-             "corners": v.corners, "C": v.C} for v in views]
+    return [{"label": v.label, "kind": v.kind, "index": k, "joint": v.joint, "found": True,
+             "q": v.q, "corners": v.corners, "C": v.C} for k, v in enumerate(views)]
 
 
 def versions_with(kinematics: dict | None, hash_only: str | None = None) -> dict:

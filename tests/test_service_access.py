@@ -193,6 +193,10 @@ def test_figures_without_the_plots_extra_say_which(tmp_path, monkeypatch):
     monkeypatch.delitem(sys.modules, "rigctl.console.plots", raising=False)
     monkeypatch.delattr(rigctl.console, "plots", raising=False)
     monkeypatch.setitem(sys.modules, "matplotlib", None)
+    # a worker that ran other tests first has matplotlib's submodules loaded, and an
+    # import of one of those would not look at the package's entry: hide them too
+    for name in [m for m in sys.modules if m.startswith("matplotlib.")]:
+        monkeypatch.delitem(sys.modules, name)
     with _client(tmp_path, f"{{token: {TOKEN}}}") as api:
         r = api.get("/console/history/active-camera.png")
         assert r.status_code == 404 and "pip install 'rigctl[plots]'" in r.json()["detail"]

@@ -27,7 +27,9 @@ from tests.mockproc import ROOT
 from tests.service_stack import REQUEST_TIMEOUT_S, start_sim
 from tests.waiting import wait_until
 
-pytestmark = pytest.mark.integration
+# one worker runs the module, so its service and run are made once
+pytestmark = [pytest.mark.integration, pytest.mark.xdist_group("token-leak"),
+              pytest.mark.heavy]
 
 # long and random: it cannot turn up anywhere by chance
 TOKEN = "tok-" + secrets.token_urlsafe(24)
