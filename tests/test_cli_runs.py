@@ -54,7 +54,9 @@ class CliRun:
 def head_rig(tmp_path: Path, link: str) -> Path:
     """The head alone on the stand-in's bus, parking home (the default policy)."""
     rig = tmp_path / "rig.yaml"
-    head = {"port": link, "speed_cap_dps": 120, "accel_cap_dps2": 600,
+    # a move held by the stand-in (``freeze``) waits for the test's signal, however busy
+    # the host: the move timeout is only a hang guard here
+    head = {"port": link, "speed_cap_dps": 120, "accel_cap_dps2": 600, "move_timeout_s": 120,
             **STAND_IN_TIMING["head"]}
     rig.write_text(yaml.safe_dump({"name": "dxl-rig", "records": {"directory": "records"},
                                    "devices": {"head": head}}))
@@ -118,7 +120,7 @@ def test_ctrl_c_ends_a_run_with_exit_3_keeps_its_captures_and_parks(bus, tmp_pat
         out, err = run.finish()
     finally:
         run.stop()
-    assert run.proc.returncode == 3, err[-2000:]
+    assert run.proc.returncode == 3, (out[-2000:], err[-2000:])
     outcome = json.loads(out)
     assert outcome["status"] == "aborted" and outcome["reason"] == "interrupted by Ctrl-C"
     assert outcome["operator_stop"] is True
@@ -161,9 +163,9 @@ def test_a_protective_stop_refuses_runs_until_arm_unlock_then_a_run_succeeds(arm
     outcome = json.loads(refused.stdout)
     assert outcome["status"] == "aborted" and "protective stop" in outcome["reason"]
     assert "rigctl arm unlock" in outcome["reason"]
-    # exit 3, aborted; about one exit in ten here ends in ur_rtde's SIGSEGV after the
+    # exit 3, aborted; about one exit in ten here ends in ur_rtde's SIGSEGV or SIGABRT after the
     # outcome is printed and recorded (the known doubt of tests/test_faults.py)
-    assert refused.returncode in (3, -signal.SIGSEGV), refused.stderr[-2000:]
+    assert refused.returncode in (3, -signal.SIGSEGV, -signal.SIGABRT), refused.stderr[-2000:]
     assert only_run(rig)["status"] == "aborted"
     assert control(sock, {"cmd": "dump"})["q"] == pytest.approx(list(HOME), abs=1e-9)
     unlocked = rigctl("arm", "unlock", "--rig", str(rig))

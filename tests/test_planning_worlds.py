@@ -57,6 +57,7 @@ def test_target_out_of_reach_is_refused_before_motion():
 
 
 @pytest.mark.heavy
+@pytest.mark.timeout(600)  # a hang guard: ~70 s idle, past 120 s under the load check
 def test_a_board_at_the_edge_of_the_reach_gets_a_leaning_sweep_base():
     """Random world 9078 (a UR3e, its board near the edge of the reach): no straight
     view is reachable at any distance tried, so the sweeps start from a view leaning
