@@ -23,19 +23,24 @@ from rigctl.errors import SolveError
 from rigctl.geometry.kinematics import nominal_ur
 
 from .base import Params, Procedure, SolveContext
-from .intrinsics import camera_model, intrinsics_from
+from .intrinsics import camera_model
 from .planning import (
     load_pose_file,
     planning_arm,
     planning_K,
-    pose_file_record,
     pose_file_steps,
     pose_set_note,
     pose_set_report,
     poses_out_of_view,
     view_steps,
 )
-from .robot_common import board_observations, capture_use, controller_model, left_out_views
+from .robot_common import (
+    arm_view_inputs,
+    board_observations,
+    capture_use,
+    controller_model,
+    left_out_views,
+)
 
 
 class HandEyeParams(Params):
@@ -86,16 +91,7 @@ class HandEye(Procedure):
         return pose_file_steps(config, poses, "view", params.settle_s, notes)
 
     def resolve_inputs(self, params: HandEyeParams, config) -> dict[str, Any]:
-        """The intrinsics, the arm model the plan used (``planning_arm``), and the pose
-        file's poses when there is one."""
-        inputs = {"intrinsics": intrinsics_from(config, params.intrinsics,
-                                                params.allow_settings_change),
-                  "arm_model": planning_arm(config, params.use_controller_model,
-                                            fresh=False).record()}
-        if params.poses_file:
-            inputs["pose_file"] = pose_file_record(
-                params.poses_file, load_pose_file(params.poses_file, config))
-        return inputs
+        return arm_view_inputs(params, config)
 
     def solve(self, ctx: SolveContext) -> dict[str, Any]:
         intr = ctx.input("intrinsics")

@@ -4,6 +4,7 @@ recorded it, the board observations of the captures, the export format."""
 from __future__ import annotations
 
 import logging
+from typing import Any
 
 import numpy as np
 
@@ -13,8 +14,15 @@ from rigctl.config import RigConfig
 from rigctl.geometry.kinematics import KinematicModel, nominal_ur
 from rigctl.geometry.transforms import inv_T
 
-from .intrinsics import camera_model
-from .planning import controller_dh_model, nominal_flange_cam, target_centre
+from .intrinsics import camera_model, intrinsics_from
+from .planning import (
+    controller_dh_model,
+    load_pose_file,
+    nominal_flange_cam,
+    planning_arm,
+    pose_file_record,
+    target_centre,
+)
 
 log = logging.getLogger(__name__)
 
@@ -110,3 +118,17 @@ def capture_use(ctx, obs: list[dict], rejected: dict[int, str] | None = None
             "excluded": sorted(getattr(ctx.run, "excluded", ())),
             "rejected": [{"index": i, "label": labels.get(i), "reason": r}
                          for i, r in sorted(why.items())]}
+
+
+def arm_view_inputs(params, config) -> dict[str, Any]:
+    """What hand-eye and robot-kinematics resolve before they move: the intrinsics, the
+    arm model the plan used (``planning.planning_arm``), and the pose file's poses when
+    there is one."""
+    inputs = {"intrinsics": intrinsics_from(config, params.intrinsics,
+                                            params.allow_settings_change),
+              "arm_model": planning_arm(config, params.use_controller_model,
+                                        fresh=False).record()}
+    if params.poses_file:
+        inputs["pose_file"] = pose_file_record(
+            params.poses_file, load_pose_file(params.poses_file, config))
+    return inputs

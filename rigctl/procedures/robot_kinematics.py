@@ -58,7 +58,7 @@ from .base import (
     Settle,
     SolveContext,
 )
-from .intrinsics import camera_model, default_prior_sigma, intrinsics_from
+from .intrinsics import camera_model, default_prior_sigma
 from .planning import (
     CLOSER,
     aligned_spin,
@@ -72,7 +72,6 @@ from .planning import (
     plan_target_views,
     planning_arm,
     planning_K,
-    pose_file_record,
     pose_file_steps,
     pose_set_note,
     pose_set_report,
@@ -80,6 +79,7 @@ from .planning import (
     visible_views,
 )
 from .robot_common import (
+    arm_view_inputs,
     board_observations,
     capture_use,
     controller_model,
@@ -306,16 +306,7 @@ class RobotKinematics(Procedure):
         return steps
 
     def resolve_inputs(self, params: RobotKinematicsParams, config) -> dict[str, Any]:
-        """The intrinsics, the arm model the plan used (``planning_arm``), and the pose
-        file's poses when there is one."""
-        inputs = {"intrinsics": intrinsics_from(config, params.intrinsics,
-                                                params.allow_settings_change),
-                  "arm_model": planning_arm(config, params.use_controller_model,
-                                            fresh=False).record()}
-        if params.poses_file:
-            inputs["pose_file"] = pose_file_record(
-                params.poses_file, load_pose_file(params.poses_file, config))
-        return inputs
+        return arm_view_inputs(params, config)
 
     def solve(self, ctx: SolveContext) -> dict[str, Any]:
         """Thesis 4.3 on the run's board views (``rigctl.calib.robot_pipeline``)."""
