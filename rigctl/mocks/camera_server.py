@@ -38,9 +38,40 @@ from rigctl.mocks.world import World, load_world
 # and stillness rules and showed the previous pose.
 MAX_FRAME_AGE_S = 0.5
 
+# Pixel noise comes from a few fields drawn once, each frame a window at a random offset
+# into one of them: drawing 0.9 M normals per frame cost as much as the rendering. Windows
+# at random offsets into random fields are uncorrelated pixel for pixel, which is all that
+# detection and the stillness check see.
+NOISE_FIELDS = 4
+NOISE_MARGIN_PX = 64
+
+
+class PixelNoise:
+    """Gaussian pixel noise of ``sigma`` grey levels for images of ``shape`` (h, w)."""
+
+    def __init__(self, shape: tuple[int, int], sigma: float, seed: int) -> None:
+        self.rng = np.random.default_rng(seed)
+        h, w = shape
+        self.shape = shape
+        self.fields = [self.rng.standard_normal((h + NOISE_MARGIN_PX, w + NOISE_MARGIN_PX),
+                                                np.float32) * np.float32(sigma)
+                       for _ in range(NOISE_FIELDS if sigma > 0 else 0)]
+
+    def add(self, image: np.ndarray) -> np.ndarray:
+        """``image`` (uint8) with a fresh window of noise added, rounded and clipped."""
+        if not self.fields:
+            return image
+        h, w = self.shape
+        field = self.fields[int(self.rng.integers(len(self.fields)))]
+        dy, dx = (int(v) for v in self.rng.integers(0, NOISE_MARGIN_PX + 1, size=2))
+        noisy = image.astype(np.float32) + field[dy:dy + h, dx:dx + w]
+        return np.clip(noisy + 0.5, 0, 255).astype(np.uint8)
+
 
 class Camera:
-    """Renders frames at the world's fps from the live head and arm state."""
+    """Renders frames at the world's fps from the live head and arm state, while someone
+    watches (a stream client or a snapshot): a camera nobody reads costs nothing. The
+    noiseless picture is rendered again only when the head or the arm moved."""
 
     def __init__(self, world: World, head: Client, arm: Client,
                  head_ids: list[int]) -> None:
@@ -52,6 +83,25 @@ class Camera:
         self.rendered = 0
         self.dropped = 0
         self.render_s: list[float] = []
+        self.viewers = 0
+        self._still: tuple[tuple, np.ndarray] | None = None  # (state, noiseless image)
+        self.noise = PixelNoise((world.size[1], world.size[0]), world.spec.camera.pixel_noise,
+                                world.spec.seed)
+
+    def watch(self, change: int) -> None:
+        """One viewer more (``+1``) or fewer (``-1``); rendering runs while any watch."""
+        with self.cond:
+            self.viewers += change
+            self.cond.notify_all()
+
+    def picture(self, angles: tuple, q: np.ndarray) -> np.ndarray:
+        """The frame at head ``angles`` and joints ``q``: noiseless render (reused while
+        nothing moved) plus fresh pixel noise."""
+        key = (tuple(angles), tuple(np.asarray(q, float).tolist()))
+        if self._still is None or self._still[0] != key:
+            image = self.world.render(self.world.T_base_cam(q, angles), noise=False)
+            self._still = (key, image)
+        return self.noise.add(self._still[1])
 
     def state(self) -> tuple[tuple[float, float, float], np.ndarray]:
         angles = [0.0, 0.0, 0.0]
@@ -73,12 +123,17 @@ class Camera:
         next_t = time.monotonic()
         index = 0
         while self.running:
+            with self.cond:
+                if self.viewers <= 0:  # nobody reads: wait for a viewer, render nothing
+                    self.cond.wait_for(lambda: self.viewers > 0 or not self.running, 0.5)
+                    next_t = time.monotonic()
+                    continue
             next_t += period
             if time.monotonic() >= self.stall_until:
                 t_sample = time.time()
                 angles, q = self.state()
                 t0 = time.perf_counter()
-                image = self.world.render(self.world.T_base_cam(q, angles), index)
+                image = self.picture(angles, q)
                 _ok, jpeg = cv2.imencode(".jpg", image, quality)
                 self.render_s.append(time.perf_counter() - t0)
                 self.render_s = self.render_s[-200:]
@@ -116,24 +171,37 @@ def make_handler(camera: Camera):
                 self.send_header("Cache-Control", "no-cache")
                 self.end_headers()
                 seq = -1
-                while camera.running:
-                    frame = camera.wait_frame(seq, timeout=1.0)
-                    if frame is None or frame["seq"] == seq:
-                        continue
-                    seq = frame["seq"]
-                    if time.time() - frame["t_sample"] > MAX_FRAME_AGE_S:
-                        camera.dropped += 1
-                        continue
-                    part = (b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: %d\r\n"
-                            b"X-Sequence: %d\r\nX-Timestamp: %.6f\r\n\r\n"
-                            % (len(frame["jpeg"]), seq, frame["t_sample"]))
-                    try:
-                        self.wfile.write(part + frame["jpeg"] + b"\r\n")
-                        self.wfile.flush()
-                    except OSError:
-                        return
+                camera.watch(+1)
+                try:
+                    while camera.running:
+                        frame = camera.wait_frame(seq, timeout=1.0)
+                        if frame is None or frame["seq"] == seq:
+                            continue
+                        seq = frame["seq"]
+                        if time.time() - frame["t_sample"] > MAX_FRAME_AGE_S:
+                            camera.dropped += 1
+                            continue
+                        part = (b"--frame\r\nContent-Type: image/jpeg\r\n"
+                                b"Content-Length: %d\r\nX-Sequence: %d\r\n"
+                                b"X-Timestamp: %.6f\r\n\r\n"
+                                % (len(frame["jpeg"]), seq, frame["t_sample"]))
+                        try:
+                            self.wfile.write(part + frame["jpeg"] + b"\r\n")
+                            self.wfile.flush()
+                        except OSError:
+                            return
+                finally:
+                    camera.watch(-1)
             elif self.path.startswith("/snapshot"):
-                frame = camera.wait_frame(-1)
+                last = camera.frame["seq"] if camera.frame is not None else -1
+                camera.watch(+1)
+                try:  # a frame rendered for this request, not one left from long ago
+                    frame = camera.wait_frame(last, timeout=5.0)
+                finally:
+                    camera.watch(-1)
+                if frame is None:
+                    self.send_error(503, "no frame rendered within 5 s")
+                    return
                 self.send_response(200)
                 self.send_header("Content-Type", "image/jpeg")
                 self.send_header("Content-Length", str(len(frame["jpeg"])))

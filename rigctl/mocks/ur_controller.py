@@ -179,6 +179,31 @@ def load_arm_section(path: str | None) -> dict:
     return data.get("arm", data) or {}
 
 
+_ZERO6 = np.zeros(6)
+# RTDE output fields that the stand-in holds constant (read-only arrays: a snapshot is
+# shared with the stream threads and never changed in place)
+_CONSTANT_FIELDS = {
+    "target_qdd": _ZERO6, "target_current": _ZERO6, "target_moment": _ZERO6,
+    "actual_current": np.full(6, 0.3), "joint_control_output": _ZERO6,
+    "actual_TCP_force": _ZERO6, "actual_digital_input_bits": 0,
+    "joint_temperatures": np.full(6, 31.5), "actual_execution_time": 0.4,
+    "joint_mode": [253] * 6, "actual_tool_accelerometer": [0.0, 0.0, 9.81],
+    "speed_scaling": 1.0, "target_speed_fraction": 1.0, "actual_momentum": 0.0,
+    "actual_main_voltage": 48.0, "actual_robot_voltage": 48.0,
+    "actual_robot_current": 0.8, "actual_joint_voltage": np.full(6, 47.9),
+    "actual_digital_output_bits": 0,
+    "standard_analog_input0": 0.0, "standard_analog_input1": 0.0,
+    "standard_analog_output0": 0.0, "standard_analog_output1": 0.0,
+    "ft_raw_wrench": _ZERO6, "payload_cog": [0.0, 0.0, 0.0], "payload_inertia": _ZERO6,
+    "actual_current_as_torque": _ZERO6, "elbow_velocity": [0.0, 0.0, 0.0],
+}
+for _value in _CONSTANT_FIELDS.values():
+    if isinstance(_value, np.ndarray):
+        _value.flags.writeable = False
+_OUT_INT_NAMES = [f"output_int_register_{i}" for i in range(48)]
+_OUT_DOUBLE_NAMES = [f"output_double_register_{i}" for i in range(48)]
+
+
 class Controller:
     """Robot state, the running control script, and the 500 Hz loop."""
 
@@ -549,45 +574,35 @@ class Controller:
                 self.wint(0, CMD_DONE)
 
     def _update_snapshot(self) -> None:
+        """The state the RTDE stream sends this tick. The pose-dependent fields are
+        computed again only when the joints or the TCP changed (500 times a second at
+        rest would cost a tenth of a core)."""
         key = (self.q.tobytes(), self.tcp.tobytes())
         if key != getattr(self, "_pose_key", None):
             self._pose_key = key
             self._pose = matrix_to_pose(self.ctrl_model.tool(self.q, self.tcp))
+            self._elbow = self.ctrl_model.flange(self.q)[:3, 3] * 0.5
         pose = self._pose
         J = self.ctrl_model.jacobian(self.q, self.tcp) if np.any(self.qd) else None
-        tcp_speed = J @ self.qd if J is not None else np.zeros(6)
+        tcp_speed = J @ self.qd if J is not None else _ZERO6
         safety_bits = {SAFETY_NORMAL: 0x01, SAFETY_PROTECTIVE: 0x04,
                        SAFETY_ROBOT_ESTOP: 0x40 | 0x80}.get(self.safety_mode, 0)
         running = self.runtime_state == RUNTIME_PLAYING
         robot_bits = (0x01 if self.robot_mode >= ROBOT_IDLE else 0) | (0x02 if running else 0)
-        snap = {
+        snap = dict(_CONSTANT_FIELDS)
+        snap.update({
             "timestamp": self.t, "target_q": self.q, "target_qd": self.qd,
-            "target_qdd": np.zeros(6), "target_current": np.zeros(6),
-            "target_moment": np.zeros(6), "actual_q": self.q, "actual_qd": self.qd,
-            "actual_current": np.full(6, 0.3), "joint_control_output": np.zeros(6),
-            "actual_TCP_pose": pose, "actual_TCP_speed": tcp_speed,
-            "actual_TCP_force": np.zeros(6), "target_TCP_pose": pose,
-            "target_TCP_speed": tcp_speed, "actual_digital_input_bits": 0,
-            "joint_temperatures": np.full(6, 31.5), "actual_execution_time": 0.4,
-            "robot_mode": self.robot_mode, "joint_mode": [253] * 6,
+            "actual_q": self.q, "actual_qd": self.qd,
+            "actual_TCP_pose": pose, "actual_TCP_speed": tcp_speed, "target_TCP_pose": pose,
+            "target_TCP_speed": tcp_speed,
+            "robot_mode": self.robot_mode,
             "safety_mode": self.safety_mode, "safety_status": self.safety_mode,
-            "actual_tool_accelerometer": [0.0, 0.0, 9.81],
-            "speed_scaling": 1.0, "target_speed_fraction": 1.0, "actual_momentum": 0.0,
-            "actual_main_voltage": 48.0, "actual_robot_voltage": 48.0,
-            "actual_robot_current": 0.8, "actual_joint_voltage": np.full(6, 47.9),
-            "actual_digital_output_bits": 0, "runtime_state": self.runtime_state,
-            "standard_analog_input0": 0.0, "standard_analog_input1": 0.0,
-            "standard_analog_output0": 0.0, "standard_analog_output1": 0.0,
+            "runtime_state": self.runtime_state,
             "robot_status_bits": robot_bits, "safety_status_bits": safety_bits,
-            "ft_raw_wrench": np.zeros(6), "payload": self.payload,
-            "payload_cog": [0.0, 0.0, 0.0], "payload_inertia": np.zeros(6),
-            "actual_current_as_torque": np.zeros(6),
-            "elbow_position": self.ctrl_model.flange(self.q)[:3, 3] * 0.5,
-            "elbow_velocity": [0.0, 0.0, 0.0],
-        }
-        for i in range(48):
-            snap[f"output_int_register_{i}"] = self.out_int[i]
-            snap[f"output_double_register_{i}"] = self.out_double[i]
+            "payload": self.payload, "elbow_position": self._elbow,
+        })
+        snap.update(zip(_OUT_INT_NAMES, self.out_int, strict=True))
+        snap.update(zip(_OUT_DOUBLE_NAMES, self.out_double, strict=True))
         self.snapshot = snap
 
     def run_loop(self, stop: threading.Event) -> None:
