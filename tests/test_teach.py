@@ -30,7 +30,7 @@ def _sock(proc) -> str:
 
 @pytest.mark.timeout(120)
 def test_free_drive_moves_only_in_teach_mode(arm_proc):
-    target = np.degrees(HOME) + [20.0, -10.0, 15.0, 5.0, -30.0, 40.0]
+    target = np.degrees(HOME) + np.array([20.0, -10.0, 15.0, 5.0, -30.0, 40.0])
     refused = control(_sock(arm_proc), {"cmd": "freedrive", "q_deg": target.tolist()})
     assert not refused["ok"] and "teach mode is off" in refused["error"]
     with URArm(arm_config(arm_proc.ready["host"])) as arm:
