@@ -160,6 +160,8 @@ def run(procedure: str = typer.Argument(..., help="Procedure name (see `rigctl p
             else:
                 _print_plan(plan)
             raise typer.Exit(0 if not plan.violations else EXIT_REFUSED)
+        if overrides.get("teach") is True:  # Enter = capture, `done` = finish (rigctl.teach)
+            __import__("rigctl.teach").teach.read_terminal()
         with stdout_to_stderr():
             outcome = runner.run(procedure, overrides)
     except RigError as exc:

@@ -41,7 +41,7 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
-from rigctl import procedures
+from rigctl import procedures, teach
 from rigctl.calib.blas_threads import one_blas_thread
 from rigctl.config import HEAD_AXES, RigConfig, parse_rig
 from rigctl.drivers.base import check_axis_limit
@@ -530,6 +530,7 @@ STEP_HANDLERS: dict[type, Callable[..., None]] = {
     MoveArmJoint: Runner._move_arm, MoveArmLinear: Runner._move_arm,
     Settle: Runner._settle, CaptureStep: Runner._capture, Note: Runner._note,
 }
+STEP_HANDLERS[teach.TeachStep] = teach.teach_step  # free drive (rigctl.teach)
 
 
 class BoardDetection:

@@ -27,7 +27,7 @@ import urllib.request
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from fastapi import APIRouter, Depends, FastAPI, HTTPException, Query, Request
 from fastapi import Path as PathParam
@@ -36,7 +36,7 @@ from fastapi.responses import FileResponse, JSONResponse, StreamingResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from pydantic import BaseModel, Field
 
-from rigctl import __version__, drift, procedures
+from rigctl import __version__, drift, procedures, teach
 from rigctl.config import RigConfig, is_loopback, parse_duration
 from rigctl.console.pages import (
     LoginRequiredError,
@@ -501,6 +501,7 @@ def create_app(service: RigService, stop_service_on_shutdown: bool = False,
     app.include_router(_run_routes(service, guarded), dependencies=readers)
     app.include_router(_calibration_routes(service, guarded), dependencies=readers)
     app.include_router(_page_routes(service, templates), dependencies=readers)
+    app.include_router(_teach_routes(service, guarded), dependencies=readers)
     mount_static(app, templates)
     return app
 
@@ -748,6 +749,47 @@ def _page_routes(service: RigService, templates) -> APIRouter:
         return StreamingResponse(stream(), media_type="text/event-stream")
 
     router.include_router(console_routes(service, templates))
+    return router
+
+
+class TeachRequest(BaseModel):
+    action: Literal["capture", "done"] = Field(
+        "capture", description="capture: record one capture where the arm stands; done: "
+                               "end the teach step")
+
+
+def _teach_routes(service: RigService, guarded: list) -> APIRouter:
+    """The teach step of a running taught run (``rigctl.teach``): its state, and the
+    operator's presses of capture and done."""
+    router = APIRouter()
+
+    def _teaching(run_id: str) -> dict:
+        found = teach.DESK.active(run_id)
+        if found is None:
+            raise HTTPException(409, f"run {run_id} is not waiting for the operator's poses "
+                                     "(no teach step under way)")
+        return found
+
+    @router.get("/runs/{run_id}/teach")
+    def teach_state(run_id: str = RUN_ID) -> dict:
+        """The teach step under way: captures taken, the least and most it takes."""
+        return _teaching(run_id)
+
+    @router.post("/runs/{run_id}/teach", dependencies=guarded)
+    def teach_press(run_id: str = RUN_ID, request: TeachRequest | None = None) -> dict:
+        """Press capture (one capture where the operator holds the arm; answered once it
+        is recorded, with its index) or done (ends the teach step: at least its minimum
+        of poses taken, else 409 saying so)."""
+        _teaching(run_id)
+        action = (request or TeachRequest()).action
+        try:
+            answer = teach.DESK.press(run_id, action)
+        except ConfigError as exc:
+            raise HTTPException(409, str(exc)) from None
+        service.events.publish({"type": "teach", "run_id": run_id, "action": action,
+                                **answer})
+        return {"run_id": run_id, "action": action, **answer}
+
     return router
 
 

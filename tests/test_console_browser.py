@@ -14,8 +14,11 @@ import numpy as np
 import pytest
 import yaml
 
-from rigctl.mocks.world import WORLDS
-from tests.mockproc import ROOT
+from rigctl.config import load_rig
+from rigctl.geometry.kinematics import nominal_ur
+from rigctl.mocks.world import WORLDS, load_world
+from rigctl.procedures.planning import visible_views
+from tests.mockproc import ROOT, control
 from tests.needs import missing
 from tests.service_stack import TOKEN, Stack, get, post, wait_for
 from tests.waiting import wait_until
@@ -146,7 +149,8 @@ def test_console_end_to_end(page, stack, artifacts):
         assert page.locator("h2").first.inner_text() == heading
         assert _fits_width(page), f"{path} overflows 1280 px"
     page.goto(base + "/console/")
-    assert "head" in page.locator("details").first.inner_text()
+    assert page.evaluate("document.getElementById('rig-file').open") is False  # folded
+    assert "head:" in page.evaluate("document.querySelector('#rig-file pre').textContent")
     page.screenshot(path=artifacts / "rig-idle.png", full_page=True)
 
     # a refusal without the token shows the server's message and asks for the token
@@ -461,6 +465,100 @@ def test_console_compares_arm_models(page, stack, artifacts, tmp_path):
     assert _metric(page, "max_z") > 3  # resolved
     assert _fits_width(page), "the arm model comparison overflows 1280 px"
     page.screenshot(path=artifacts / "run-compare-arm.png", full_page=True)
+
+
+TAUGHT_VIEWS = 6
+
+
+@pytest.mark.timeout(900)  # a hang guard: runs on the simulated rig through the service
+def test_console_for_the_operator(page, stack, artifacts):
+    """A taught hand-eye run from its page's capture and done buttons (the operator's hand
+    is the arm stand-in's freedrive), its captures curated by checkboxes and solved again,
+    the rig page (calibrations, state in degrees and mm, camera preview, rig file folded
+    away, no token), and the resume button of a stopped run."""
+    base, sock = stack.base, stack.sim.ready["arm"]["control"]
+    truth = load_world(WORLDS / "ideal.yaml").truth()
+    config = load_rig(stack.rig)
+    K = np.array([[truth["fx"], 0, truth["cx"]], [0, truth["fy"], truth["cy"]], [0, 0, 1]])
+    views, _ = visible_views(config, TAUGHT_VIEWS, 0.45, 30.0, 21, "view", K,
+                             nominal_ur(config.devices.arm.model))
+    intrinsics = {k: truth[k] for k in ("fx", "fy", "cx", "cy", "distortion")}
+    taught = {"procedure": "hand-eye", "params": {"teach": True, "settle_s": 0,
+                                                  "intrinsics": intrinsics}}
+    page.goto(base + "/console/")
+    page.fill("#token", TOKEN)
+    page.click("#token-form button")
+
+    # 1. teach: the run page's buttons take a capture where the operator holds the arm
+    run_id = post(stack, "/runs", taught).json()["run_id"]
+    wait_until(lambda: get(f"{base}/runs/{run_id}/teach").status_code == 200,
+               timeout=WAIT_MS // 1000, what="the teach step", poll=0.2)
+    page.goto(f"{base}/console/runs/{run_id}")
+    for k, q in enumerate(views):
+        assert control(sock, {"cmd": "freedrive", "q_deg": np.degrees(q).tolist(),
+                               "speed_dps": 120}, timeout=60)["ok"]
+        page.click("#teach-capture")
+        page.wait_for_function("document.getElementById('teach-count').textContent"
+                               f" === '{k + 1}'")
+    page.screenshot(path=artifacts / "run-teach.png", full_page=True)
+    page.click("#teach-done")
+    page.wait_for_selector("#teach-report.ok-text")  # the taught set determines the model
+    assert "condition number" in page.inner_text("#teach-report")
+    run = wait_for(stack, run_id, timeout=WAIT_MS // 1000)
+    assert run["status"] == "succeeded", run
+    X, X_true = np.array(run["result"]["T_flange_cam"]), np.array(truth["T_flange_cam"])
+    assert 1000 * np.linalg.norm(X[:3, 3] - X_true[:3, 3]) < 5.0
+    assert control(sock, {"cmd": "dump"})["teach_mode"] is False
+
+    # 2. curation: two captures checked, solved again; the result names them
+    _decided(stack, run_id)
+    page.goto(f"{base}/console/runs/{run_id}")
+    assert page.locator("input[name=exclude]").count() == TAUGHT_VIEWS
+    page.check("input[name=exclude][value='1']")
+    page.check("input[name=exclude][value='3']")
+    page.fill("#curate-form textarea", "operator's hand in the picture")
+    page.click("#curate-form button")
+    page.wait_for_selector("#curation", timeout=WAIT_MS)
+    assert page.inner_text("#capture-use tr[data-use=excluded] td") == "1, 3"
+    used = page.inner_text("#capture-use tr[data-use=used] td")
+    assert used.startswith(f"{TAUGHT_VIEWS - 2}:")
+    assert "operator's hand in the picture" in page.inner_text("#curation")
+    assert get(f"{base}/runs/{run_id}").json()["result"]["excluded"] == [1, 3]
+    page.screenshot(path=artifacts / "run-curated.png", full_page=True)
+
+    # 3. a stopped run: its page's resume button posts to the resume route
+    stopped = post(stack, "/runs", taught).json()["run_id"]
+    wait_until(lambda: get(f"{base}/runs/{stopped}/teach").status_code == 200,
+               timeout=WAIT_MS // 1000, what="the teach step", poll=0.2)
+    post(stack, f"/runs/{stopped}/abort")
+    assert wait_for(stack, stopped, timeout=WAIT_MS // 1000)["status"] == "aborted"
+    assert control(sock, {"cmd": "dump"})["teach_mode"] is False
+    page.goto(f"{base}/console/runs/{stopped}")
+    assert page.get_attribute("#resume", "data-resume") == stopped
+    with page.expect_request(lambda r: r.method == "POST") as request:
+        page.click("#resume")
+    assert request.value.url == f"{base}/runs/{stopped}/resume"
+
+    # 4. the rig page
+    page.goto(base + "/console/")
+    rows = page.locator("#calibrations tbody tr")
+    assert rows.count() == 3
+    hand_eye = page.locator("#calibrations tr[data-calibration='hand-eye']")
+    assert hand_eye.locator(".badge").inner_text() in ("pending", "accepted", "drift")
+    assert hand_eye.locator("td.age").inner_text().strip() != ""
+    state = page.inner_text("#live")
+    assert "rad" not in state and "(deg)" in state and "TCP (mm)" in state
+    # the newest capture: the taught run's last, where the operator's hand put the arm
+    joints = page.inner_text("#live tr[data-quantity=joints] td")
+    assert joints.startswith(f"J1 {math.degrees(views[-1][0]):.2f}, ")
+    assert "°C" in page.inner_text("#live") and " V" in page.inner_text("#live")
+    page.wait_for_function("document.getElementById('preview').complete"
+                           " && document.getElementById('preview').naturalWidth > 0")
+    assert page.evaluate("document.getElementById('rig-file').open") is False
+    assert TOKEN not in page.content() and "{'" not in page.inner_text("main")
+    assert page.get_attribute(f"#stopped button[data-resume='{stopped}']", "data-resume") \
+        == stopped
+    page.screenshot(path=artifacts / "rig-operator.png", full_page=True)
 
 
 @pytest.mark.timeout(300)

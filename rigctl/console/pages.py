@@ -25,8 +25,8 @@ from fastapi.staticfiles import StaticFiles
 from fastapi.templating import Jinja2Templates
 from pydantic import ValidationError
 
-from rigctl import __version__, drift, procedures
-from rigctl.console import compare, views
+from rigctl import __version__, drift, procedures, teach
+from rigctl.console import compare, rigview, views
 from rigctl.console.forms import form_fields
 from rigctl.console.history import series
 from rigctl.errors import RigError
@@ -38,7 +38,8 @@ NAME = r"^[a-z][a-z0-9-]{0,63}$"
 # a filter left at "any" arrives as an empty string (the form sends every field)
 FILTER = r"^([a-z][a-z0-9-]{0,63})?$"
 RUN_ID = PathParam(min_length=1, max_length=128)
-STATUSES = ("running", "succeeded", "failed", "aborted", "interrupted", "skipped")
+STATUSES = ("running", "paused", "succeeded", "failed", "aborted", "interrupted",
+            "skipped")
 PLOT_NAME = r"^[A-Za-z0-9_.-]{1,100}\.png$"
 THUMB_WIDTH = 320
 MAX_LOGIN_BODY = 4096  # bytes of the sign-in form
@@ -117,6 +118,10 @@ def console_templates(service) -> Jinja2Templates:
     templates = Jinja2Templates(directory=HERE / "templates")
     templates.env.filters["when"] = _when
     templates.env.filters["fmt"] = _fmt
+    templates.env.filters["deg"] = lambda v: "n/a" if v is None else f"{v:.2f}"
+    templates.env.filters["mm"] = lambda v: "n/a" if v is None else f"{v:.1f}"
+    templates.env.filters["when_epoch"] = lambda v: _when(
+        dt.datetime.fromtimestamp(v, dt.UTC) if isinstance(v, int | float) else v)
     templates.env.globals |= {"rig": service.config.name, "version": __version__}
     return templates
 
@@ -131,7 +136,30 @@ def console_routes(service, templates: Jinja2Templates) -> APIRouter:
     router = APIRouter()
     router.include_router(_html_routes(service, results, page))
     router.include_router(_image_routes(service, results))
+    router.include_router(_preview_route(rigview.Preview(service)))
     return router
+
+
+def _preview_route(preview: rigview.Preview) -> APIRouter:
+    router = APIRouter()
+
+    @router.get("/console/preview.jpg")
+    def camera_preview() -> Response:
+        """What the camera sees now (its stream), else the newest capture; JPEG."""
+        found = preview.jpeg()
+        if found is None:
+            raise HTTPException(404, "no camera picture yet: no stream and no capture")
+        return Response(found[0], media_type="image/jpeg",
+                        headers={"Cache-Control": "no-store", "X-Preview-Source": found[1]})
+
+    return router
+
+
+def _rig_context(service) -> dict[str, Any]:
+    return {"calibrations": rigview.calibrations(service),
+            "state": rigview.live_state(rigview.newest_readings(service)),
+            "rig_yaml": rigview.rig_yaml(service.config),
+            "stopped": rigview.stopped_runs(service)}
 
 
 def _html_routes(service, results: ResultCache, page) -> APIRouter:
@@ -144,8 +172,11 @@ def _html_routes(service, results: ResultCache, page) -> APIRouter:
 
     @router.get("/console/", response_class=HTMLResponse)
     def rig_page(request: Request) -> HTMLResponse:
-        """The rig: devices, lock holder, last readings, current run and queue."""
-        return page(request, "rig.html", status=service.status(), **_now(service))
+        """The rig: its calibrations (age, decision, next scheduled run), its state in
+        degrees, mm, deg C and V, the camera's preview, runs to resume, the current run
+        and the queue, and the rig file (YAML, token redacted) folded away."""
+        return page(request, "rig.html", status=service.status(), **_rig_context(service),
+                    **_now(service))
 
     @router.get("/console/now", response_class=HTMLResponse)
     def now_fragment(request: Request) -> HTMLResponse:
@@ -393,6 +424,11 @@ def _run_context(service, results: ResultCache, row: dict) -> dict[str, Any]:
                "log": views.log_tail(run) if run else "",
                "decisions": run.decisions() if run else [],
                "rows": views.result_rows(row["procedure"], result) if result else [],
+               "use": views.capture_use(result) if result else None,
+               "curation": [d for d in run.decisions() if d.get("decision") == "excluded"]
+               if run else [],
+               "teaching": teach.DESK.active(row["run_id"]),
+               "resumable": row["status"] in rigview.STOPPED,
                "summary": views.summary_rows(result) if result else []}
     context["difference"] = _difference(service, results, row) if result else None
     return context

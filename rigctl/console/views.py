@@ -92,6 +92,19 @@ def summary_rows(result: dict[str, Any]) -> list[Row]:
     return rows
 
 
+def capture_use(result: dict[str, Any]) -> dict[str, Any] | None:
+    """The result's captures by use: ``used``, ``excluded`` by the operator and
+    ``rejected`` by the solver (index, label, reason); None when it names none."""
+    use = result.get("captures")
+    if not isinstance(use, dict):
+        return None
+    rejected = use.get("rejected") or []
+    if isinstance(rejected, dict):
+        rejected = [{"index": k, "label": "", "reason": v} for k, v in rejected.items()]
+    return {"used": list(use.get("used") or []), "excluded": list(use.get("excluded") or []),
+            "rejected": [r for r in rejected if isinstance(r, dict)]}
+
+
 def log_tail(run: RunDirectory, lines: int = LOG_TAIL_LINES) -> str:
     path = run.path / "run.log"
     if not path.is_file():

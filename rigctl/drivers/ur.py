@@ -56,6 +56,8 @@ def _bounded(fn, timeout: float, what: str):
 
 
 class URArm(Arm):
+    teaching = False  # free drive on (``teach_mode``)
+
     def __init__(self, cfg) -> None:
         self.cfg = cfg
         self.control = None
@@ -341,6 +343,38 @@ class URArm(Arm):
             _bounded(lambda: self.control.stopJ(2.0, False), self.cfg.teardown_timeout_s, "stopJ")
         except Exception as exc:
             log.error("arm: stopJ failed: %s", exc)
+
+    # -- teach mode (free drive) -------------------------------------------------------
+
+    def teach_mode(self) -> None:
+        """Free drive: the operator moves the arm by hand (ur_rtde ``teachMode()``, the
+        control script's ``teach_mode()``). Refused in a stop (``SafetyError``) or when the
+        controller refuses it (``DeviceError``). End it with ``end_teach_mode()``."""
+        self._require_alive()
+        self.check_safety()
+        if not _bounded(self.control.teachMode, self.cfg.teardown_timeout_s, "teachMode"):
+            raise DeviceError(f"arm {self.cfg.host}: teach mode refused by the controller")
+        self.teaching = True
+        log.info("arm: teach mode on (free drive)")
+
+    def end_teach_mode(self) -> bool:
+        """Leave free drive (``endTeachMode()``); True when the controller confirmed it.
+        Never raises: it is called on every end of a taught run, a failed one included;
+        on a dead link there is nothing to send, and the controller ends teach mode with
+        the control script anyway."""
+        self.teaching = False
+        if self.control is None or not self._alive():
+            log.warning("arm: teach mode not ended explicitly (no link); the controller "
+                        "ends it with the control script")
+            return False
+        try:
+            done = bool(_bounded(self.control.endTeachMode, self.cfg.teardown_timeout_s,
+                                 "endTeachMode"))
+        except Exception as exc:
+            log.error("arm: endTeachMode failed: %s", exc)
+            return False
+        log.info("arm: teach mode off")
+        return done
 
     def unlock_protective_stop(self) -> str:
         """Operator action: unlock a protective stop and restart the control script."""

@@ -19,9 +19,11 @@ handshake (see ``shared/reference/ur-controller-protocol.md``)::
 Prints one JSON ready line and runs until SIGTERM. Control socket (JSON lines):
 ``protective_stop``, ``emergency_stop``, ``release_estop``, ``drop_connections``,
 ``stall_stream`` (for ``seconds``, or until ``resume_stream`` when none is given: a
-latched fault), ``resume_stream``, ``freeze`` (``at_fraction``: the move under way or the
-next one holds once it has run that fraction of its time, latched until ``thaw`` or until
-a new motion command ends it), ``thaw``, ``dump``.
+latched fault), ``resume_stream``, ``freedrive`` (the operator's hand: ``q_deg``, six
+joint angles the arm is pushed to, answered once it is there; refused unless the control
+script's ``teach_mode()`` is on, see ``ur_teach``), ``freeze`` (``at_fraction``: the
+move under way or the next one holds once it has run that fraction of its time, latched
+until ``thaw`` or until a new motion command ends it), ``thaw``, ``dump``.
 """
 
 from __future__ import annotations
@@ -48,6 +50,7 @@ from rigctl.mocks.jsonlines import listen, serve_stream
 from rigctl.mocks.ur_kinematics import ArmModel, matrix_to_pose, pose_to_matrix
 from rigctl.mocks.ur_motion import JointMove, LinearMove, ServoMove, SpeedMove, StopMove
 from rigctl.mocks.ur_primary import dh_table, robot_state, version_message
+from rigctl.mocks.ur_teach import end_teach, freedrive, refuse_in_teach, start_teach
 
 log = logging.getLogger("mock.ur")
 
@@ -81,6 +84,8 @@ class Cmd(IntEnum):
     SPEED_STOP = 15
     SERVO_STOP = 16
     SET_PAYLOAD = 17
+    TEACH_MODE = 18  # teachMode(): the script calls teach_mode()
+    END_TEACH_MODE = 19  # endTeachMode(): end_teach_mode()
     SERVOL = 24
     TOOL_CONTACT = 25
     GET_STEPTIME = 26
@@ -257,6 +262,7 @@ class Controller:
         self.freeze_at: float | None = None
         self.held = None
         self.estop = False
+        self.teach = False  # teach_mode() of the running script (free drive)
         self.messages: list[str] = []
         self.snapshot: dict = {}
         self.steady_since = 0.0
@@ -321,6 +327,7 @@ class Controller:
                 self.messages.append(f"program stopped: {reason}")
             self.runtime_state = RUNTIME_STOPPED
             self._stop_motion(4.0)
+            end_teach(self, "the program stopped")
 
     def _stop_motion(self, decel: float) -> None:
         if self.motion is not None and np.any(np.abs(self.qd) > 1e-9):
@@ -335,6 +342,7 @@ class Controller:
             self.safety_mode = SAFETY_PROTECTIVE
             self.messages.append(f"protective stop: {reason}")
             self._stop_motion(20.0)
+            end_teach(self, "protective stop")
             if self.runtime_state == RUNTIME_PLAYING:
                 self.runtime_state = RUNTIME_PAUSED
 
@@ -346,6 +354,7 @@ class Controller:
             self.motion, self.motion_kind, self.qd = None, None, np.zeros(6)
             self.runtime_state = RUNTIME_STOPPED
             self.messages.append("emergency stop")
+            end_teach(self, "emergency stop")
 
     # -- commands ----------------------------------------------------------------
 
@@ -395,6 +404,8 @@ class Controller:
     def _cmd_move(self, cmd: int, async_flag: bool) -> None:
         v, a = self.rdouble(6), self.rdouble(7)
         self._kill_async()
+        if refuse_in_teach(self, Cmd(cmd).name):
+            return
         if cmd == Cmd.MOVEJ:
             self._start_joint_move(self.q_from(0), v, a, not async_flag)
         elif cmd == Cmd.MOVEJ_IK:
@@ -472,6 +483,7 @@ class Controller:
         self.messages.append("received stop script")
         self.runtime_state = RUNTIME_STOPPED
         self._stop_motion(4.0)
+        end_teach(self, "the program stopped")
 
     def _kill_async(self) -> None:
         if self.motion_kind in ("async", "stop_async") and self.motion is not None:
@@ -624,6 +636,7 @@ class Controller:
                     "safety_mode": self.safety_mode, "out_int": self.out_int[:4],
                     "messages": self.messages[-20:], "model": self.model_name,
                     "frozen": self.held is not None and self.held is self.motion,
+                    "teach_mode": self.teach,
                     "version": list(self.version), "seen": self.seen,
                     "joint_speed_max": self.speed_max.tolist(),
                     "joint_limits": [None if math.isinf(v) else v for v in self.limits]}
@@ -902,6 +915,11 @@ class Server:
         serve_stream(sock, self.control)
 
     def control(self, request: dict) -> dict:
+        if request.get("cmd") == "freedrive":  # the operator's hand (``ur_teach``)
+            return freedrive(self.ctrl, request.get("q_deg"), request.get("speed_dps", 30.0))
+        return self._control(request)
+
+    def _control(self, request: dict) -> dict:
         cmd = request.get("cmd")
         ctrl = self.ctrl
         if cmd == "protective_stop":
@@ -1019,6 +1037,8 @@ SCRIPT_HANDLERS = {
     Cmd.SPEEDJ: lambda c, a: c._cmd_speedj(a),
     Cmd.SERVOJ: lambda c, a: c._cmd_servoj(a),
     Cmd.SET_PAYLOAD: _set_payload,
+    Cmd.TEACH_MODE: lambda c, a: start_teach(c),
+    Cmd.END_TEACH_MODE: lambda c, a: end_teach(c, "end_teach_mode()"),
     Cmd.SET_TCP: _set_tcp,
     **{cmd: (lambda c, a, cmd=cmd: c._cmd_inverse_kinematics(cmd))
        for cmd in (Cmd.GET_INVERSE_KINEMATICS_ARGS, Cmd.GET_INVERSE_KINEMATICS_DEFAULT,

@@ -9,7 +9,9 @@ With ``poses_file`` (a YAML list of joint angles in degrees, one list of six per
 each is checked against the soft limits before anything moves, and the plan and the
 result report how well the set determines ``T_flange_cam`` and ``T_base_target``
 against the planner's D-optimal choice of as many views (``pose_set``), with a warning
-when it cannot (every pose turned about one joint, say)."""
+when it cannot (every pose turned about one joint, say). With ``teach`` the operator moves
+the arm by hand and presses capture (``rigctl.teach``), up to ``poses`` views; the
+result reports the taught set the same way."""
 
 from __future__ import annotations
 
@@ -21,6 +23,7 @@ from rigctl.calib import handeye
 from rigctl.calib.board import target_points
 from rigctl.errors import SolveError
 from rigctl.geometry.kinematics import nominal_ur
+from rigctl.teach import teach_plan
 
 from .base import Params, Procedure, SolveContext
 from .intrinsics import camera_model
@@ -57,6 +60,8 @@ class HandEyeParams(Params):
     seed: int = 10
     # the operator's poses instead of planned ones: a YAML list of 6 joint angles (deg)
     poses_file: str | None = Field(None, min_length=1, max_length=4096)
+    # the operator's poses taken by hand: free drive, capture on each press (rigctl.teach)
+    teach: bool = False
 
 
 class HandEye(Procedure):
@@ -68,6 +73,8 @@ class HandEye(Procedure):
     detects_board = True
 
     def plan(self, params: HandEyeParams, config) -> list:
+        if params.teach:
+            return teach_plan(params, config, "view", 3, params.poses)
         if params.poses_file:
             return self._plan_from_file(params, config)
         return view_steps(config, params.poses, params.view_distance_m, params.max_tilt_deg,
@@ -117,7 +124,7 @@ class HandEye(Procedure):
                    "t_mm": (1000 * refined.X[:3, 3]).tolist()}
         used = capture_use(ctx, obs)
         extra: dict[str, Any] = {}
-        if ctx.params.poses_file:
+        if ctx.params.poses_file or ctx.params.teach:
             with ctx.stage("pose set"):
                 extra["pose_set"] = pose_set_report(
                     ctx.config, [o["q"] for o in found], K, arm, False,

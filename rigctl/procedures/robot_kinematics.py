@@ -46,6 +46,7 @@ from rigctl.calib.robot_pipeline import (
 )
 from rigctl.errors import SolveError
 from rigctl.geometry.kinematics import nominal_ur
+from rigctl.teach import teach_plan
 
 from .base import (
     CaptureStep,
@@ -118,6 +119,8 @@ class RobotKinematicsParams(Params):
     seed: int = 0
     # the operator's poses instead of planned ones: a YAML list of 6 joint angles (deg)
     poses_file: str | None = Field(None, min_length=1, max_length=4096)
+    # the operator's poses taken by hand: free drive, capture on each press (rigctl.teach)
+    teach: bool = False
 
 
 BASE_LEANS_DEG = (15.0, 30.0, 45.0)  # sweep-base leans tried when no straight view is reachable
@@ -250,7 +253,7 @@ class RobotKinematics(Procedure):
     detects_board = True
 
     def plan(self, params: RobotKinematicsParams, config) -> list:
-        if params.poses_file:
+        if params.poses_file or params.teach:
             return plan_from_file(params, config)
         steps: list = []
         if config.devices.head is not None:
@@ -345,7 +348,7 @@ class RobotKinematics(Procedure):
         if exported["factory"] is not None:
             exported["factory"]["links"] = controller.links()
         summary, extra = _summary(sol), {}
-        if ctx.params.poses_file:
+        if ctx.params.poses_file or ctx.params.teach:
             with ctx.stage("pose set"):
                 extra = _pose_set(ctx, sol, K, summary)
         by_label = {o["label"]: o["index"] for o in obs}
@@ -366,7 +369,10 @@ def plan_from_file(params: RobotKinematicsParams, config) -> list:
     """Every pose of ``params.poses_file`` as a training view, in the file's order, with
     the set's identifiability (``pose_set_report``: link parameters, X and W) and the
     poses predicted to cut the board as notes. Fewer poses than the solve needs
-    (``MIN_TRAINING_VIEWS``) is refused here."""
+    (``MIN_TRAINING_VIEWS``) is refused here. With ``teach``: the operator's poses,
+    taken by hand (``rigctl.teach``), as training views."""
+    if params.teach:
+        return teach_plan(params, config, "train", MIN_TRAINING_VIEWS, 200)
     poses = load_pose_file(params.poses_file, config, min_poses=MIN_TRAINING_VIEWS)
     K = planning_K(config, params.intrinsics)
     arm = planning_arm(config, params.use_controller_model)

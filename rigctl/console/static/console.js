@@ -77,6 +77,64 @@ document.addEventListener("click", async ev => {
   if (r.ok) showMessage("run " + runId + ": " + r.data.status, "info");
 });
 
+// resumes: any button with data-resume (a stopped or paused run)
+document.addEventListener("click", async ev => {
+  const button = ev.target.closest("[data-resume]");
+  if (!button) return;
+  const runId = button.dataset.resume;
+  const r = await post("/runs/" + encodeURIComponent(runId) + "/resume",
+                       { operator: sessionStorage.getItem("rigctl-operator") || null });
+  if (r.ok) showMessage("run " + runId + ": " + (r.data.status || "resuming"), "info");
+});
+
+function setupCurate() {
+  const form = document.getElementById("curate-form");
+  if (!form) return;
+  form.addEventListener("submit", async ev => {
+    ev.preventDefault();
+    const exclude = [...document.querySelectorAll("input[name=exclude]:checked")]
+      .map(el => Number(el.value));
+    if (!exclude.length) { showMessage("check the captures to leave out first", "error"); return; }
+    showMessage("solving again without " + exclude.join(", ") + " ...", "info");
+    const r = await post("/runs/" + encodeURIComponent(form.dataset.run) + "/solve",
+                         { exclude, reason: form.elements.reason.value,
+                           operator: sessionStorage.getItem("rigctl-operator") || null });
+    if (r.ok) location.reload();
+  });
+}
+
+function setupTeach() {
+  const box = document.getElementById("teach");
+  if (!box) return;
+  const press = async action => {
+    const r = await post("/runs/" + encodeURIComponent(box.dataset.run) + "/teach", { action });
+    if (!r.ok) return;
+    document.getElementById("teach-count").textContent = r.data.captures;
+    const report = r.data.pose_set;
+    if (report) {
+      const text = document.getElementById("teach-report");
+      text.textContent = report.note;
+      text.className = report.warning ? "error" : "ok-text";
+    }
+    showMessage(action === "done" ? "teaching done: solving"
+                : "captured " + String(r.data.index).padStart(3, "0"), "info");
+  };
+  document.getElementById("teach-capture").addEventListener("click", () => press("capture"));
+  document.getElementById("teach-done").addEventListener("click", () => press("done"));
+}
+
+function setupPreview() {
+  const img = document.getElementById("preview");
+  if (!img) return;
+  const every = Number(img.dataset.refreshMs) || 3000;
+  setInterval(() => {
+    if (document.hidden) return;
+    const next = new Image();
+    next.onload = () => { img.src = next.src; };
+    next.src = "/console/preview.jpg?t=" + Date.now();
+  }, every);
+}
+
 async function refreshLive() {
   for (const el of document.querySelectorAll("[data-live]")) {
     const response = await fetch(el.dataset.live);
@@ -236,4 +294,5 @@ function setupStart() {
 
 document.addEventListener("DOMContentLoaded", () => {
   setupToken(); markNav(); setupLive(); setupDecision(); setupStart();
+  setupCurate(); setupTeach(); setupPreview();
 });
