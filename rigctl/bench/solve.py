@@ -21,9 +21,10 @@ from rigctl import procedures
 from rigctl.errors import ConfigError
 from rigctl.runner import solve_recorded
 
-# the solve times issue 13 asks for on this 2-core machine (seconds)
-TARGETS_S = {"active-camera": 2.0, "robot-kinematics": 8.0, "hand-eye": 2.0,
-             "validate-arm": 2.0}
+# the solve times issue 43 asks for on this 2-core machine (seconds to the recorded
+# result, on the demo's runs)
+TARGETS_S = {"active-camera": 4.0, "robot-kinematics": 4.0, "hand-eye": 1.0,
+             "validate-arm": 1.0}
 
 
 def newest_runs(records: Path) -> list[Path]:
