@@ -94,28 +94,36 @@ class Camera:
             self.viewers += change
             self.cond.notify_all()
 
-    def picture(self, angles: tuple, q: np.ndarray) -> np.ndarray:
+    def picture(self, angles: tuple, q: np.ndarray, moving: bool = False) -> np.ndarray:
         """The frame at head ``angles`` and joints ``q``: noiseless render (reused while
-        nothing moved) plus fresh pixel noise."""
-        key = (tuple(angles), tuple(np.asarray(q, float).tolist()))
+        nothing moved) plus fresh pixel noise. A frame taken while the head or the arm
+        moves is rendered without anti-aliasing: a real camera blurs it, and no client may
+        use it (the driver waits for a still frame after a motion)."""
+        key = (tuple(angles), tuple(np.asarray(q, float).tolist()), moving)
         if self._still is None or self._still[0] != key:
-            image = self.world.render(self.world.T_base_cam(q, angles), noise=False)
+            image = self.world.render(self.world.T_base_cam(q, angles), noise=False,
+                                      **({"supersample": 1} if moving else {}))
             self._still = (key, image)
         return self.noise.add(self._still[1])
 
-    def state(self) -> tuple[tuple[float, float, float], np.ndarray]:
+    def state(self) -> tuple[tuple[float, float, float], np.ndarray, bool]:
+        """Head angles and arm joints now (the stand-ins' true values), and whether
+        either is moving."""
         angles = [0.0, 0.0, 0.0]
+        moving = False
         dump = self.head.ask({"cmd": "dump"})
         if dump and dump.get("ok"):
             by_id = {s["id"]: s for s in dump["servos"]}
             for axis, dxl_id in enumerate(self.head_ids):
                 if dxl_id in by_id:
                     angles[axis] = by_id[dxl_id]["actual_rad"]
+                    moving = moving or bool(by_id[dxl_id].get("moving"))
         q = self.world.home_q
         dump = self.arm.ask({"cmd": "dump"})
         if dump and dump.get("ok"):
             q = np.array(dump["q"])
-        return (angles[0], angles[1], angles[2]), q
+            moving = moving or any(dump.get("qd", ()))
+        return (angles[0], angles[1], angles[2]), q, moving
 
     def loop(self) -> None:
         period = 1.0 / self.world.spec.camera.fps
@@ -131,9 +139,9 @@ class Camera:
             next_t += period
             if time.monotonic() >= self.stall_until:
                 t_sample = time.time()
-                angles, q = self.state()
+                angles, q, moving = self.state()
                 t0 = time.perf_counter()
-                image = self.picture(angles, q)
+                image = self.picture(angles, q, moving)
                 _ok, jpeg = cv2.imencode(".jpg", image, quality)
                 self.render_s.append(time.perf_counter() - t0)
                 self.render_s = self.render_s[-200:]

@@ -463,10 +463,11 @@ class World:
         return self.project(pts, T_base_cam)
 
     def render(self, T_base_cam: np.ndarray, frame_index: int = 0,
-               noise: bool = True) -> np.ndarray:
-        """An 8-bit grey image of what the camera sees (before JPEG)."""
+               noise: bool = True, supersample: int = SUPERSAMPLE) -> np.ndarray:
+        """An 8-bit grey image of what the camera sees (before JPEG); each pixel the mean
+        of ``supersample``^2 samples (1: no anti-aliasing, for frames taken in motion)."""
         w, h = self.size
-        img = np.full((h * SUPERSAMPLE, w * SUPERSAMPLE), 118, np.uint8)
+        img = np.full((h * supersample, w * supersample), 118, np.uint8)
         T_cam_base = np.linalg.inv(T_base_cam)
         R, t = T_cam_base[:3, :3], T_cam_base[:3, 3]
         limit_x = 1.3 * max(self.K[0, 2], w - self.K[0, 2]) / self.K[0, 0]
@@ -500,11 +501,12 @@ class World:
                 start += len(pc)
                 # pixel centres at integer coordinates, at the supersampled resolution;
                 # shift=4 is 1/16 of a supersampled pixel
-                fine = (poly + 0.5) * SUPERSAMPLE - 0.5
+                fine = (poly + 0.5) * supersample - 0.5
                 fixed = np.round(fine * 16).astype(np.int32)
                 cv2.fillPoly(img, [fixed], int(shade), lineType=cv2.LINE_8, shift=4)
-        # each pixel the mean of its SUPERSAMPLE^2 samples: the light its area receives
-        img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
+        # each pixel the mean of its supersample^2 samples: the light its area receives
+        if supersample > 1:
+            img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
         cam = self.spec.camera
         if cam.blur_sigma > 0:
             img = cv2.GaussianBlur(img, (0, 0), cam.blur_sigma)
