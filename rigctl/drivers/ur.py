@@ -342,6 +342,14 @@ class URArm(Arm):
         except Exception as exc:
             log.error("arm: stopJ failed: %s", exc)
 
+    def recover(self) -> None:
+        """After a protective stop was unlocked (by the operator, ``rigctl arm unlock``):
+        restart the control script, which the stop ended, so moves are accepted again."""
+        self.check_safety()
+        if self.control is not None:
+            self.control.reuploadScript()
+        self._stop_event.clear()
+
     def unlock_protective_stop(self) -> str:
         """Operator action: unlock a protective stop and restart the control script."""
         import dashboard_client
