@@ -117,6 +117,9 @@ def check_resumable(row: dict[str, Any], run: RunDirectory) -> None:
     """``ConfigError`` saying why the run of index ``row`` cannot be resumed: it is
     running, succeeded, or failed on something other than a device (a bug, a solve)."""
     status, run_id = row["status"], row["run_id"]
+    if not row.get("run_dir"):
+        raise ConfigError(f"run {run_id} is {status} and never started (no run directory): "
+                          "submit it again")
     if status in ("running", "paused"):
         raise ConfigError(f"run {run_id} is {status} (pid {row['pid']}): nothing to resume")
     if status == "failed":
