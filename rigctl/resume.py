@@ -202,7 +202,7 @@ def rig_file_changes(config, run: RunDirectory) -> list[str]:
 DEVICE_KEYS = {"arm": ("model", "serial", "controller_model", "kinematics_hash"),
                "head": ("model", "servos"),
                "camera": ("serial", "settings")}
-KEY_NAMES = {"kinematics_hash": "robot kinematics hash", "settings": "camera settings"}
+KEY_NAMES = {"kinematics_hash": "robot kinematics hash"}
 
 
 def device_changes(recorded: dict[str, Any] | None, devices: dict[str, Any]) -> list[str]:
