@@ -140,8 +140,12 @@ def demo(quick: bool = typer.Option(False, "--quick",
 
 
 @app.command()
-def run(procedure: str = typer.Argument(..., help="Procedure name (see `rigctl procedures`)."),
+def run(procedure: str | None = typer.Argument(None, help="Procedure name (see `rigctl "
+                                                         "procedures`); none with --resume."),
         rig: Path = typer.Option(..., "--rig", help="Rig file (YAML)."),
+        resume: str | None = typer.Option(None, "--resume", help="Resume this run (id or "
+                                          "unique prefix): aborted, interrupted, failed on a "
+                                          "device, or tell a paused one to continue."),
         param: list[str] = typer.Option([], "--param", "-p", help="key=value, repeatable."),
         dry_run: bool = typer.Option(False, "--dry-run", help="Print the plan; touch nothing."),
         as_json: bool = typer.Option(False, "--json", help="JSON on stdout, nothing else."),
@@ -153,17 +157,29 @@ def run(procedure: str = typer.Argument(..., help="Procedure name (see `rigctl p
         config = load_rig(rig)
         runner = Runner(config, operator=operator, show_progress=not as_json or sys.stderr.isatty())
         overrides = parse_params(param)
-        if dry_run:
+        if resume is not None:
+            if procedure is not None or overrides or dry_run:
+                raise ConfigError("--resume RUN_ID takes no procedure, --param or --dry-run: "
+                                  "the run continues its recorded plan")
+            with stdout_to_stderr():
+                outcome = runner.resume(resume)
+            if outcome is None:
+                err.print(f"run {resume} is paused in another process: asked it to continue")
+                raise typer.Exit(0)
+        elif procedure is None:
+            raise ConfigError("give a PROCEDURE to run, or --resume RUN_ID")
+        elif dry_run:
             plan = runner.dry_run(procedure, overrides)
             if as_json:
                 _print_json(plan.as_dict())
             else:
                 _print_plan(plan)
             raise typer.Exit(0 if not plan.violations else EXIT_REFUSED)
-        if overrides.get("teach") is True:  # Enter = capture, `done` = finish (rigctl.teach)
-            __import__("rigctl.teach").teach.read_terminal()
-        with stdout_to_stderr():
-            outcome = runner.run(procedure, overrides)
+        else:
+            if overrides.get("teach") is True:  # Enter = capture, `done` = finish (rigctl.teach)
+                __import__("rigctl.teach").teach.read_terminal()
+            with stdout_to_stderr():
+                outcome = runner.run(procedure, overrides)
     except RigError as exc:
         _fail(exc, as_json)
     if as_json:
@@ -226,11 +242,13 @@ def runs_list(rig: Path = typer.Option(..., "--rig"), limit: int = typer.Option(
               procedure: str | None = typer.Option(None, "--procedure"),
               as_json: bool = typer.Option(False, "--json")) -> None:
     """Recent runs from the index."""
-    from rigctl.records import RecordIndex
+    from rigctl.records import RecordIndex, replay_pending
 
     try:
         config = load_rig(rig)
-        rows = RecordIndex(config.database_url()).list(limit, procedure, rig_name=config.name)
+        index = RecordIndex(config.database_url())
+        replay_pending(index, config.records_dir())  # writes a run kept while it was away
+        rows = index.list(limit, procedure, rig_name=config.name)
     except RigError as exc:
         _fail(exc, as_json)
     if as_json:
@@ -257,6 +275,7 @@ def runs_show(run_id: str, rig: Path = typer.Option(..., "--rig"),
         row = RecordIndex(config.database_url()).get(run_id, rig_name=config.name)
         run_dir = RunDirectory(row["run_dir"])
         row["captures"] = len(run_dir.captures()) if run_dir.path.exists() else 0
+        row["segments"] = segments_of(run_dir, row["status"])
         result_path = run_dir.path / "result.json"
         row["result"] = json.loads(result_path.read_text()) if result_path.exists() else None
     except RigError as exc:
@@ -265,10 +284,26 @@ def runs_show(run_id: str, rig: Path = typer.Option(..., "--rig"),
         _print_json(row)
         return
     for key, value in row.items():
-        if key != "result":
+        if key not in ("result", "segments"):
             out.print(f"[bold]{key}[/bold]: {value}", highlight=False)
+    for seg in row["segments"]:
+        out.print(f"[bold]segment {seg['n']}[/bold]: {seg['started_at']} "
+                  f"({seg['start_reason']}) -> {seg['ended_at']} ({seg['end']}"
+                  + (f": {seg['end_reason']}" if seg.get("end_reason") else "") + ")",
+                  highlight=False)
     if row["result"] is not None:
         out.print_json(json.dumps(_summary(row["result"]), default=str))
+
+
+def segments_of(run_dir, status: str) -> list[dict[str, Any]]:
+    """The run's segments (``segments.json``); of a run no longer running, a segment
+    left open is shown as interrupted."""
+    from rigctl.resume import close_dangling, read_segments
+
+    if not run_dir.path.exists():
+        return []
+    segments = read_segments(run_dir)
+    return segments if status in ("running", "paused") else close_dangling(segments, run_dir)
 
 
 def parse_indices(text: str | None) -> list[int]:

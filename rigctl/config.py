@@ -570,6 +570,10 @@ class RigConfig(_Strict):
                                                   "procedures.<name>.<parameter>")
     service: ServiceConfig = Field(ServiceConfig(), description="the HTTP service (rigctl serve)")
     world: str | None = Field(None, description="simulated rigs only: the ground-truth world file")
+    max_pause_s: float = Field(600.0, ge=0, le=7 * 86400, description="longest a run stays "
+                               "paused on a protective stop, a servo alert or over-temperature, "
+                               "or a camera stall before it ends aborted, seconds; 0: never "
+                               "pause, such a condition ends the run")
 
     # Filled by ``load_rig``: where the file came from, and its text for provenance.
     source_path: Path | None = Field(None, exclude=True)

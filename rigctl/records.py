@@ -151,7 +151,8 @@ class RecordIndex:
     def _refresh_interrupted(self, rows: list[dict]) -> list[dict]:
         host = socket.gethostname()
         for row in rows:
-            if row["status"] == "running" and row["host"] == host and not _pid_alive(row["pid"]):
+            if row["status"] in ("running", "paused") and row["host"] == host \
+                    and not _pid_alive(row["pid"]):
                 reason = f"process {row['pid']} ended without closing the run"
                 self.update(row["run_id"], status="interrupted", reason=reason)
                 row["status"], row["reason"] = "interrupted", reason
@@ -201,6 +202,93 @@ class RecordIndex:
         if len(rows) > 1:
             raise RigError(f"run id prefix {run_id!r} is ambiguous ({len(rows)} runs)")
         return self._refresh_interrupted(rows)[0]
+
+
+PENDING = "index-pending.jsonl"  # index writes a run could not make (database away)
+
+
+def _encode(values: dict[str, Any]) -> dict[str, Any]:
+    return {k: {"datetime": v.isoformat()} if isinstance(v, dt.datetime) else to_jsonable(v)
+            for k, v in values.items()}
+
+
+def _decode(values: dict[str, Any]) -> dict[str, Any]:
+    return {k: dt.datetime.fromisoformat(v["datetime"])
+            if isinstance(v, dict) and set(v) == {"datetime"} else v
+            for k, v in values.items()}
+
+
+class JournaledIndex:
+    """A run's writes to the index that outlive the database being away: a write that
+    fails is appended to the run directory's ``index-pending.jsonl`` and the run goes
+    on; the pending writes are replayed, in order, before the next write and whenever
+    ``replay_pending`` is called (``rigctl runs list``, the service), so the index
+    catches up when the database returns."""
+
+    def __init__(self, index: RecordIndex, run_dir: Path) -> None:
+        self.index, self.pending = index, Path(run_dir) / PENDING
+
+    def write(self, op: str, run_id: str, values: dict[str, Any]) -> bool:
+        """``op`` (insert: ``values`` is the row; update) now, after the pending ones;
+        False (and journaled) when the database cannot be reached."""
+        if self.replay() and self._apply(op, run_id, values):
+            return True
+        with open(self.pending, "a", encoding="utf-8") as f:
+            f.write(json.dumps({"op": op, "run_id": run_id, "values": _encode(values)})
+                    + "\n")
+            f.flush()
+            os.fsync(f.fileno())
+        return False
+
+    def _apply(self, op: str, run_id: str, values: dict[str, Any]) -> bool:
+        try:
+            if op == "insert":
+                self.index.insert(values)
+            else:
+                self.index.update(run_id, **values)
+        except Exception as exc:  # the driver's own errors: the database is away
+            import logging
+
+            logging.getLogger("rigctl.records").warning(
+                "index unreachable, %s of run %s kept in %s: %s", op, run_id, self.pending,
+                str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
+            return False
+        return True
+
+    def replay(self) -> bool:
+        """Apply the pending writes; True once none is left."""
+        if not self.pending.exists():
+            return True
+        lines = [json.loads(line) for line in self.pending.read_text().splitlines()
+                 if line.strip()]
+        for k, entry in enumerate(lines):
+            values = _decode(entry["values"])
+            if entry["op"] == "insert" and self._exists(entry["run_id"]):
+                continue  # an insert that reached the database before its answer was lost
+            if not self._apply(entry["op"], entry["run_id"], values):
+                rest = "".join(json.dumps(e) + "\n" for e in lines[k:])
+                tmp = self.pending.with_suffix(".tmp")
+                tmp.write_text(rest)
+                os.replace(tmp, self.pending)
+                return False
+        self.pending.unlink()
+        return True
+
+    def _exists(self, run_id: str) -> bool:
+        try:
+            self.index.get(run_id)
+        except Exception:  # not there, or the database away again
+            return False
+        return True
+
+
+def replay_pending(index: RecordIndex, records_dir: Path) -> int:
+    """Replay every run's pending index writes under ``records_dir``; how many runs
+    caught up."""
+    done = 0
+    for pending in sorted(Path(records_dir).glob(f"*/{PENDING}")):
+        done += JournaledIndex(index, pending.parent).replay()
+    return done
 
 
 @dataclass
@@ -302,15 +390,22 @@ class RunDirectory:
         import cv2
 
         stem = self.captures_dir / f"{index:03d}"
-        if image is not None:
-            ok, png = cv2.imencode(".png", image)
-            if not ok:
-                raise RigError(f"{stem}.png: cannot encode image")
-            tmp = stem.with_suffix(".png.tmp")
-            tmp.write_bytes(png.tobytes())
-            os.replace(tmp, stem.with_suffix(".png"))
-            meta = {**meta, "image": f"{index:03d}.png"}
-        write_json(stem.with_suffix(".json"), meta)
+        tmp = stem.with_suffix(".png.tmp")
+        try:
+            if image is not None:
+                ok, png = cv2.imencode(".png", image)
+                if not ok:
+                    raise RigError(f"{stem}.png: cannot encode image")
+                tmp.write_bytes(png.tobytes())
+                os.replace(tmp, stem.with_suffix(".png"))
+                meta = {**meta, "image": f"{index:03d}.png"}
+            write_json(stem.with_suffix(".json"), meta)
+        except OSError as exc:  # a full disk: no half-written file is left as a capture
+            for part in (tmp, stem.with_suffix(".json.tmp")):
+                with contextlib.suppress(OSError):
+                    part.unlink()
+            raise RigError(f"{stem}: cannot write capture {index:03d}: "
+                           f"{exc.strerror or exc}") from None
         return stem.with_suffix(".json")
 
     def capture(self, index: int) -> Capture:

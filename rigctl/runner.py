@@ -20,8 +20,10 @@ from __future__ import annotations
 import getpass
 import logging
 import math
+import os
 import platform
 import signal
+import socket
 import threading
 import time
 from collections.abc import Callable
@@ -41,12 +43,13 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
-from rigctl import procedures, teach
+from rigctl import procedures, suspenders, teach
+from rigctl import resume as resuming
 from rigctl.calib.blas_threads import one_blas_thread
 from rigctl.config import HEAD_AXES, RigConfig, parse_rig
 from rigctl.drivers.base import check_axis_limit
 from rigctl.drivers.camera import mean_change
-from rigctl.errors import AbortedError, ConfigError, RigError, SafetyError
+from rigctl.errors import AbortedError, ConfigError, DeviceError, RigError, SafetyError
 from rigctl.extras import missing_extra
 from rigctl.locks import rig_lock
 from rigctl.procedures.base import (
@@ -73,6 +76,7 @@ from rigctl.records import (
 )
 from rigctl.redaction import RedactingFormatter, redact_rig_text, scrub
 from rigctl.rig import Rig
+from rigctl.runner_resume import ResumeMixin
 
 log = logging.getLogger("rigctl.run")
 # how long a capture keeps waiting for a fresh view when a frame after a motion shows
@@ -240,8 +244,9 @@ def _versions() -> dict[str, Any]:
     return out
 
 
-class Runner:
-    """Executes procedures on one rig. Thread-safe ``abort()``; one run at a time."""
+class Runner(ResumeMixin):
+    """Executes procedures on one rig. Thread-safe ``abort()`` and ``request_continue()``
+    (a paused run); one run at a time."""
 
     def __init__(self, config: RigConfig, *, factories: dict | None = None,
                  console: Console | None = None, show_progress: bool = True,
@@ -254,8 +259,10 @@ class Runner:
         self.on_event = on_event
         self._board: BoardDetection | None = None
         self.abort_event = threading.Event()
+        self.continue_event = threading.Event()  # the operator's resume of a paused run
         self._abort_reason = "abort requested"
         self.index = RecordIndex(config.database_url())
+        self.paused: str | None = None  # the reason, while paused
 
     # -- planning -------------------------------------------------------------
 
@@ -271,6 +278,12 @@ class Runner:
     def abort(self, reason: str = "abort requested") -> None:
         self._abort_reason = reason
         self.abort_event.set()
+        self.continue_event.set()  # wakes a paused run, which then sees the abort
+
+    def request_continue(self) -> None:
+        """The operator's resume of a paused run: check its condition now and continue
+        when it has cleared (``suspenders.wait_clear``)."""
+        self.continue_event.set()
 
     def _emit(self, **event: Any) -> None:
         if self.on_event is not None:
@@ -296,29 +309,62 @@ class Runner:
         self._abort_reason = "abort requested"
         # SIGTERM aborts from here on: a signal between the run's record and its first
         # step must still end in an "aborted" record, not kill the process (seen in CI)
+        return self._locked(run_id, lambda: self._run_locked(procedure, params, plan, run_id,
+                                                             inputs))
+
+    def _locked(self, run_id: str, body: Callable[[], RunOutcome]) -> RunOutcome:
+        """``body`` with SIGTERM aborting, SIGUSR1 continuing a pause, and the rig lock."""
+        # SIGTERM aborts from here on: a signal between the run's record and its first
+        # step must still end in an "aborted" record, not kill the process (seen in CI)
         restore = self._install_sigterm()
         lock = rig_lock(self.config)
         try:
             lock.acquire(run_id)
             try:
-                return self._run_locked(procedure, params, plan, run_id, inputs)
+                return body()
             finally:
                 lock.release()
         finally:
             restore()
 
+    def _begin(self, procedure: Procedure, plan: PlanCheck, run_id: str,
+               inputs: dict[str, Any], rig: Rig, resumed: RunDirectory | None
+               ) -> tuple[RunDirectory, int, int]:
+        """A new run's directory and index row (its plan in ``plan.json``), or a resumed
+        run's devices opened and checked (nothing moved) and its row running again; the
+        step to start at and the first capture's number."""
+        if resumed is None:
+            run = RunDirectory.create(self.config.records_dir(), run_id)
+            hidden = self.config.service.secrets()
+            (run.path / "rig.yaml").write_text(redact_rig_text(self.config.source_text,
+                                                               hidden))
+            source = self.config.source_path
+            write_json(run.path / "params.json", {
+                "procedure": procedure.name, "params": plan.params,
+                "operator": self.operator,
+                "rig_file": str(source.resolve()) if source is not None else None})
+            write_json(run.path / "inputs.json", inputs)
+            resuming.write_plan(run, plan.steps)
+            self._index_insert(run, run_row(self.config, run_id, procedure.name, "running",
+                                            self.operator, str(run.path.resolve())))
+            resuming.start_segment(run, "started", 0)
+            return run, 0, 0
+        run = resumed
+        self._open_devices(rig, procedure)
+        self._check_same_rig(rig, run)
+        start = resuming.next_step(run, plan.steps)
+        first_capture = max((c.index for c in run.captures()), default=-1) + 1
+        self._index_update(run, run_id, status="running", reason=None, ended_at=None,
+                           pid=os.getpid(), host=socket.gethostname())
+        resuming.start_segment(run, f"resumed by {self.operator}", start)
+        return run, start, first_capture
+
     def _run_locked(self, procedure: Procedure, params: Any, plan: PlanCheck,
-                    run_id: str, inputs: dict[str, Any]) -> RunOutcome:
-        run = RunDirectory.create(self.config.records_dir(), run_id)
+                    run_id: str, inputs: dict[str, Any],
+                    resumed: RunDirectory | None = None) -> RunOutcome:
         hidden = self.config.service.secrets()  # the service token: never on disk
-        (run.path / "rig.yaml").write_text(redact_rig_text(self.config.source_text, hidden))
-        source = self.config.source_path
-        write_json(run.path / "params.json", {
-            "procedure": procedure.name, "params": plan.params, "operator": self.operator,
-            "rig_file": str(source.resolve()) if source is not None else None})
-        write_json(run.path / "inputs.json", inputs)
-        self.index.insert(run_row(self.config, run_id, procedure.name, "running", self.operator,
-                                  str(run.path.resolve())))
+        rig = Rig(self.config, self.factories)
+        run, start, first_capture = self._begin(procedure, plan, run_id, inputs, rig, resumed)
         handler = logging.FileHandler(run.path / "run.log")
         handler.setFormatter(RedactingFormatter("%(asctime)s %(levelname)s %(name)s: %(message)s",
                                                 hidden))
@@ -326,18 +372,21 @@ class Runner:
         root.addHandler(handler)
         if root.level > logging.INFO or root.level == logging.NOTSET:
             root.setLevel(logging.INFO)
-        rig = Rig(self.config, self.factories)
         self._board = (BoardDetection(self.config.target)
                        if procedure.detects_board and self.config.target else None)
         self._emit(type="started", run_id=run_id, procedure=procedure.name,
                    total=len(plan.steps))
         status, reason, result = "running", None, None
+        error: str | None = None
         operator_stop = False
         timings: dict[str, float] = {}
         ctx = SolveContext(run, self.config, params, inputs)
         started = time.monotonic()
         try:
-            self._execute(rig, procedure, plan.steps, run, run_id)
+            if resumed is not None:
+                log.info("resuming run %s at step %d/%d, captures from %03d", run_id,
+                         start + 1, len(plan.steps), first_capture)
+            self._execute(rig, procedure, plan.steps, run, run_id, start, first_capture)
             timings["motion_s"] = time.monotonic() - started
             _write_versions(run, rig.devices, hidden)
             problems = rig.close_all()
@@ -358,10 +407,8 @@ class Runner:
             status, operator_stop = "aborted", requested or ctrl_c
             reason = self._abort_reason if requested else (
                 "interrupted by Ctrl-C" if ctrl_c else str(exc))
-        except SafetyError as exc:  # a protective or emergency stop aborts the run
-            status, reason = "aborted", f"SafetyError: {exc}"
         except RigError as exc:
-            status, reason = "failed", f"{type(exc).__name__}: {exc}"
+            status, reason, error = _failure(exc)
         except Exception as exc:  # a bug: still record it, and keep the captures
             missing = missing_extra(exc)  # a device's client library not installed
             status, reason = "failed", (str(missing) if missing else
@@ -372,8 +419,10 @@ class Runner:
                 self._stop_and_record(rig, run, reason)
             if self._board is not None:
                 self._board.finish()
-            self.index.update(run_id, status=status, reason=reason, ended_at=utcnow(),
-                              result_summary=summarize(result) if result else None)
+            resuming.end_segment(run, status, reason, error)
+            self._index_update(run, run_id, status=status, reason=reason, ended_at=utcnow(),
+                               result_summary=summarize(result) if result else None)
+            self.catch_up_index()
             if status == "succeeded" and ctx.deferred:
                 timings["after_result_s"] = _run_deferred(ctx)
             timings["run_s"] = time.monotonic() - started
@@ -401,37 +450,98 @@ class Runner:
             _write_versions(run, opened, self.config.service.secrets())
 
     def _install_sigterm(self) -> Callable[[], None]:
+        """SIGTERM aborts the run, SIGUSR1 continues it when paused (how ``rigctl run
+        --resume`` and the service reach a paused run of another process)."""
         if threading.current_thread() is not threading.main_thread():
             return lambda: None
         previous = signal.getsignal(signal.SIGTERM)
+        previous_usr1 = signal.getsignal(signal.SIGUSR1)
         signal.signal(signal.SIGTERM, lambda *_: self.abort("SIGTERM received"))
-        return lambda: signal.signal(signal.SIGTERM, previous)
+        signal.signal(signal.SIGUSR1, lambda *_: self.request_continue())
 
-    def _execute(self, rig: Rig, procedure: Procedure, steps: list[Step], run: RunDirectory,
-                 run_id: str) -> None:
-        # Open every device the procedure uses before the first step.
+        def restore() -> None:
+            signal.signal(signal.SIGTERM, previous)
+            signal.signal(signal.SIGUSR1, previous_usr1)
+        return restore
+
+    def _open_devices(self, rig: Rig, procedure: Procedure) -> None:
+        """Open every device the procedure uses (before the first step)."""
         for kind in procedure.devices:
             rig.open(kind)
         for kind in procedure.optional_devices:
             if kind in rig.configured():
                 rig.open(kind)
+
+    def _execute(self, rig: Rig, procedure: Procedure, steps: list[Step], run: RunDirectory,
+                 run_id: str, start: int = 0, first_capture: int = 0) -> None:
+        """The steps from ``start`` (a resumed run: after an approach, ``resume.approach``),
+        captures numbered from ``first_capture``. A pausable condition (``SuspendError``)
+        pauses the run; once it clears, the interrupted step is redone from the start of
+        its stretch (the moves after the last capture), after an approach."""
+        self._open_devices(rig, procedure)
+        self._record_rig(rig, run)
         progress = Progress(TextColumn("[bold]{task.description:<40}"), BarColumn(),
                             MofNCompleteColumn(), TimeElapsedColumn(), TimeRemainingColumn(),
                             console=self.console, disable=not self.show_progress, transient=False)
-        state = {"last_motion_end": time.time(), "capture": 0,
-                 "head_commanded": None, "arm_commanded": None}
+        state = {"last_motion_end": time.time(), "capture": first_capture,
+                 "head_commanded": None, "arm_commanded": None, "step": None}
+        n, approach = start, start > 0
         with progress:
-            task = progress.add_task(procedure.name, total=len(steps))
-            for n, step in enumerate(steps):
+            task = progress.add_task(procedure.name, total=len(steps), completed=start)
+            while n < len(steps):
                 if self.abort_event.is_set():
                     raise AbortedError(self._abort_reason)
-                text = step.label or step.describe()
-                progress.update(task, description=f"{procedure.name}: {text}"[:40])
-                self._emit(type="step", run_id=run_id, index=n, total=len(steps),
-                           step=step.describe())
-                log.info("step %d/%d: %s", n + 1, len(steps), step.describe())
-                self._do_step(rig, step, run, state)
+                try:
+                    if approach:
+                        for step in resuming.approach(steps, n):
+                            if step.device in rig.devices:
+                                log.info("approach: %s", step.describe())
+                                self._do_step(rig, step, run, state)
+                        approach = False
+                    step = steps[n]
+                    text = step.label or step.describe()
+                    progress.update(task, description=f"{procedure.name}: {text}"[:40])
+                    self._emit(type="step", run_id=run_id, index=n, total=len(steps),
+                               step=step.describe())
+                    log.info("step %d/%d: %s", n + 1, len(steps), step.describe())
+                    state["step"] = n
+                    self._do_step(rig, step, run, state)
+                except suspenders.SuspendError as exc:
+                    self._pause(rig, run, run_id, exc)
+                    n, approach = resuming.segment_start(steps, n + exc.done), True
+                    progress.update(task, completed=n)
+                    continue
+                n += 1
                 progress.advance(task)
+
+    def _pause(self, rig: Rig, run: RunDirectory, run_id: str,
+               exc: suspenders.SuspendError) -> None:
+        """Hold a run on a pausable condition until it clears (``suspenders.wait_clear``);
+        the devices stopped meanwhile, the index row ``paused`` with the reason. With
+        ``max_pause_s`` 0 the condition ends the run as before."""
+        max_pause = self.config.max_pause_s
+        if max_pause <= 0:
+            raise exc
+        self.paused = exc.reason
+        log.warning("paused: %s (at most %g s)", exc.reason, max_pause)
+        suspenders.hold_safe(rig, exc.kind)
+        resuming.end_segment(run, "paused", exc.reason, type(exc.cause).__name__)
+        self._index_update(run, run_id, status="paused", reason=exc.reason)
+        self._emit(type="paused", run_id=run_id, reason=exc.reason)
+        self.continue_event.clear()
+        try:
+            why = suspenders.wait_clear(rig, exc.kind, max_pause, self.abort_event,
+                                        self.continue_event, lambda: self._abort_reason)
+        except RigError:
+            self.paused = None
+            resuming.start_segment(run, "paused run ended", -1)
+            raise
+        suspenders.recover(rig, exc.kind)
+        self.paused = None
+        log.warning("continuing: %s", why.why)
+        resuming.start_segment(run, f"continued: {why.why}", -1)
+        self._index_update(run, run_id, status="running", reason=None)
+        self._emit(type="continued", run_id=run_id, reason=why.why)
 
     def _do_step(self, rig: Rig, step: Step, run: RunDirectory, state: dict) -> None:
         """Execute one step through the handler registered for its type (``STEP_HANDLERS``)."""
@@ -442,20 +552,26 @@ class Runner:
 
     def _move_head(self, rig: Rig, step: MoveHead, run: RunDirectory, state: dict) -> None:
         head = rig.open("head")
-        head.move_to(step.pan, step.tilt, step.roll).wait(
-            self.config.devices.head.move_timeout_s, self.abort_event)
+        try:
+            head.move_to(step.pan, step.tilt, step.roll).wait(
+                self.config.devices.head.move_timeout_s, self.abort_event)
+        except DeviceError as exc:  # a servo in alert pauses the run
+            raise suspenders.head_suspend(head, exc) from exc
         state["head_commanded"] = {"pan": step.pan, "tilt": step.tilt, "roll": step.roll}
         state["last_motion_end"] = time.time()
 
     def _move_arm(self, rig: Rig, step, run: RunDirectory, state: dict) -> None:
         arm = rig.open("arm")
-        if isinstance(step, MoveArmJoints):
-            status = arm.move_joints(step.q)
-        elif isinstance(step, MoveArmJoint):
-            status = arm.move_joint(step.index, step.angle)
-        else:
-            status = arm.move_linear(step.pose)
-        status.wait(self.config.devices.arm.move_timeout_s, self.abort_event)
+        try:
+            if isinstance(step, MoveArmJoints):
+                status = arm.move_joints(step.q)
+            elif isinstance(step, MoveArmJoint):
+                status = arm.move_joint(step.index, step.angle)
+            else:
+                status = arm.move_linear(step.pose)
+            status.wait(self.config.devices.arm.move_timeout_s, self.abort_event)
+        except SafetyError as exc:  # a protective stop pauses the run; an e-stop ends it
+            raise suspenders.arm_suspend(arm, exc) from exc
         state["arm_commanded"] = {"kind": type(step).__name__, **_step_fields(step)}
         state["last_motion_end"] = time.time()
 
@@ -496,11 +612,15 @@ class Runner:
         return frame
 
     def _capture(self, rig: Rig, step: CaptureStep, run: RunDirectory, state: dict) -> None:
-        meta: dict[str, Any] = {"index": state["capture"], "label": step.label,
-                                "time": time.time(), "extra": dict(step.extra)}
+        meta: dict[str, Any] = {"index": state["capture"], "step": state["step"],
+                                "label": step.label, "time": time.time(),
+                                "extra": dict(step.extra)}
         image, health = None, None
         if step.image and "camera" in rig.configured():
-            frame = self._fresh_frame(rig.open("camera"), state)
+            try:
+                frame = self._fresh_frame(rig.open("camera"), state)
+            except DeviceError as exc:  # a stalled stream pauses the run
+                raise suspenders.camera_suspend(exc) from exc
             image = frame.image
             meta["camera"] = {"timestamp": frame.timestamp, "sequence": frame.sequence,
                               "settings": frame.settings}
@@ -520,8 +640,13 @@ class Runner:
         if image is not None and self._board is not None:
             self._board.submit(run.capture(state["capture"]), image)
         state["capture"] += 1
-        if health is not None:  # a servo at its temperature limit or in alert ends the run
-            rig.devices["head"].check_health(health)
+        if health is not None:  # a servo at its temperature limit or in alert pauses
+            try:
+                rig.devices["head"].check_health(health)
+            except DeviceError as exc:
+                suspend = suspenders.head_suspend(rig.devices["head"], exc)
+                suspend.done = 1  # this capture is kept: continue after it
+                raise suspend from exc
 
 
 # what the runner does for each step type (procedures only describe steps)
@@ -556,6 +681,18 @@ class BoardDetection:
     def finish(self) -> None:
         """Wait for the captures already submitted."""
         self.pool.shutdown(wait=True)
+
+
+def _failure(exc: RigError) -> tuple[str, str, str]:
+    """Status, reason and error type (as a run's segment records it: any device fault
+    as ``DeviceError``, resumable) of a run ended by ``exc``. A protective or emergency
+    stop aborts the run; a pausable condition with pausing off ends it as its cause."""
+    if isinstance(exc, suspenders.SuspendError):
+        exc = exc.cause
+    name = type(exc).__name__
+    if isinstance(exc, SafetyError):
+        return "aborted", f"{name}: {exc}", name
+    return "failed", f"{name}: {exc}", "DeviceError" if isinstance(exc, DeviceError) else name
 
 
 def _step_fields(step) -> dict[str, Any]:

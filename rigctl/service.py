@@ -48,7 +48,9 @@ from rigctl.console.pages import (
 from rigctl.errors import BusyError, ConfigError, RigError, SafetyError
 from rigctl.locks import rig_lock
 from rigctl.records import RecordIndex, RunDirectory, new_run_id, run_row, to_jsonable, utcnow
+from rigctl.resume import close_dangling, read_segments
 from rigctl.runner import Runner, prepare_run, refuse_violations, solve_recorded
+from rigctl.service_resume import report_lost_queue, resume_run, save_queue
 
 log = logging.getLogger("rigctl.service")
 DECISION_WAIT_S = 30.0  # how long an operator's decision waits for the service's drift check
@@ -139,6 +141,7 @@ class Job:
     source: str = "api"
     operator: str = "service"
     progress: dict[str, Any] = field(default_factory=dict)
+    resume: bool = False  # resume the recorded run ``run_id`` (POST /runs/{id}/resume)
 
 
 class RigService:
@@ -159,6 +162,7 @@ class RigService:
         self.decisions = threading.Condition()
         self._deciding: set[str] = set()
         self.worker = threading.Thread(target=self._work, daemon=True, name="rig-worker")
+        self.lost_queue: list[dict] = []  # queued when a previous service died (start())
         self.scheduler = None
 
     # -- queue ---------------------------------------------------------------------
@@ -173,9 +177,21 @@ class RigService:
         job = Job(new_run_id(procedure), procedure, params, source, operator)
         with self.cond:
             self.queue.append(job)
+            save_queue(self)
             self.cond.notify_all()
         self.events.publish({"type": "queued", "run_id": job.run_id, "procedure": procedure,
                              "source": source})
+        return job
+
+    def enqueue_resume(self, row: dict, operator: str) -> Job:
+        """Queue the resume of the recorded run of ``row`` (checked resumable)."""
+        job = Job(row["run_id"], row["procedure"], {}, "api", operator, resume=True)
+        with self.cond:
+            self.queue.append(job)
+            save_queue(self)
+            self.cond.notify_all()
+        self.events.publish({"type": "queued", "run_id": job.run_id,
+                             "procedure": job.procedure, "source": "resume"})
         return job
 
     def busy_reason(self) -> str | None:
@@ -218,6 +234,9 @@ class RigService:
             for job in list(self.queue):
                 if job.run_id == run_id:
                     self.queue.remove(job)
+                    save_queue(self)
+                    if job.resume:  # its record stays as it was
+                        return "removed from the queue"
                     self.record_without_run(job.procedure, "aborted",
                                             "aborted via the API before it started",
                                             job.params, job.run_id, operator)
@@ -232,6 +251,7 @@ class RigService:
                 if self.stopping:
                     return
                 job = self.queue.popleft()
+                save_queue(self)
                 self.current = job
                 self.runner = Runner(self.config, factories=self.factories,
                                      show_progress=False, operator=job.operator,
@@ -240,10 +260,20 @@ class RigService:
                 with self.decisions:  # before the run can be recorded as succeeded
                     self._deciding.add(job.run_id)
             try:
-                outcome = self.runner.run(job.procedure, job.params, run_id=job.run_id)
+                if job.resume:
+                    outcome = self.runner.resume(job.run_id)
+                    if outcome is None:
+                        continue
+                else:
+                    outcome = self.runner.run(job.procedure, job.params, run_id=job.run_id)
                 if outcome.status == "succeeded" and job.procedure in drift.CALIBRATIONS:
                     self.decide(job.run_id, job.procedure, outcome.result)
             except RigError as exc:  # refused before anything moved (busy, limits, params)
+                if job.resume:  # the run's record stays as it was
+                    log.error("resume of run %s refused: %s", job.run_id, exc)
+                    self.events.publish({"type": "resume_refused", "run_id": job.run_id,
+                                         "reason": f"{type(exc).__name__}: {exc}"})
+                    continue
                 status = "skipped" if job.source == "schedule" else "failed"
                 self.record_without_run(job.procedure, status, f"{type(exc).__name__}: {exc}",
                                         job.params, job.run_id, job.operator)
@@ -343,7 +373,8 @@ class RigService:
         devices = {k: (getattr(config.devices, k).model_dump() if getattr(config.devices, k)
                        else None) for k in ("head", "arm", "camera")}
         return {"rig": config.name, "busy": self.busy_reason(), "lock": lock.holder(),
-                "devices": devices, "last_readings": last}
+                "devices": devices, "last_readings": last,
+                "lost_queue": self.lost_queue}
 
     def set_decision(self, row: dict, decision: str, by: str, comment: str = "",
                      **extra: Any) -> None:
@@ -378,6 +409,7 @@ class RigService:
     # -- scheduler -----------------------------------------------------------------
 
     def start(self) -> None:
+        self.lost_queue = report_lost_queue(self)
         self.worker.start()
         if self.config.service.schedules:
             from apscheduler.schedulers.background import BackgroundScheduler
@@ -499,6 +531,7 @@ def create_app(service: RigService, stop_service_on_shutdown: bool = False,
     app.include_router(login_routes(access, templates, SESSION_COOKIE))
     app.include_router(_rig_routes(service), dependencies=readers)
     app.include_router(_run_routes(service, guarded), dependencies=readers)
+    app.include_router(_resume_routes(service, guarded), dependencies=readers)
     app.include_router(_calibration_routes(service, guarded), dependencies=readers)
     app.include_router(_page_routes(service, templates), dependencies=readers)
     app.include_router(_teach_routes(service, guarded), dependencies=readers)
@@ -543,6 +576,10 @@ def _run_view(service: RigService, run_id: str) -> dict:
         row["progress"] = current.progress
     if row["run_dir"] and Path(row["run_dir"], "result.json").exists():
         row["result"] = RunDirectory(row["run_dir"]).result()
+    if row["run_dir"] and Path(row["run_dir"]).is_dir():
+        segments = read_segments(RunDirectory(row["run_dir"]))
+        row["segments"] = segments if row["status"] in ("running", "paused") else \
+            close_dangling(segments, RunDirectory(row["run_dir"]))
     return row
 
 
@@ -619,6 +656,22 @@ def _rig_routes(service: RigService) -> APIRouter:
             out.append({"name": name, "summary": proc.summary, "devices": list(proc.devices),
                         "params_schema": proc.params_model.model_json_schema()})
         return out
+
+    return router
+
+
+def _resume_routes(service: RigService, guarded: list) -> APIRouter:
+    """Resume a run (``rigctl.service_resume``)."""
+    router = APIRouter()
+
+    @router.post("/runs/{run_id}/resume", dependencies=guarded)
+    def resume(run_id: str = RUN_ID, request: AbortRequest | None = None) -> dict:
+        """Resume a run: a paused one continues (once its condition has cleared); an
+        aborted, interrupted or device-failed one is queued to continue its recorded
+        plan in its own directory. 404 unknown run, 409 not resumable (the detail says
+        why: running, succeeded, failed on a bug or a solve, the rig file changed)."""
+        operator = (request.operator if request else None) or "operator"
+        return resume_run(service, _own_run(service, run_id), operator)
 
     return router
 

@@ -51,15 +51,16 @@ class CliRun:
             self.proc.wait(timeout=10)
 
 
-def head_rig(tmp_path: Path, link: str) -> Path:
-    """The head alone on the stand-in's bus, parking home (the default policy)."""
+def head_rig(tmp_path: Path, link: str, **extra) -> Path:
+    """The head alone on the stand-in's bus, parking home (the default policy); ``extra``
+    top-level keys (``max_pause_s``)."""
     rig = tmp_path / "rig.yaml"
     # a move held by the stand-in (``freeze``) waits for the test's signal, however busy
     # the host: the move timeout is only a hang guard here
     head = {"port": link, "speed_cap_dps": 120, "accel_cap_dps2": 600, "move_timeout_s": 120,
             **STAND_IN_TIMING["head"]}
     rig.write_text(yaml.safe_dump({"name": "dxl-rig", "records": {"directory": "records"},
-                                   "devices": {"head": head}}))
+                                   "devices": {"head": head}, **extra}))
     return rig
 
 
@@ -79,10 +80,11 @@ SWEEP = ["--param", "pan_deg=[-20, 10, 20]", "--param", "tilt_deg=[5]",
 
 @pytest.mark.timeout(180)
 def test_a_run_a_device_fault_fails_exits_1_and_is_recorded_failed(bus, tmp_path):  # noqa: F811
-    """The pan servo's first move is held half-way (latched), then overloaded: the run
-    fails, the CLI prints the outcome and exits 1, the index says failed with the reason."""
+    """The pan servo's first move is held half-way (latched), then overloaded; with
+    pausing off (``max_pause_s: 0``) the run fails, the CLI prints the outcome and exits
+    1, the index says failed with the reason."""
     sock = bus.ready["control"]
-    rig = head_rig(tmp_path, bus.ready["link"])
+    rig = head_rig(tmp_path, bus.ready["link"], max_pause_s=0)
     control(sock, {"cmd": "freeze", "id": 1, "at_fraction": 0.5})
     run = CliRun("head-sweep", "--rig", str(rig), "--json", *SWEEP)
     try:
@@ -98,6 +100,39 @@ def test_a_run_a_device_fault_fails_exits_1_and_is_recorded_failed(bus, tmp_path
     row = only_run(rig)
     assert row["status"] == "failed" and row["reason"] == outcome["reason"]
     assert RunDirectory(row["run_dir"]).captures() == []
+
+
+@pytest.mark.timeout(240)
+def test_a_servo_alert_pauses_the_run_until_head_reboot(bus, tmp_path):  # noqa: F811
+    """The same overload with pausing on: the run pauses (its process stays, the index
+    says paused with the reason), `rigctl head reboot` clears the alert, and the run
+    continues by itself, redoing the interrupted move, to success."""
+    sock = bus.ready["control"]
+    rig = head_rig(tmp_path, bus.ready["link"])
+    control(sock, {"cmd": "freeze", "id": 1, "at_fraction": 0.5})
+    run = CliRun("head-sweep", "--rig", str(rig), "--json", *SWEEP)
+    try:
+        wait_until(lambda: servos(sock)[1]["frozen"], timeout=60, what="the first move held")
+        control(sock, {"cmd": "hw_error", "id": 1, "error": "overload"})
+        row = wait_until(lambda: (r := RecordIndex(load_rig(rig).database_url()).list())
+                         and r[0]["status"] == "paused" and r[0], timeout=60,
+                         what="the run paused")
+        assert "overload" in row["reason"] and "rigctl head reboot" in row["reason"]
+        assert run.proc.poll() is None
+        rebooted = rigctl("head", "reboot", "--rig", str(rig))
+        assert rebooted.returncode == 0, rebooted.stderr
+        out, err = run.finish()
+    finally:
+        run.stop()
+    assert run.proc.returncode == 0, err[-2000:]
+    row = only_run(rig)
+    assert row["status"] == "succeeded"
+    segments = json.loads(Path(row["run_dir"], "segments.json").read_text())
+    assert [s["end"] for s in segments] == ["paused", "succeeded"]
+    plan = json.loads(Path(row["run_dir"], "plan.json").read_text())["steps"]
+    steps = [c.meta["step"] for c in RunDirectory(row["run_dir"]).captures()]
+    assert steps == [s["n"] for s in plan if s["kind"] == "CaptureStep"]
+    assert json.loads(out)["poses"] == len(steps)
 
 
 @pytest.mark.timeout(180)

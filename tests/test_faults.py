@@ -98,12 +98,13 @@ def test_a_run_that_fails_or_is_aborted_still_records_its_devices(bus, tmp_path,
     is written for a run that a device fault fails (servo 2's input voltage out of range
     when the second capture is taken) or that the operator aborts at the same point: its
     bus record is the evidence of what went wrong. The captures taken before the end
-    stay on disk, listed by the record, and the head parks home (its default policy)."""
+    stay on disk, listed by the record, and the head parks home (its default policy).
+    Pausing is off (``max_pause_s: 0``): the servo alert ends the run."""
     rig = tmp_path / "rig.yaml"
     head = {"port": bus.ready["link"], "speed_cap_dps": 180, "accel_cap_dps2": 1000,
             **STAND_IN_TIMING["head"]}
     rig.write_text(yaml.safe_dump({"name": "dxl-rig", "records": {"directory": "rec"},
-                                   "devices": {"head": head}}))
+                                   "devices": {"head": head}, "max_pause_s": 0}))
     runner, captures = None, []
 
     def on_event(event):

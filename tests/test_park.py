@@ -142,9 +142,12 @@ def test_an_operator_abort_stops_the_arm_mid_move_and_parks_it_home(arm_proc, tm
 
 
 def test_a_protective_stop_mid_run_aborts_it_and_nothing_moves_after(arm_proc, tmp_path):  # noqa: F811
-    """A fault (protective stop) while the runner moves the arm: the run is recorded
-    aborted, naming it, and the park policy does not move a protective-stopped arm."""
-    runner = Runner(load_rig(_arm_rig(tmp_path, arm_proc.ready["host"])), show_progress=False)
+    """A fault (protective stop) while the runner moves the arm, with pausing off
+    (``max_pause_s: 0``): the run is recorded aborted, naming it, and the park policy
+    does not move a protective-stopped arm."""
+    rig = _arm_rig(tmp_path, arm_proc.ready["host"])
+    rig.write_text(rig.read_text() + "max_pause_s: 0\n")
+    runner = Runner(load_rig(rig), show_progress=False)
     control(arm_proc.ready["control"], {"cmd": "freeze", "at_fraction": 0.5})
     thread, out = _sweep_in_thread(runner)
     dump = lambda: control(arm_proc.ready["control"], {"cmd": "dump"})  # noqa: E731

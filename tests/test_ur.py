@@ -177,9 +177,11 @@ def test_driver_move_joint_and_soft_limits(arm_proc):
 
 
 def test_protective_stop_mid_move_aborts_recorded_run(arm_proc, tmp_path):
+    """With pausing off (``max_pause_s: 0``) a protective stop aborts the run."""
     rig = tmp_path / "rig.yaml"
-    rig.write_text(f"name: ur-rig\ndevices:\n  arm: {{host: {arm_proc.ready['host']}, "
-                   f"speed_cap_dps: 10, accel_cap_dps2: 40, stream_timeout_s: 5}}\n")
+    rig.write_text(f"name: ur-rig\nmax_pause_s: 0\ndevices:\n  arm: {{host: "
+                   f"{arm_proc.ready['host']}, speed_cap_dps: 10, accel_cap_dps2: 40, "
+                   "stream_timeout_s: 5}\n")
     runner = Runner(load_rig(rig), show_progress=False)
     import threading
 

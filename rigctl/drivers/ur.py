@@ -344,6 +344,14 @@ class URArm(Arm):
         except Exception as exc:
             log.error("arm: stopJ failed: %s", exc)
 
+    def recover(self) -> None:
+        """After a protective stop was unlocked (by the operator, ``rigctl arm unlock``):
+        restart the control script, which the stop ended, so moves are accepted again."""
+        self.check_safety()
+        if self.control is not None:
+            self.control.reuploadScript()
+        self._stop_event.clear()
+
     # -- teach mode (free drive) -------------------------------------------------------
 
     def teach_mode(self) -> None:
