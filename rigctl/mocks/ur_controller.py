@@ -737,7 +737,7 @@ class RTDEConnection:
         ctrl = self.ctrl
         every = max(1, round(500.0 / max(self.frequency, 1.0)))
         last_tick = -1
-        # each field's flattened value, kept while the snapshot holds the same object (at
+        # each field's flattened value, kept while the snapshot holds the same value (at
         # rest most fields do): 500 packings a second cost a tenth of a core otherwise
         flat: dict[str, tuple] = {}
         try:
@@ -756,9 +756,13 @@ class RTDEConnection:
                     value = snap.get(name)
                     if value is None:
                         continue
+                    # an array by its bytes (a move may update one in place), else
+                    # by identity
+                    token = value.tobytes() if isinstance(value, np.ndarray) else value
                     known = flat.get(name)
-                    if known is None or known[0] is not value:  # a new value this tick
-                        known = (value, _flatten(value))
+                    if known is None or (known[0] != token if isinstance(token, bytes)
+                                         else known[0] is not token):
+                        known = (token, _flatten(value))
                         flat[name] = known
                     values.extend(known[1])
                 self.send("U", struct.pack(self.output_fmt, 1, *values))
