@@ -78,7 +78,7 @@ class Camera:
                 t_sample = time.time()
                 angles, q = self.state()
                 t0 = time.perf_counter()
-                image = self.world.render(self.world.T_base_cam(q, angles), index)
+                image = self.world.render(self.world.T_base_cam(q, angles), index, q=q)
                 _ok, jpeg = cv2.imencode(".jpg", image, quality)
                 self.render_s.append(time.perf_counter() - t0)
                 self.render_s = self.render_s[-200:]
