@@ -12,16 +12,14 @@ from rigctl.calib.board import is_charuco, orient_to_prediction, target_points
 from rigctl.calib.extrinsic import estimate_pose
 from rigctl.config import RigConfig
 from rigctl.geometry.kinematics import KinematicModel, nominal_ur
-from rigctl.geometry.transforms import inv_T
 
 from .intrinsics import camera_model, intrinsics_from
 from .planning import (
     controller_dh_model,
     load_pose_file,
-    nominal_flange_cam,
+    nominal_cam_target,
     planning_arm,
     pose_file_record,
-    target_centre,
 )
 
 log = logging.getLogger(__name__)
@@ -81,9 +79,7 @@ def board_observations(ctx, intr: dict) -> list[dict]:
 def _predicted_corners(config: RigConfig, q, obj: np.ndarray, K: np.ndarray) -> np.ndarray:
     """Where the nominal arm, head mount and target pose put the board's corners (pixels,
     no distortion): enough to tell a symmetric board's half and quarter turns apart."""
-    T_base_target, _ = target_centre(config)
-    T_cam_target = inv_T(nominal_ur(config.devices.arm.model).fk(q)
-                         @ nominal_flange_cam(config)) @ T_base_target
+    T_cam_target = nominal_cam_target(config, nominal_ur(config.devices.arm.model), q)
     cam = (T_cam_target[:3, :3] @ obj.T).T + T_cam_target[:3, 3]
     px = (K @ cam.T).T
     return px[:, :2] / px[:, 2:3]
