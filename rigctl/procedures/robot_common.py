@@ -92,13 +92,22 @@ def left_out_views(observations: list[dict]) -> dict[str, str]:
             if not o["found"] and o.get("note") and "view left out" in o["note"]}
 
 
-def export_model(model: KinematicModel, X, W, uncertainty: dict, heldout: dict) -> dict:
-    """The export format of the robot issue."""
+def frame_names(fixed: bool) -> tuple[str, str]:
+    """The result's names of the solvers' X and W: ``T_flange_cam`` and ``T_base_target``,
+    or with the head beside the arm (``fixed``) ``T_base_cam`` and ``T_flange_target``."""
+    return ("T_base_cam", "T_flange_target") if fixed else ("T_flange_cam", "T_base_target")
+
+
+def export_model(model: KinematicModel, X, W, uncertainty: dict, heldout: dict,
+                 fixed: bool = False) -> dict:
+    """The export format of the robot issue; with the head beside the arm (``fixed``) X
+    and W are ``T_base_cam`` (the camera with the head at home) and ``T_flange_target``."""
+    x_name, w_name = frame_names(fixed)
     return {"convention": "A_i = Rz(theta_i + theta_offset) Tz(d) Tx(a) Rx(alpha) Ry(beta)",
             "units": {"length": "m", "angle": "rad"}, "links": model.links(),
-            "T_base_link0": model.T_base_link0.tolist(), "T_flange_cam": np.asarray(X).tolist(),
-            "T_base_target": np.asarray(W).tolist(), "uncertainty": uncertainty,
-            "heldout": heldout}
+            "T_base_link0": model.T_base_link0.tolist(), x_name: np.asarray(X).tolist(),
+            w_name: np.asarray(W).tolist(), "uncertainty": uncertainty,
+            "heldout": heldout, **({"mounting": "eye-to-hand"} if fixed else {})}
 
 
 
