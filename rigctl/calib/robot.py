@@ -4,6 +4,12 @@ Measurement model: the target is fixed, so for every capture k with joints q_k
 
     W = T_base_target = FK(q_k) X C_k,   X = T_flange_cam,  C_k = T_cam_target
 
+With the camera standing beside the arm and the board on the flange (eye-to-hand,
+``Measurements.fixed``) the same loop closes the other way round:
+``C_k = X^-1 FK(q_k) W`` with ``X = T_base_cam`` and ``W = T_flange_target``
+(``cam_target_batch``); the joint refinement, its covariance and the held-out errors
+take either, link-by-link only the first.
+
 **Link-by-link (4.11)-(4.35), for n links.** Moving joint i alone between captures 0
 and 1 gives (4.12)/(4.30)
 
