@@ -657,13 +657,23 @@ def sim_truth(world: str = typer.Option("default", "--world", help=WORLD_HELP),
 def sim_world(seed: int = typer.Option(..., "--random", min=0,
                                        help="draw a plausible rig from this seed"),
               out_path: Path | None = typer.Option(None, "--out",
-                                                   help="write the world file here")) -> None:
+                                                   help="write the world file here"),
+              target: str = typer.Option("checkerboard", "--target",
+                                         help="checkerboard | charuco | either"),
+              mount: str = typer.Option("flange", "--mount",
+                                        help="flange (head on the flange, board in the world) "
+                                        "| fixed (head beside the arm, board on the flange) "
+                                        "| either")) -> None:
     """A random plausible world (camera, head, arm model and errors, hand-eye, target)
     as a world file: for judging solvers on rigs nobody tuned them for."""
     from rigctl.mocks.random_world import random_world
 
-    text = f"# rigctl sim world --random {seed}\n" + \
-        yaml.safe_dump(random_world(seed), sort_keys=False, default_flow_style=None)
+    try:
+        spec = random_world(seed, target=target, mount=mount)
+    except ValueError as exc:
+        _fail(ConfigError(f"sim world: {exc}"), False)
+    text = f"# rigctl sim world --random {seed} --target {target} --mount {mount}\n" + \
+        yaml.safe_dump(spec, sort_keys=False, default_flow_style=None)
     if out_path is None:
         sys.stdout.write(text)
         return
