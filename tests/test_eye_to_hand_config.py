@@ -63,7 +63,7 @@ def test_hand_eye_refuses_a_rig_where_the_arm_moves_nothing(tmp_path, head, targ
 def test_world_refuses_camera_and_board_both_on_the_flange():
     data = random_world(300001)
     data["target"]["mount"] = "flange"
-    with pytest.raises(ValueError, match="head.mount: flange with target.mount: flange"):
+    with pytest.raises(ValueError, match=r"head\.mount: flange with target\.mount: flange"):
         WorldFile.model_validate(data)
 
 
