@@ -102,3 +102,14 @@ def test_random_worlds_draw_a_fixed_head_watching_the_flange(seed):
     assert ahead > 0.2
     same = random_world(seed)  # the rest of the world is the seed's own
     assert same["camera"] == data["camera"] and same["arm"] == data["arm"]
+
+
+def test_procedures_planning_views_of_a_board_in_the_world_refuse_a_fixed_head(tmp_path):
+    rig = tmp_path / "rig.yaml"
+    rig.write_text(_rig() + "records: {directory: records}\n")
+    done = subprocess.run([sys.executable, "-m", "rigctl.cli", "run", "validate-arm", "--rig",
+                           str(rig), "--dry-run", "--param", "intrinsics={\"fx\": 900, "
+                           "\"fy\": 900, \"cx\": 640, \"cy\": 360}"],
+                          capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert "with the head beside the arm" in done.stderr

@@ -275,6 +275,10 @@ def plan_target_views(config: RigConfig, n: int, distance_m: float = 0.45,
     arm = config.devices.arm
     if arm is None:
         raise SolveError("planning target views needs devices.arm in the rig file")
+    if eye_to_hand(config):  # (and the combinations it refuses, by their keys)
+        raise ConfigError("these views look at a board in the world; with the head beside "
+                          "the arm (devices.head.mount: fixed, target.mount: flange) this "
+                          "procedure is not supported yet (hand-eye and robot-kinematics are)")
     model = arm_model(config, model)
     T_base_target, centre = target_centre(config)
     normal = -T_base_target[:3, 2]  # board z points into the board; the camera is outside
