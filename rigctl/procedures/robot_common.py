@@ -11,6 +11,7 @@ import numpy as np
 from rigctl.calib.board import is_charuco, orient_to_prediction, target_points
 from rigctl.calib.extrinsic import estimate_pose
 from rigctl.config import RigConfig
+from rigctl.errors import SolveError
 from rigctl.geometry.kinematics import KinematicModel, nominal_ur
 
 from .intrinsics import camera_model, intrinsics_from
@@ -68,7 +69,14 @@ def board_observations(ctx, intr: dict) -> list[dict]:
         if not is_charuco(tg):  # a ChArUco corner's id leaves no turn of the board open
             corners = orient_to_prediction(corners, _predicted_corners(ctx.config, q, obj, K),
                                            tg.rows, tg.cols)
-        pose = estimate_pose(obj, corners, K, dist)
+        try:
+            pose = estimate_pose(obj, corners, K, dist)
+        except SolveError as exc:  # a ChArUco view whose few corners lie on one line
+            note = f"no board pose from the corners seen ({exc}); the view is not used"
+            log.warning("capture %s: %s", capture.meta["label"], note)
+            out.append({"label": capture.meta["label"], "kind": extra.get("kind"),
+                        "index": capture.index, "found": False, "note": note})
+            continue
         out.append({"label": capture.meta["label"], "kind": extra.get("kind"),
                     "index": capture.index, "joint": extra.get("joint"), "found": True,
                     "q": q, "corners": corners,
