@@ -393,7 +393,8 @@ def solve(run_dir: Path = typer.Argument(..., help="A run directory."),
 @app.command()
 def export(run: str = typer.Argument(..., help="Run directory, or run id with --rig."),
            fmt: str = typer.Option("json", "--format",
-                                   help="json | opencv | ros | ur | ur-kinematics | urdf"),
+                                   help="json | opencv | ros | ur | ur-kinematics | urdf | "
+                                   "ros-static"),
            output: Path | None = typer.Option(None, "--out", help="Output file."),
            rig: Path | None = typer.Option(None, "--rig")) -> None:
     """Export a run's calibration."""
@@ -693,13 +694,23 @@ def sim_truth(world: str = typer.Option("default", "--world", help=WORLD_HELP),
 def sim_world(seed: int = typer.Option(..., "--random", min=0,
                                        help="draw a plausible rig from this seed"),
               out_path: Path | None = typer.Option(None, "--out",
-                                                   help="write the world file here")) -> None:
+                                                   help="write the world file here"),
+              target: str = typer.Option("checkerboard", "--target",
+                                         help="checkerboard | charuco | either"),
+              mount: str = typer.Option("flange", "--mount",
+                                        help="flange (head on the flange, board in the world) "
+                                        "| fixed (head beside the arm, board on the flange) "
+                                        "| either")) -> None:
     """A random plausible world (camera, head, arm model and errors, hand-eye, target)
     as a world file: for judging solvers on rigs nobody tuned them for."""
     from rigctl.mocks.random_world import random_world
 
-    text = f"# rigctl sim world --random {seed}\n" + \
-        yaml.safe_dump(random_world(seed), sort_keys=False, default_flow_style=None)
+    try:
+        spec = random_world(seed, target=target, mount=mount)
+    except ValueError as exc:
+        _fail(ConfigError(f"sim world: {exc}"), False)
+    text = f"# rigctl sim world --random {seed} --target {target} --mount {mount}\n" + \
+        yaml.safe_dump(spec, sort_keys=False, default_flow_style=None)
     if out_path is None:
         sys.stdout.write(text)
         return
@@ -857,10 +868,16 @@ def bench_worlds(as_json: bool = typer.Option(False, "--json"),
                  keep: Path | None = typer.Option(None, "--keep",
                                                   help="keep world files and records here"),
                  from_kept: Path | None = typer.Option(
-                     None, "--from-kept", help="report on a --keep folder, run nothing")
+                     None, "--from-kept", help="report on a --keep folder, run nothing"),
+                 combination: str = typer.Option(
+                     "each", "--combination",
+                     help="each (target x mounting by seed mod 4) or one for every world: "
+                     "checkerboard-flange | charuco-flange | checkerboard-fixed | "
+                     "charuco-fixed")
                  ) -> None:
     """The whole chain (active-camera, hand-eye, robot-kinematics, validate-arm) through
-    the stand-ins on N random worlds, with default parameters, against each world's truth."""
+    the stand-ins on N random worlds, with default parameters, against each world's truth;
+    each combination of target and mounting reported apart."""
     from rigctl.bench import worlds
     from rigctl.bench.common import print_table
 
@@ -869,7 +886,8 @@ def bench_worlds(as_json: bool = typer.Option(False, "--json"),
             result = worlds.report(worlds.rows_from_kept(from_kept), plot)
             n = len(result["worlds"])
         else:
-            result = worlds.run(n, first_seed, plot, keep, console=err)
+            worlds.combination(first_seed, combination)  # a bad --combination: exit 2
+            result = worlds.run(n, first_seed, plot, keep, console=err, only=combination)
     stopped = typer.Exit(130) if result.get("stopped") else None  # Ctrl-C or SIGTERM
     if as_json:
         _print_json(result, real_stdout)
@@ -882,15 +900,17 @@ def bench_worlds(as_json: bool = typer.Option(False, "--json"),
         cam, arm = p.get("active-camera", {}), p.get("robot-kinematics", {})
         failure = next((f"{k}: {v['reason']}" for k, v in p.items()
                         if v["status"] != "succeeded"), "")
-        rows.append([r["seed"], r["model"], round(r["fx_true"]),
+        rows.append([r["seed"], r["model"], f"{r.get('target')}-{r.get('mount')}",
+                     round(r["fx_true"]),
                      cam.get("focal_pct", "-"), cam.get("centre_px", "-"),
                      arm.get("model_rms_mm", "-"), arm.get("model_max_mm", "-"),
-                     arm.get("heldout_mm_after", "-"),
+                     arm.get("heldout_mm_after", "-"), arm.get("image_coverage", "-"),
                      p.get("validate-arm", {}).get("position_rms_mm_after", "-"),
                      failure[:70]])
     print_table(f"bench worlds ({n} worlds, seeds {', '.join(map(str, result['seeds']))})",
-                ["seed", "arm", "f", "f err %", "centre px", "model rms mm", "model max mm",
-                 "held-out mm", "validate mm", "failure"], rows, out)
+                ["seed", "arm", "target-mount", "f", "f err %", "centre px", "model rms mm",
+                 "model max mm", "held-out mm", "coverage", "validate mm", "failure"], rows,
+                out)
     out.print_json(json.dumps(result["summary"]))
     out.print(f"plot: {result.get('plot')}")
     if stopped:

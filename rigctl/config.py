@@ -121,8 +121,13 @@ class MountPose(_Strict):
 class HeadConfig(_Strict):
     port: str = Field(description="serial port of the servo bus: the U2D2 (/dev/ttyUSB0, or a "
                       "/dev/serial/by-id/ path)")
-    mount: MountPose = Field(MountPose(), description="nominal T_flange_head (the head on the "
-                             "arm's flange), for planning views")
+    mount: MountPose | Literal["flange", "fixed"] = Field(
+        MountPose(), description="nominal T_flange_head (the head on the arm's flange), for "
+        "planning views; or fixed: the head stands beside the arm (eye-to-hand) at fixed_pose, "
+        "watching a board held by the flange (target.mount: flange)")
+    fixed_pose: MountPose | None = Field(None, description="mount fixed only: the approximate "
+                                         "T_base_head, for planning views (the calibration "
+                                         "estimates the camera's pose)")
     baud: int = Field(1_000_000, description="bus baud rate; every servo must be set to it")
     # One servo model for all axes, one per axis, or None: read from each servo when the
     # driver pings it. A named model that differs from the servo's refuses the run.
@@ -181,6 +186,23 @@ class HeadConfig(_Strict):
         if isinstance(self.model, AxisModel):
             return getattr(self.model, axis)
         return self.model
+
+    @model_validator(mode="after")
+    def _fixed_pose_given(self) -> HeadConfig:
+        if self.mount == "flange":
+            self.mount = MountPose()
+        if self.mount == "fixed" and self.fixed_pose is None:
+            raise ValueError("mount: fixed needs fixed_pose, the approximate T_base_head "
+                             "({xyz_mm: [...], rpy_deg: [...]}) the views are planned with")
+        if self.mount != "fixed" and self.fixed_pose is not None:
+            raise ValueError("fixed_pose is a key of a head standing beside the arm "
+                             "(mount: fixed)")
+        return self
+
+    @property
+    def fixed(self) -> bool:
+        """True when the head stands beside the arm (``mount: fixed``)."""
+        return self.mount == "fixed"
 
     @model_validator(mode="after")
     def _distinct_ids(self) -> HeadConfig:
@@ -400,9 +422,14 @@ class TargetConfig(_Strict):
                                     "millimetres, as measured on the print")
     legacy_pattern: bool = Field(False, description="ChArUco only: the layout OpenCV printed "
                                  "before 4.6 (CharucoBoard.setLegacyPattern)")
+    mount: Literal["world", "flange"] = Field(
+        "world", description="world: the board is fixed beside the arm (pose is T_base_target); "
+        "flange: the arm's flange holds it, in view of a head standing beside the arm "
+        "(devices.head.mount: fixed; pose is T_flange_target)")
     pose: MountPose = Field(
         MountPose(xyz_mm=[350.0, 100.0, 0.0], rpy_deg=[180.0, 0.0, 0.0]),
-        description="approximate T_base_target (for planning views; the calibration estimates it)")
+        description="approximate T_base_target, or T_flange_target with mount: flange (for "
+        "planning views; the calibration estimates it)")
 
     @field_validator("dictionary")
     @classmethod

@@ -1,6 +1,6 @@
 """Exports of a recorded result: JSON, OpenCV FileStorage YAML, ROS camera_info YAML,
-UR-style DH deltas, and (``rigctl.exports_ur``) the UR ROS 2 driver's kinematics YAML
-and a URDF."""
+UR-style DH deltas, and (``rigctl.exports_ur``) the UR ROS 2 driver's kinematics YAML,
+a URDF, and a fixed camera's pose as a ROS static transform YAML."""
 
 from __future__ import annotations
 
@@ -14,10 +14,10 @@ import yaml
 from rigctl.errors import ConfigError, RigError
 from rigctl.geometry.camera import camera_matrix
 
-FORMATS = ("json", "opencv", "ros", "ur", "ur-kinematics", "urdf")
+FORMATS = ("json", "opencv", "ros", "ur", "ur-kinematics", "urdf", "ros-static")
 SUFFIXES = {"json": ".json", "opencv": ".opencv.yaml", "ros": ".camera_info.yaml",
             "ur": ".ur_calibration.yaml", "ur-kinematics": ".ur_kinematics.yaml",
-            "urdf": ".urdf"}
+            "urdf": ".urdf", "ros-static": ".static_transform.yaml"}
 
 
 def _intrinsics(result: dict[str, Any], run_id: str) -> tuple[np.ndarray, np.ndarray, int, int]:
@@ -86,11 +86,12 @@ def export_result(result: dict[str, Any], fmt: str, path: Path, run_id: str,
                   versions: dict | None = None) -> Path:
     """Write ``result`` in ``fmt``; ``versions`` (the run's ``versions.json``) carries the
     robot's own kinematics hash for ``ur-kinematics``."""
-    from rigctl.exports_ur import export_ur_kinematics, export_urdf
+    from rigctl.exports_ur import export_ros_static, export_ur_kinematics, export_urdf
 
     if fmt == "json":
         keys = ("convention", "units", "links", "T_base_link0", "T_flange_cam",
-                "T_base_target", "uncertainty", "heldout")
+                "T_base_target", "T_base_cam", "T_flange_target", "mounting", "uncertainty",
+                "heldout")
         doc = {k: result[k] for k in keys if k in result} if "convention" in result else result
         path.write_text(json.dumps(doc, indent=2) + "\n")
     elif fmt == "opencv":
@@ -103,6 +104,8 @@ def export_result(result: dict[str, Any], fmt: str, path: Path, run_id: str,
         export_ur_kinematics(result, path, run_id, versions)
     elif fmt == "urdf":
         export_urdf(result, path, run_id, versions)
+    elif fmt == "ros-static":
+        export_ros_static(result, path, run_id)
     else:
         raise ConfigError(f"--format: unknown export format {fmt!r}; known: {', '.join(FORMATS)}")
     return path

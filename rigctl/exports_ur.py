@@ -154,14 +154,18 @@ def joint_limits_of(model_name: str | None) -> list[tuple[float, float, float, f
     return out
 
 
-def urdf_from_kinematics(kinematics: dict[str, Any], T_flange_cam: np.ndarray,
+def urdf_from_kinematics(kinematics: dict[str, Any], T_flange_cam: np.ndarray | None,
                          T_base_target: np.ndarray | None, T_wrist3_flange: np.ndarray,
                          name: str = "rigctl_ur", limits_rad=None,
-                         model_name: str | None = None) -> str:
+                         model_name: str | None = None, T_base_cam: np.ndarray | None = None,
+                         T_flange_target: np.ndarray | None = None) -> str:
     """A URDF with ur_description's frames, its joints placed from a kinematics document
     exactly as ur_description's xacro places them, then the camera's optical frame on
-    ``tool0`` and the target fixed to the base. Joint limits, speeds and efforts are arm
-    model ``model_name``'s (``joint_limits_of``); ``limits_rad`` overrides the positions."""
+    ``tool0`` and the target fixed to the base; or, for a camera standing beside the arm
+    (``T_base_cam``, eye-to-hand), the camera's optical frame fixed to ``base_link`` and
+    the target (``T_flange_target``) on ``tool0``. Joint limits, speeds and efforts are
+    arm model ``model_name``'s (``joint_limits_of``); ``limits_rad`` overrides the
+    positions."""
     kin = kinematics["kinematics"]
     limits = joint_limits_of(model_name)
     if limits_rad:
@@ -189,9 +193,17 @@ def urdf_from_kinematics(kinematics: dict[str, Any], T_flange_cam: np.ndarray,
     lines.append(_fixed("wrist_3-flange", "wrist_3_link", "flange",
                         rpy_to_T([0, 0, 0], FLANGE_RPY)))
     lines.append(_fixed("flange-tool0", "flange", "tool0", rpy_to_T([0, 0, 0], TOOL0_RPY)))
-    T_tool0_cam = inv_T(tool0_in_wrist3()) @ T_wrist3_flange @ np.asarray(T_flange_cam)
+    T_tool0_flange = inv_T(tool0_in_wrist3()) @ T_wrist3_flange
+    if T_base_cam is not None:  # eye-to-hand: the camera on the base, the board on tool0
+        lines.append(_fixed("base_link-camera_optical_frame", "base_link",
+                            "camera_optical_frame", T_inertia @ np.asarray(T_base_cam)))
+        if T_flange_target is not None:
+            lines.append(_fixed("tool0-target", "tool0", "target",
+                                T_tool0_flange @ np.asarray(T_flange_target)))
+        lines.append("</robot>")
+        return "\n".join(lines) + "\n"
     lines.append(_fixed("tool0-camera_optical_frame", "tool0", "camera_optical_frame",
-                        T_tool0_cam))
+                        T_tool0_flange @ np.asarray(T_flange_cam)))
     if T_base_target is not None:
         lines.append(_fixed("base_link-target", "base_link", "target",
                             T_inertia @ np.asarray(T_base_target)))
@@ -200,7 +212,7 @@ def urdf_from_kinematics(kinematics: dict[str, Any], T_flange_cam: np.ndarray,
 
 
 def model_of(result: dict[str, Any], run_id: str) -> KinematicModel:
-    if "links" not in result or "T_flange_cam" not in result:
+    if "links" not in result or not ("T_flange_cam" in result or "T_base_cam" in result):
         raise RigError(f"run {run_id}: result has no arm kinematics to export "
                        "(a robot-kinematics run has)")
     return KinematicModel.from_export(result)
@@ -231,8 +243,33 @@ def export_urdf(result: dict, path, run_id: str, versions: dict | None) -> None:
     _, T_wrist3_flange = joint_origins(model)
     kinematics = ur_kinematics(model, arm.get("kinematics_hash") or "")
     T_base_target = result.get("T_base_target")
+    fixed = "T_base_cam" in result  # eye-to-hand: the camera beside the arm
     path.write_text(urdf_from_kinematics(
-        kinematics, np.asarray(result["T_flange_cam"]),
+        kinematics, None if fixed else np.asarray(result["T_flange_cam"]),
         None if T_base_target is None else np.asarray(T_base_target), T_wrist3_flange,
         name=f"rigctl_{result.get('arm_model', 'ur')}_{run_id}",
-        model_name=result.get("arm_model")))
+        model_name=result.get("arm_model"),
+        T_base_cam=np.asarray(result["T_base_cam"]) if fixed else None,
+        T_flange_target=np.asarray(result["T_flange_target"]) if fixed else None))
+
+
+def export_ros_static(result: dict, path, run_id: str) -> None:
+    """``--format ros-static``: ``T_base_cam`` of a camera standing beside the arm as a
+    ROS static transform (YAML: ``frame_id`` base_link, ``child_frame_id``
+    camera_optical_frame, translation in metres and rotation as a quaternion x, y, z, w,
+    the arguments of tf2_ros ``static_transform_publisher``), from a hand-eye or
+    robot-kinematics result of an eye-to-hand rig. ``base_link`` is ur_description's
+    (turned half a turn about z from the D-H base, ``BASE_INERTIA_RPY``)."""
+    if "T_base_cam" not in result:
+        raise RigError(f"run {run_id}: result has no T_base_cam (a hand-eye or "
+                       "robot-kinematics run with the head beside the arm has); a camera on "
+                       "the flange moves with the arm: export --format urdf")
+    T = rpy_to_T([0, 0, 0], BASE_INERTIA_RPY) @ np.asarray(result["T_base_cam"], float)
+    qx, qy, qz, qw = Rotation.from_matrix(T[:3, :3]).as_quat()
+    doc = {"frame_id": "base_link", "child_frame_id": "camera_optical_frame",
+           "translation": dict(zip("xyz", map(float, T[:3, 3]), strict=True)),
+           "rotation": {"x": float(qx), "y": float(qy), "z": float(qz), "w": float(qw)},
+           "eye_on_hand": False, "run_id": run_id}
+    header = (f"# rigctl run {run_id}: the fixed camera's pose (camera with the head at "
+              "home), a static transform base_link -> camera_optical_frame\n")
+    path.write_text(header + yaml.safe_dump(doc, sort_keys=False))

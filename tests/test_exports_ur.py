@@ -140,3 +140,38 @@ def test_kinematics_file_needs_the_robots_own_hash(tmp_path):
         export_result(result, "ur-kinematics", tmp_path / "k.yaml", "run9", {"devices": {}})
     with pytest.raises(RigError, match="no arm kinematics"):
         export_result({"fx": 1.0}, "urdf", tmp_path / "a.urdf", "run9", None)
+
+
+def test_urdf_and_static_transform_of_a_camera_beside_the_arm(tmp_path):
+    """Eye-to-hand: the camera fixed to base_link at T_base_cam, the board on tool0 at
+    T_flange_target, through the calibrated joints; the static transform YAML is the
+    same T_base_cam from base_link."""
+    rng = np.random.default_rng(11)
+    model, X, W = random_model(rng)
+    result = {"links": model.links(), "T_base_link0": model.T_base_link0.tolist(),
+              "T_base_cam": W.tolist(), "T_flange_target": X.tolist(), "arm_model": "ur5e"}
+    versions = {"devices": {"arm": {"kinematics_hash": "calib_42"}}}
+    urdf = export_result(result, "urdf", tmp_path / "arm.urdf", "run1", versions)
+    robot = yourdfpy.URDF.load(str(urdf), load_meshes=False,
+                               build_collision_scene_graph=False, load_collision_meshes=False)
+    flip = rz(math.pi)
+    assert np.allclose(robot.get_transform("camera_optical_frame", "base_link"), flip @ W,
+                       atol=1e-12)
+    names = list(robot.actuated_joint_names)
+    for q in rng.uniform(-math.pi, math.pi, (50, 6)):
+        robot.update_cfg(dict(zip(names, q, strict=True)))
+        assert np.allclose(robot.get_transform("target", "base_link"), flip @ model.fk(q) @ X,
+                           atol=1e-9)
+    static = yaml.safe_load(export_result(result, "ros-static", tmp_path / "cam.yaml", "run1",
+                                          versions).read_text())
+    assert (static["frame_id"], static["child_frame_id"]) == ("base_link",
+                                                              "camera_optical_frame")
+    t, r = static["translation"], static["rotation"]
+    from scipy.spatial.transform import Rotation
+
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_quat([r["x"], r["y"], r["z"], r["w"]]).as_matrix()
+    T[:3, 3] = [t["x"], t["y"], t["z"]]
+    assert np.allclose(T, flip @ W, atol=1e-12)
+    with pytest.raises(RigError, match="no T_base_cam"):
+        export_result({"T_flange_cam": X.tolist()}, "ros-static", tmp_path / "x.yaml", "run1")

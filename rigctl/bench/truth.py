@@ -6,7 +6,7 @@ import numpy as np
 
 from rigctl.geometry.kinematics import KinematicModel
 from rigctl.geometry.transforms import inv_T
-from rigctl.procedures.planning import reachable_views
+from rigctl.procedures.planning import eye_to_hand, planning_K, reachable_views
 
 INTRINSICS = ("fx", "fy", "cx", "cy")
 
@@ -14,22 +14,39 @@ INTRINSICS = ("fx", "fy", "cx", "cy")
 def check_configurations(config) -> list[np.ndarray]:
     """34 planned views (35 deg tilt, 0.5 m or closer when the arm cannot reach that
     far) with the wrist joints each perturbed three times (sigma 0.2 rad): configurations
-    no run visits."""
-    views, _ = reachable_views(config, 34, 0.5, 35.0, seed=4242, label="check view")
+    no run visits. With the head beside the arm: 34 board views of the fixed camera
+    (``planning_e2h.board_views``, 35 deg tilt), the wrists perturbed alike."""
+    if eye_to_hand(config):
+        from rigctl.procedures.planning_e2h import board_views
+
+        views, _ = board_views(config, 34, 0.45, 35.0, 4242, planning_K(config, None))
+    else:
+        views, _ = reachable_views(config, 34, 0.5, 35.0, seed=4242, label="check view")
     rng = np.random.default_rng(0)
     return [np.array(q) + np.r_[np.zeros(3), rng.normal(0, 0.2, 3)]
             for q in views for _ in range(3)]
 
 
+def frames_of(result: dict) -> tuple[np.ndarray, np.ndarray, bool]:
+    """A result's X and W and whether its camera stands beside the arm: (T_flange_cam,
+    T_base_target, False) or (T_base_cam, T_flange_target, True)."""
+    if "T_base_cam" in result:
+        return np.array(result["T_base_cam"]), np.array(result["T_flange_target"]), True
+    return np.array(result["T_flange_cam"]), np.array(result["T_base_target"]), False
+
+
 def _position_errors(result: dict, world, qs) -> np.ndarray:
-    """Camera position in the target frame, ``W^-1 FK(q) X`` from the exported model,
-    minus the world's truth (m, target frame), per configuration."""
+    """Camera position in the target frame, ``W^-1 FK(q) X`` from the exported model
+    (``robot.target_cam``, either mounting), minus the world's truth (m, target frame),
+    per configuration."""
+    from rigctl.calib.robot import target_cam
+
     model = KinematicModel.from_export(result)
-    X, W = np.array(result["T_flange_cam"]), np.array(result["T_base_target"])
+    X, W, fixed = frames_of(result)
     out = []
     for q in qs:
-        est = inv_T(W) @ model.fk(q) @ X
-        true = inv_T(world.T_base_target) @ world.T_base_cam(q, (0.0, 0.0, 0.0))
+        est = target_cam(model, X, W, q, fixed)
+        true = inv_T(world.T_base_target_at(q)) @ world.T_base_cam(q, (0.0, 0.0, 0.0))
         out.append(est[:3, 3] - true[:3, 3])
     return np.array(out)
 
@@ -53,10 +70,9 @@ def position_z(result: dict, config, world) -> list[float]:
         return []
     names = [n for n in cov["names"] if not n.startswith("camera.")]
     qs = check_configurations(config)
-    sigma = camera_position_sigma(KinematicModel.from_export(result),
-                                  np.array(result["T_flange_cam"]),
-                                  np.array(result["T_base_target"]), names,
-                                  np.array(cov["matrix"]), qs)
+    X, W, fixed = frames_of(result)
+    sigma = camera_position_sigma(KinematicModel.from_export(result), X, W, names,
+                                  np.array(cov["matrix"]), qs, fixed)
     error, sigma = _position_errors(result, world, qs).ravel(), np.asarray(sigma).ravel()
     usable = sigma > 1e-9  # m; an axis the model does not move (no claim to check)
     return (error[usable] / sigma[usable]).tolist()
@@ -100,3 +116,16 @@ def link_z(result: dict, truth: dict) -> dict[str, float]:
         out[key] = (identified_value(result["links"], key)
                     - identified_value(truth["arm"]["links"], key)) / s
     return out
+
+
+def image_coverage(corner_sets, width: int, height: int, cells: int = 10) -> float:
+    """The share of a ``cells`` x ``cells`` grid over the image with at least one board
+    corner of any view in it (NaN rows, corners not seen, are left out)."""
+    hit = np.zeros((cells, cells), bool)
+    for corners in corner_sets:
+        px = np.asarray(corners, float).reshape(-1, 2)
+        px = px[np.all(np.isfinite(px), axis=1)]
+        i = np.clip((px[:, 1] * cells / height).astype(int), 0, cells - 1)
+        j = np.clip((px[:, 0] * cells / width).astype(int), 0, cells - 1)
+        hit[i, j] = True
+    return float(hit.mean())

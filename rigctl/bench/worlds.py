@@ -16,6 +16,12 @@ distribution:
 - motion, solve and run time of every procedure.
 
 A world counts as failed when any procedure is refused or does not succeed.
+
+Each seed's target and mounting (``COMBINATIONS``, by seed mod 4 unless one is asked
+for): a checkerboard or a ChArUco board, the head on the flange or beside the arm (the
+board then on the flange; ``validate-arm`` is not run there). The summary reports every
+combination apart (``by_combination``), with the image coverage of robot-kinematics'
+board corners (``truth.image_coverage``) and the final camera's focal and centre error.
 """
 
 from __future__ import annotations
@@ -31,9 +37,15 @@ import numpy as np
 import yaml
 from rich.console import Console
 
-from rigctl.bench.truth import intrinsics_errors, link_z, model_against_truth, position_z
+from rigctl.bench.truth import (
+    image_coverage,
+    intrinsics_errors,
+    link_z,
+    model_against_truth,
+    position_z,
+)
 from rigctl.config import load_rig, parse_rig
-from rigctl.errors import AbortedError, RigError
+from rigctl.errors import AbortedError, ConfigError, RigError
 from rigctl.geometry.kinematics import nominal_ur
 from rigctl.mocks.random_world import random_world
 from rigctl.mocks.world import World, WorldFile
@@ -41,10 +53,31 @@ from rigctl.runner import Runner
 from rigctl.simrig import SimulatedRig
 
 PIPELINE = ("active-camera", "hand-eye", "robot-kinematics", "validate-arm")
+# (target, mount) of each seed, by seed mod 4
+COMBINATIONS = (("checkerboard", "flange"), ("charuco", "flange"), ("checkerboard", "fixed"),
+                ("charuco", "fixed"))
 
 
-def _write_world(seed: int, folder: Path) -> tuple[Path, World]:
-    spec = random_world(seed)
+def combination(seed: int, only: str | None = None) -> tuple[str, str]:
+    """World ``seed``'s (target, mount): ``COMBINATIONS[seed % 4]``, or ``only``
+    ("checkerboard-flange", ...) for every seed."""
+    if only is None or only == "each":
+        return COMBINATIONS[seed % len(COMBINATIONS)]
+    target, _, mount = only.partition("-")
+    if (target, mount) not in COMBINATIONS:
+        raise ConfigError(f"--combination {only!r}: expected each or one of "
+                          + ", ".join(f"{t}-{m}" for t, m in COMBINATIONS))
+    return target, mount
+
+
+def pipeline(mount: str) -> tuple[str, ...]:
+    """The procedures run on a world: validate-arm needs the camera on the flange."""
+    return PIPELINE if mount == "flange" else PIPELINE[:3]
+
+
+def _write_world(seed: int, folder: Path, only: str | None = None) -> tuple[Path, World]:
+    target, mount = combination(seed, only)
+    spec = random_world(seed, target=target, mount=mount)
     path = folder / f"world-{seed}.yaml"
     path.write_text(f"# rigctl sim world --random {seed}\n"
                     + yaml.safe_dump(spec, sort_keys=False, default_flow_style=None))
@@ -55,7 +88,8 @@ def _metrics(name: str, result: dict, truth: dict, config, world: World) -> dict
     if name == "active-camera":
         return {**intrinsics_errors(result, truth), "rms_px": result["summary"]["rms_px"]}
     if name == "hand-eye":
-        X, X_true = np.array(result["T_flange_cam"]), np.array(truth["T_flange_cam"])
+        key = "T_base_cam" if "T_base_cam" in result else "T_flange_cam"
+        X, X_true = np.array(result[key]), np.array(truth[key])
         # with the arm model hand-eye used: the controller's own, or nominal without one
         return {"t_mm": 1000 * float(np.linalg.norm(X[:3, 3] - X_true[:3, 3])),
                 "arm_model_used": result.get("arm_model_used", "nominal")}
@@ -65,7 +99,7 @@ def _metrics(name: str, result: dict, truth: dict, config, world: World) -> dict
         # the same check for the models the calibration started from: nominal and the
         # controller's own (each with the hand-eye solved for it)
         nominal = {"links": nominal_ur(config.devices.arm.model).links(), **{
-            k: result["before"][k] for k in ("T_flange_cam", "T_base_target")}}
+            k: v for k, v in result["before"].items() if k.startswith("T_")}}
         factory = result.get("factory")
         return {"model_rms_mm": rms, "model_max_mm": worst, "model_configs": count,
                 "heldout_mm_before": s["heldout_mm_before"],
@@ -89,6 +123,7 @@ def _metrics(name: str, result: dict, truth: dict, config, world: World) -> dict
 def _row(seed: int, spec) -> dict:
     """A world's row before any procedure ran."""
     return {"seed": seed, "model": spec.arm.model, "fx_true": spec.camera.fx,
+            "target": spec.target.type, "mount": spec.head.mount,
             "size": [spec.camera.width, spec.camera.height],
             "distortion": list(spec.camera.distortion), "procedures": {}}
 
@@ -96,7 +131,7 @@ def _row(seed: int, spec) -> dict:
 def _failed(row: dict) -> bool:
     """Any procedure not succeeded, or the chain stopped before its end."""
     return any(p["status"] != "succeeded" for p in row["procedures"].values()) \
-        or len(row["procedures"]) < len(PIPELINE)
+        or len(row["procedures"]) < len(pipeline(row.get("mount", "flange")))
 
 
 def _values(rows: list[dict], proc: str, key: str) -> list[float]:
@@ -126,7 +161,16 @@ def _from_run_dir(name: str, run_dir: Path, truth: dict, world: World) -> dict:
         config = parse_rig((run_dir / "rig.yaml").read_text(), name=str(run_dir / "rig.yaml"))
         result = json.loads((run_dir / "result.json").read_text())
         entry.update(_metrics(name, result, truth, config, world))
+        if name == "robot-kinematics":
+            entry["image_coverage"] = _run_coverage(run_dir, truth)
     return entry
+
+
+def _run_coverage(run_dir: Path, truth: dict) -> float:
+    """The image coverage of a run's board corners (``truth.image_coverage``)."""
+    corners = [json.loads(p.read_text()).get("corners") or []
+               for p in sorted(run_dir.glob("captures/*.board.json"))]
+    return image_coverage(corners, truth["width"], truth["height"])
 
 
 def rows_from_kept(folder: Path) -> list[dict]:
@@ -140,7 +184,7 @@ def rows_from_kept(folder: Path) -> list[dict]:
         world = World(spec)
         truth = world.truth()
         row = _row(seed, spec)
-        for name in PIPELINE:
+        for name in pipeline(spec.head.mount):
             runs = sorted((folder / f"records-{seed}").glob(f"*-{name}-*"))
             if not runs:
                 break
@@ -152,16 +196,17 @@ def rows_from_kept(folder: Path) -> list[dict]:
     return rows
 
 
-def world_run(seed: int, folder: Path, say: Callable[[str], None]) -> dict:
-    """The whole chain on world ``seed``; one row of the benchmark."""
-    path, world = _write_world(seed, folder)
+def world_run(seed: int, folder: Path, say: Callable[[str], None],
+              only: str | None = None) -> dict:
+    """The whole chain on world ``seed`` (its ``combination``); one row of the benchmark."""
+    path, world = _write_world(seed, folder, only)
     spec, truth = world.spec, world.truth()
     row = _row(seed, spec)
     with SimulatedRig(path, records=folder / f"records-{seed}",
                       log=folder / f"sim-up-{seed}.log") as sim:
         config = load_rig(sim.rig_path)
         runner = Runner(config, show_progress=False, operator="bench-worlds")
-        for name in PIPELINE:
+        for name in pipeline(spec.head.mount):
             try:
                 outcome = runner.run(name, {})
             except RigError as exc:  # refused before anything moved
@@ -179,6 +224,9 @@ def world_run(seed: int, folder: Path, say: Callable[[str], None]) -> dict:
                      "timings_s": outcome.timings_s}
             if outcome.result is not None:
                 entry.update(_metrics(name, outcome.result, truth, config, world))
+                runs = sorted((folder / f"records-{seed}").glob(f"*-{name}-*"))
+                if name == "robot-kinematics" and runs:
+                    entry["image_coverage"] = _run_coverage(runs[-1], truth)
             row["procedures"][name] = entry
             say(f"world {seed} ({spec.arm.model}): {name} {outcome.status} in "
                 f"{outcome.timings_s.get('run_s', 0):.0f} s"
@@ -208,6 +256,34 @@ def _coverage(z: list[float]) -> dict | None:
     a = np.abs(np.asarray(z, float))
     return {"within_1sigma": float(np.mean(a <= 1)), "within_3sigma": float(np.mean(a <= 3)),
             "max_abs_z": float(a.max()), "n": len(a)}
+
+
+def by_combination(rows: list[dict]) -> dict[str, dict]:
+    """Per target x mounting: worlds, failed runs, the exported model's RMS against the
+    truth (median, worst), the share of reported parameters within 3 sigma, the image
+    coverage of robot-kinematics' corners and the final camera's focal and centre
+    error."""
+    out = {}
+    for target, mount in COMBINATIONS:
+        mine = [r for r in rows if (r.get("target", "checkerboard"), r.get("mount", "flange"))
+                == (target, mount)]
+        if not mine:
+            continue
+        arm = [r["procedures"].get("robot-kinematics", {}) for r in mine]
+        cams = [a["camera"] for a in arm if "camera" in a]
+        z = [v for r in mine for p in ("active-camera", "robot-kinematics")
+             for v in r["procedures"].get(p, {}).get("z", {}).values()] + \
+            [v for c in cams for v in c["z"].values()]
+        out[f"{target}-{mount}"] = {
+            "worlds": len(mine), "failed": sum(r["failed"] for r in mine),
+            "failed_seeds": [r["seed"] for r in mine if r["failed"]],
+            "model_rms_mm": _dist(_values(mine, "robot-kinematics", "model_rms_mm")),
+            "within_3sigma": (_coverage(z) or {}).get("within_3sigma"),
+            "image_coverage": _dist(_values(mine, "robot-kinematics", "image_coverage")),
+            "final_camera": {"focal_pct": _dist([c["focal_pct"] for c in cams]),
+                             "centre_px": _dist([c["centre_px"] for c in cams])},
+            "hand_eye_t_mm": _dist(_values(mine, "hand-eye", "t_mm"))}
+    return out
 
 
 def summarise(rows: list[dict]) -> dict:
@@ -243,6 +319,7 @@ def summarise(rows: list[dict]) -> dict:
                      "camera_position": _coverage(z_position),
                      "all": _coverage(z_cam + z_arm + z_final)},
         "times_s": times,
+        "by_combination": by_combination(rows),
     }
 
 
@@ -307,10 +384,11 @@ def report(rows: list[dict], plot_path: Path | None) -> dict:
 
 
 def run(n: int = 20, first_seed: int = 1000, plot_path: Path | None = None,
-        keep: Path | None = None, console: Console | None = None) -> dict:
-    """N random worlds from ``first_seed`` (the tests use seeds below 100). With ``keep``,
-    the world files and every run's records stay in that folder (``rows_from_kept``
-    reads them back)."""
+        keep: Path | None = None, console: Console | None = None,
+        only: str | None = None) -> dict:
+    """N random worlds from ``first_seed`` (the tests use seeds below 100), each of its
+    ``combination`` (``only``: one for all). With ``keep``, the world files and every
+    run's records stay in that folder (``rows_from_kept`` reads them back)."""
     console = console or Console(stderr=True)
     rows = []
     with tempfile.TemporaryDirectory(prefix="rigctl-bench-worlds-") as tmp:
@@ -318,7 +396,7 @@ def run(n: int = 20, first_seed: int = 1000, plot_path: Path | None = None,
         folder.mkdir(parents=True, exist_ok=True)
         try:
             for seed in range(first_seed, first_seed + n):
-                rows.append(world_run(seed, folder, console.print))
+                rows.append(world_run(seed, folder, console.print, only))
         except AbortedError as exc:  # the world in progress is left out of the report
             console.print(f"bench stopped ({exc}); the report covers the {len(rows)} "
                           "world(s) finished before it")

@@ -229,3 +229,29 @@ def transform_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float
     """(rotation error deg, translation error mm)."""
     return (float(np.degrees(rotation_angle(T_est[:3, :3].T @ T_true[:3, :3]))),
             float(1000 * np.linalg.norm(T_est[:3, 3] - T_true[:3, 3])))
+
+
+# -- eye-to-hand: the camera beside the arm, the board on the flange ---------------------
+
+
+def flange_poses(F: list[np.ndarray], fixed: bool) -> list[np.ndarray]:
+    """The arm poses the solvers above take: ``F_k = T_base_flange`` with the camera on the
+    flange; with the camera standing beside the arm (``fixed``) their inverses
+    ``T_flange_base``. The eye-to-hand loop ``T_base_cam C_k = F_k T_flange_target`` is
+    ``T_flange_target = F_k^-1 T_base_cam C_k``: the eye-in-hand loop ``W = F X C`` with
+    ``F_k^-1`` for ``F_k``, ``X = T_base_cam`` and ``W = T_flange_target``. OpenCV's
+    ``calibrateHandEye`` documents the same substitution (base2gripper in, cam2base out)."""
+    return [inv_T(T) for T in F] if fixed else list(F)
+
+
+def eye_to_hand(F, C, corners: list[np.ndarray], obj: np.ndarray, K, dist
+                ) -> tuple[dict[str, np.ndarray], HandEyeResult]:
+    """``T_base_cam`` (X) and ``T_flange_target`` (W) from arm poses ``F_k =
+    T_base_flange`` and board poses ``C_k = T_cam_target`` of a fixed camera watching the
+    flange's board: OpenCV's closed forms (``closed_form``) on the inverted arm poses
+    (``flange_poses``), then the same pixel refinement (``refine_pixels``). Returns the
+    closed forms (each a ``T_base_cam``) and the refined result."""
+    G = flange_poses(F, True)
+    closed = closed_form(G, C)
+    refined = refine_pixels(G, corners, obj, K, dist, best_closed_form(closed), C=C)
+    return closed, refined

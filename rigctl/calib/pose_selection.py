@@ -17,33 +17,34 @@ import numpy as np
 
 from rigctl.errors import SolveError
 from rigctl.geometry.kinematics import KinematicModel
-from rigctl.geometry.transforms import inv_T
 
 from . import robot
 
 
 def view_jacobians(model: KinematicModel, X, W, qs: Sequence[np.ndarray], mask=None,
                    obj: np.ndarray | None = None, K: np.ndarray | None = None,
-                   sigma_rot: float = 3.5e-4, sigma_t: float = 2e-4) -> np.ndarray:
+                   sigma_rot: float = 3.5e-4, sigma_t: float = 2e-4,
+                   fixed: bool = False) -> np.ndarray:
     """Per-view identification Jacobians, shape (views, rows, parameters), with respect
     to the masked link parameters and X, W (the parameter vector of ``robot.refine``).
     With the board points ``obj`` and the camera matrix ``K``: of the board corners'
     pixels, as the refinement itself sees them (rows = 2 x corners). Otherwise: of the
-    camera-frame pose residuals over the given sigmas (rows = 6)."""
+    camera-frame pose residuals over the given sigmas (rows = 6). ``fixed``: the camera
+    stands beside the arm (X = T_base_cam, W = T_flange_target; ``robot.cam_target_batch``)."""
     mask = mask or robot.identifiable_mask(model)
     p0, _ = robot._pack(model, X, W, mask, True)
     Q = np.array([np.asarray(q, float) for q in qs])
     if obj is not None and K is not None:
         def fun(p):  # the corners' pixels of every view at once (no distortion)
             m, X_p, W_p = robot._unpack(p, model, X, W, mask, True)
-            T_cam_target = np.linalg.inv(m.fk_batch(Q) @ X_p) @ W_p
+            T_cam_target = robot.cam_target_batch(m, X_p, W_p, Q, fixed)
             cam = np.einsum("vij,kj->vki", T_cam_target[:, :3, :3], obj) + \
                 T_cam_target[:, None, :3, 3]
             px = np.einsum("ij,vkj->vki", K, cam)
             return (px[..., :2] / px[..., 2:3]).ravel()
     else:
-        meas = robot.Measurements(list(Q), C=[inv_T(model.fk(q) @ X) @ W for q in Q],
-                                  sigma_rot=sigma_rot, sigma_t=sigma_t)
+        meas = robot.Measurements(list(Q), C=list(robot.cam_target_batch(model, X, W, Q, fixed)),
+                                  sigma_rot=sigma_rot, sigma_t=sigma_t, fixed=fixed)
 
         def fun(p):
             return robot.residuals(*robot._unpack(p, model, X, W, mask, True), meas)

@@ -4,6 +4,12 @@ Measurement model: the target is fixed, so for every capture k with joints q_k
 
     W = T_base_target = FK(q_k) X C_k,   X = T_flange_cam,  C_k = T_cam_target
 
+With the camera standing beside the arm and the board on the flange (eye-to-hand,
+``Measurements.fixed``) the same loop closes the other way round:
+``C_k = X^-1 FK(q_k) W`` with ``X = T_base_cam`` and ``W = T_flange_target``
+(``cam_target_batch``); the joint refinement, its covariance and the held-out errors
+take either, link-by-link only the first.
+
 **Link-by-link (4.11)-(4.35), for n links.** Moving joint i alone between captures 0
 and 1 gives (4.12)/(4.30)
 
@@ -43,6 +49,26 @@ from rigctl.geometry.kinematics import LINK_KEYS, KinematicModel, link_transform
 from rigctl.geometry.transforms import R_to_rotvec, inv_T, make_T, rotvec_to_R
 
 PARALLEL_ALPHA = math.radians(5.0)
+
+
+def cam_target_batch(model: KinematicModel, X, W, Q: np.ndarray, fixed: bool = False
+                     ) -> np.ndarray:
+    """``T_cam_target`` predicted at each configuration of ``Q`` (P, 6): with the camera on
+    the flange ``(FK(q) X)^-1 W`` (X = T_flange_cam, W = T_base_target); with the camera
+    standing beside the arm (``fixed``, eye-to-hand) ``X^-1 FK(q) W`` (X = T_base_cam,
+    W = T_flange_target). The same loop (4.11) closed through the other end."""
+    F = model.fk_batch(np.asarray(Q, float))
+    if fixed:
+        return inv_T(X) @ F @ W
+    return invert_batch(F @ X) @ W
+
+
+def target_cam(model: KinematicModel, X, W, q, fixed: bool = False) -> np.ndarray:
+    """The camera's pose in the target frame at joints ``q`` (the inverse of
+    ``cam_target_batch``'s), for either mounting."""
+    if fixed:
+        return inv_T(W) @ inv_T(model.fk(q)) @ X
+    return inv_T(W) @ model.fk(q) @ X
 
 
 def screw_axis(M: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
@@ -339,6 +365,8 @@ class Measurements:
     dist: np.ndarray | None = None
     sigma_rot: float = 0.001
     sigma_t: float = 0.001
+    # the camera stands beside the arm (eye-to-hand): X = T_base_cam, W = T_flange_target
+    fixed: bool = False
 
 
 
@@ -396,14 +424,14 @@ def residuals(model, X, W, meas: Measurements, K: np.ndarray | None = None,
     from scipy.spatial.transform import Rotation
 
     Q = _cached(meas, "_Q", lambda: np.array(meas.q, float))
-    T_base_cam = model.fk_batch(Q) @ X
+    T_cam_target = cam_target_batch(model, X, W, Q, meas.fixed)
     if meas.corners is None:  # pose residuals, every capture at once
-        E = _cached(meas, "_C", lambda: np.array(meas.C)) @ inv_T(W) @ T_base_cam
+        E = _cached(meas, "_C", lambda: np.array(meas.C)) @ invert_batch(T_cam_target)
         rv = Rotation.from_matrix(E[:, :3, :3]).as_rotvec()
         return np.c_[rv / meas.sigma_rot, E[:, :3, 3] / meas.sigma_t].ravel()
     corners = _cached(meas, "_corners",
                       lambda: np.array([np.asarray(c, float).reshape(-1, 2) for c in meas.corners]))
-    proj = project_batch(invert_batch(T_base_cam) @ W, meas.obj,
+    proj = project_batch(T_cam_target, meas.obj,
                          meas.K if K is None else K, meas.dist if dist is None else dist)
     seen = _seen(meas)
     if seen is None:  # every view has every corner
@@ -631,7 +659,7 @@ def _perturbed(model: KinematicModel, X, W, name: str, h: float):
 
 
 def camera_position_sigma(model: KinematicModel, X, W, names: list[str], cov: np.ndarray,
-                          q_list) -> np.ndarray:
+                          q_list, fixed: bool = False) -> np.ndarray:
     """Predicted 1-sigma (m, per axis of the target frame) of the camera's position
     ``W^-1 FK(q) X`` at each configuration, from the refinement's covariance of the
     parameters ``names`` (first-order propagation, central differences): mrcal's
@@ -640,7 +668,7 @@ def camera_position_sigma(model: KinematicModel, X, W, names: list[str], cov: np
     cov = np.asarray(cov, float)[:n, :n]
 
     def position(m, x, w):
-        return (inv_T(w) @ m.fk_batch(np.asarray(q_list, float)) @ x)[:, :3, 3]
+        return invert_batch(cam_target_batch(m, x, w, np.asarray(q_list, float), fixed))[:, :3, 3]
 
     J = np.zeros((len(q_list), 3, n))
     for i, name in enumerate(names):
@@ -702,13 +730,14 @@ def _kinematic_condition(J: np.ndarray, n_nuisance: int) -> float:
     return condition_number(scaled_singular_values(A))
 
 
-def pose_deviations(model, X, W, q_list, T_target_cam) -> tuple[np.ndarray, np.ndarray]:
+def pose_deviations(model, X, W, q_list, T_target_cam, fixed: bool = False
+                    ) -> tuple[np.ndarray, np.ndarray]:
     """Per configuration, position (m) and rotation (rad) error of the predicted camera
-    pose in the target frame, ``W^-1 FK(q) X``, against ``T_target_cam`` (one 4x4 each)."""
-    Winv = inv_T(W)
+    pose in the target frame (``target_cam``: ``W^-1 FK(q) X``, or with a ``fixed``
+    camera ``W^-1 FK(q)^-1 X``), against ``T_target_cam`` (one 4x4 each)."""
     pos, rot = [], []
     for q, T_ref in zip(q_list, T_target_cam, strict=True):
-        T = Winv @ model.fk(q) @ X
+        T = target_cam(model, X, W, q, fixed)
         pos.append(np.linalg.norm(T[:3, 3] - T_ref[:3, 3]))
         rot.append(np.linalg.norm(R_to_rotvec(T[:3, :3].T @ T_ref[:3, :3])))
     return np.array(pos), np.array(rot)

@@ -105,12 +105,14 @@ def _sweeps(train: list[BoardView]) -> dict[int, robot.Sweep]:
     return sweeps
 
 
-def heldout_errors(model: KinematicModel, X, W, held: list[BoardView]) -> dict | None:
-    """RMS camera position (m) and rotation (rad) error on the held-out views."""
+def heldout_errors(model: KinematicModel, X, W, held: list[BoardView], fixed: bool = False
+                   ) -> dict | None:
+    """RMS camera position (m) and rotation (rad) error on the held-out views (in the
+    target frame; ``fixed``: the camera beside the arm, ``robot.target_cam``)."""
     if not held:
         return None
     pos, rot = robot.pose_deviations(model, X, W, [v.q for v in held],
-                                     [np.linalg.inv(v.C) for v in held])
+                                     [np.linalg.inv(v.C) for v in held], fixed)
     return {"position_rms_m": float(np.sqrt(np.mean(pos ** 2))),
             "rotation_rms_rad": float(np.sqrt(np.mean(rot ** 2))), "views": len(held)}
 
@@ -130,7 +132,7 @@ def hand_eye(model: KinematicModel, meas: robot.Measurements):
     """Stage 1 with the arm model ``model``: OpenCV's closed forms on the training views'
     board poses, the best of them refined on pixels. Returns the closed forms and the
     refined hand-eye (X, W)."""
-    F = [model.fk(q) for q in meas.q]
+    F = handeye.flange_poses([model.fk(q) for q in meas.q], meas.fixed)
     closed = handeye.closed_form(F, meas.C)
     refined = handeye.refine_pixels(F, meas.corners, meas.obj, meas.K, meas.dist,
                                     handeye.best_closed_form(closed), C=meas.C)
@@ -144,6 +146,10 @@ def single_methods(sweeps: dict[int, robot.Sweep], X, W, nominal: KinematicModel
     each alone, and as starts of the joint refinement. A method that cannot run says
     why: (link-by-link, its error, axis-based, its error)."""
     lbl, lbl_error = None, None
+    if meas.fixed:
+        why = ("needs the camera on the flange; with the head beside the arm the joint "
+               "refinement starts from the nominal and the controller's models")
+        return None, f"link-by-link {why}", None, f"axis-based {why}"
     try:
         lbl = robot.link_by_link(sweeps, X, nominal)
     except SolveError as exc:
@@ -163,7 +169,8 @@ def joint_refinement(meas: robot.Measurements, start: KinematicModel, X,
     """Stage 4: the joint refinement (4.11) of the minimal parameter set over every
     training view, from ``start`` (the link-by-link model, when it ran) with X and W
     averaged over the views, and from each of ``other_starts``; the lowest cost wins."""
-    W = handeye.average_W([start.fk(q) for q in meas.q], meas.C, X)
+    W = handeye.average_W(handeye.flange_poses([start.fk(q) for q in meas.q], meas.fixed),
+                          meas.C, X)
     return robot.refine(start, X, W, meas, extra_starts=other_starts)
 
 
@@ -215,8 +222,9 @@ def heldout_table(nominal: KinematicModel, he, ref: robot.RefineResult, lbl,
                   held: list[BoardView]) -> dict[str, dict | None]:
     """Stage 6: the held-out errors before calibration (nominal model with its hand-eye),
     after, and of link-by-link and axis-based alone (None when they did not run)."""
-    heldout = {"before": heldout_errors(nominal, he.X, he.W, held),
-               "after": heldout_errors(ref.model, ref.X, ref.W, held),
+    fixed = meas.fixed
+    heldout = {"before": heldout_errors(nominal, he.X, he.W, held, fixed),
+               "after": heldout_errors(ref.model, ref.X, ref.W, held, fixed),
                "link_by_link": None, "axis_based": None}
     if lbl is not None:
         W_lbl = handeye.average_W([lbl.model.fk(q) for q in meas.q], meas.C, he.X)
@@ -227,13 +235,13 @@ def heldout_table(nominal: KinematicModel, he, ref: robot.RefineResult, lbl,
 
 
 def moved_from_controller(controller: KinematicModel, he_controller, ref: robot.RefineResult,
-                          qs: list[np.ndarray]) -> dict[str, float]:
+                          qs: list[np.ndarray], fixed: bool = False) -> dict[str, float]:
     """How far the calibrated model puts the camera from where the controller's own model
     (with its hand-eye) does, over the configurations ``qs``: the camera in the target
     frame under each, free of the base frame's gauge."""
-    W_inv, Wc_inv = np.linalg.inv(ref.W), np.linalg.inv(he_controller.W)
-    gap = [np.linalg.norm((W_inv @ ref.model.fk(q) @ ref.X)[:3, 3]
-                          - (Wc_inv @ controller.fk(q) @ he_controller.X)[:3, 3]) for q in qs]
+    gap = [np.linalg.norm(robot.target_cam(ref.model, ref.X, ref.W, q, fixed)[:3, 3]
+                          - robot.target_cam(controller, he_controller.X, he_controller.W, q,
+                                             fixed)[:3, 3]) for q in qs]
     return {"position_rms_m": float(np.sqrt(np.mean(np.square(gap)))),
             "position_max_m": float(np.max(gap)), "configurations": len(qs)}
 
@@ -259,18 +267,22 @@ def _again_without(views: list[BoardView], train: list[BoardView], rejected: dic
 def solve_robot(views: list[BoardView], nominal: KinematicModel, obj: np.ndarray,
                 K: np.ndarray, dist: np.ndarray, prior_sigma: dict[str, float] | None,
                 refine_camera: bool = True, reject_outliers: bool = True,
-                controller: KinematicModel | None = None) -> RobotSolution:
+                controller: KinematicModel | None = None, fixed: bool = False
+                ) -> RobotSolution:
     """Stages 1-6 above on the board views. ``prior_sigma``: 1-sigma of the intrinsics
     ``K`` (their prior weight when ``refine_camera``). With ``reject_outliers``, training
     views the refined model misses by far (``outlier_views``) are left out once and the
     solve runs again; the solution lists them in ``rejected_views``. ``controller``: the
     arm's own (factory) model, when it reports one: a start of the joint refinement, and
-    held out like the nominal model."""
+    held out like the nominal model. ``fixed``: the camera stands beside the arm and the
+    flange holds the board (X = T_base_cam, W = T_flange_target; no link-by-link or
+    axis-based start)."""
     timings: dict[str, float] = {}
     stage = stage_timer(timings)
     train, held = split_views(views)
     meas = robot.Measurements([v.q for v in train], C=[v.C for v in train],
-                              corners=[v.corners for v in train], obj=obj, K=K, dist=dist)
+                              corners=[v.corners for v in train], obj=obj, K=K, dist=dist,
+                              fixed=fixed)
     with stage("hand-eye (nominal arm)"):
         closed, he = hand_eye(nominal, meas)
     he_controller = None
@@ -284,7 +296,8 @@ def solve_robot(views: list[BoardView], nominal: KinematicModel, obj: np.ndarray
         # the starts of ``joint_refinement``, in its order, named
         first = lbl.model if lbl is not None else nominal
         named = {"link-by-link" if lbl is not None else "nominal (W averaged)": (
-            first, he.X, handeye.average_W([first.fk(q) for q in meas.q], meas.C, he.X))}
+            first, he.X, handeye.average_W(handeye.flange_poses(
+                [first.fk(q) for q in meas.q], fixed), meas.C, he.X))}
         named["nominal"] = (nominal, he.X, he.W)
         if axis is not None:
             named["axis-based"] = (axis.model, axis.X, axis.W)
@@ -295,7 +308,8 @@ def solve_robot(views: list[BoardView], nominal: KinematicModel, obj: np.ndarray
     if rejected and len(train) - len(rejected) >= MIN_TRAINING_VIEWS:
         return _again_without(views, train, rejected, timings, nominal=nominal, obj=obj, K=K,
                               dist=dist, prior_sigma=prior_sigma,
-                              refine_camera=refine_camera, controller=controller)
+                              refine_camera=refine_camera, controller=controller,
+                              fixed=fixed)
     with stage("plain D-H"):  # its rank deficiency, at the refined solution
         dh_sv = robot.jacobian_singular_values(ref.model, ref.X, ref.W, meas,
                                                robot.dh_mask(nominal))
@@ -308,9 +322,9 @@ def solve_robot(views: list[BoardView], nominal: KinematicModel, obj: np.ndarray
         moved = None
         if controller is not None:
             heldout["factory"] = heldout_errors(controller, he_controller.X, he_controller.W,
-                                                held)
+                                                held, fixed)
             moved = moved_from_controller(controller, he_controller, ref,
-                                          [v.q for v in (held or train)])
+                                          [v.q for v in (held or train)], fixed)
     return RobotSolution(ref, cam, he, closed, heldout, lbl, lbl_error, axis, axis_error, dh_sv,
                          _sweep_spans(sweeps), meas, len(train), len(held), timings,
                          camera_note, views, controller_hand_eye=he_controller,

@@ -101,7 +101,7 @@ class Camera:
         use it (the driver waits for a still frame after a motion)."""
         key = (tuple(angles), tuple(np.asarray(q, float).tolist()), moving)
         if self._still is None or self._still[0] != key:
-            image = self.world.render(self.world.T_base_cam(q, angles), noise=False,
+            image = self.world.render(self.world.T_base_cam(q, angles), noise=False, q=q,
                                       **({"supersample": 1} if moving else {}))
             self._still = (key, image)
         return self.noise.add(self._still[1])

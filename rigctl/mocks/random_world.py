@@ -23,7 +23,11 @@ that every solver and planner can be judged on a distribution of rigs rather tha
 - scene: shapes from 0.6-2 m out to 2-5 times that, in a cone just wider than the view;
 - target: a checkerboard sized for the arm, on or near the table anywhere in the arm's
   comfortable reach around the front half, turned about its normal and tilted; or
-  (``target="charuco"``) a ChArUco board of the same squares (``_charuco``).
+  (``target="charuco"``) a ChArUco board of the same squares (``_charuco``);
+- mounting (``mount="fixed"``, eye-to-hand): the head stands beside the arm, 0.5-0.9 m
+  (scaled with the reach) from a point of the arm's front workspace and looking at it,
+  and the flange holds a smaller board, 10-40 mm off the flange, turned and tilted a
+  few degrees (``_eye_to_hand``).
 """
 
 from __future__ import annotations
@@ -158,11 +162,58 @@ def _arm_model(seed: int, rng: np.random.Generator) -> str:
     return legacy if seed < ALL_MODELS_FROM else MODEL_NAMES[seed % len(MODEL_NAMES)]
 
 
-def random_world(seed: int, target: str = "checkerboard") -> dict:
+def _rpy_of(R: np.ndarray) -> list[float]:
+    """[roll, pitch, yaw] degrees of R = Rz(yaw) Ry(pitch) Rx(roll)."""
+    from scipy.spatial.transform import Rotation
+
+    return np.round(Rotation.from_matrix(R).as_euler("ZYX", degrees=True)[::-1], 3).tolist()
+
+
+def _eye_to_hand(rng: np.random.Generator, model: str, target: dict) -> tuple[dict, dict]:
+    """The head beside the arm and the board on the flange (module note): the head's
+    ``fixed_xyz_mm``/``fixed_rpy_deg`` (``T_base_head``, the camera on the head axes
+    looking at the workspace point, image x level within a few degrees) and the
+    target's keys with ``mount: flange`` and ``T_flange_target`` (its squares scaled
+    down to what a flange holds)."""
+    reach = REACH_M[model]
+    look = np.array([-rng.uniform(0.35, 0.55) * reach, rng.uniform(-0.2, 0.2) * reach,
+                     rng.uniform(0.25, 0.45) * reach])
+    distance = rng.uniform(0.5, 0.9) * max(reach, 0.6)
+    azimuth = math.pi + rng.uniform(-0.6, 0.6)  # the camera faces the arm from the front
+    elevation = math.radians(rng.uniform(10, 35))
+    eye = look + distance * np.array([math.cos(elevation) * math.cos(azimuth),
+                                      math.cos(elevation) * math.sin(azimuth),
+                                      math.sin(elevation)])
+    z = (look - eye) / np.linalg.norm(look - eye)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    roll = math.radians(rng.uniform(-4, 4))
+    x = math.cos(roll) * x + math.sin(roll) * np.cross(z, x)
+    R_cam = np.column_stack([x, np.cross(z, x), z])
+    head = {"mount": "fixed", "fixed_xyz_mm": (1000 * eye).round(1).tolist(),
+            "fixed_rpy_deg": _rpy_of(R_cam)}
+    square = target["square_mm"] * rng.uniform(0.55, 0.75)
+    rows, cols = int(rng.integers(5, 8)), int(rng.integers(6, 9))
+    # board z (into the board) along -flange z: the board faces away from the flange
+    R = rpy_matrix([180.0 + rng.normal(0, 2), rng.normal(0, 2), rng.uniform(-180, 180)])
+    half = np.array([cols * square / 2, rows * square / 2, 0.0]) / 1000.0
+    origin = np.array([*rng.uniform(-0.01, 0.01, 2), rng.uniform(0.01, 0.04)]) - R @ half
+    board = {**{k: v for k, v in target.items() if k not in ("xyz_mm", "rpy_deg")},
+             "rows": rows, "cols": cols, "square_mm": round(square, 2), "mount": "flange",
+             "xyz_mm": (1000 * origin).round(1).tolist(), "rpy_deg": _rpy_of(R)}
+    if board.get("type") == "charuco":
+        board["marker_mm"] = round(square * board["marker_mm"] / target["square_mm"], 2)
+    return head, board
+
+
+def random_world(seed: int, target: str = "checkerboard", mount: str = "flange") -> dict:
     """One plausible rig drawn from ``seed`` (deterministic), as world-file data.
     ``target``: "checkerboard", "charuco" (the same board's squares and place, with
     markers drawn from a stream of their own: the rest of the world is the seed's
-    checkerboard world), or "either" (one of them, drawn from that stream too)."""
+    checkerboard world), or "either" (one of them, drawn from that stream too).
+    ``mount``: "flange" (the head on the flange, the board in the world), "fixed" (the
+    head beside the arm, the board on the flange: ``_eye_to_hand``, drawn from a stream
+    of its own), or "either" (one of them, drawn from that stream too)."""
     rng = np.random.default_rng([seed, 20261123])
     model = _arm_model(seed, rng)
     near = rng.uniform(0.6, 2.0)  # the nearest scene shapes, metres from the camera
@@ -196,5 +247,13 @@ def random_world(seed: int, target: str = "checkerboard") -> dict:
         data["target"] = _charuco(own, data["target"])
     elif target != "checkerboard":
         raise ValueError(f"target {target!r}: expected checkerboard, charuco or either")
+    mounting = np.random.default_rng([seed, 43])  # the mounting's draws: nothing else moves
+    if mount == "either":
+        mount = ("flange", "fixed")[mounting.integers(2)]
+    if mount == "fixed":
+        head, data["target"] = _eye_to_hand(mounting, model, data["target"])
+        data["head"].update(head)
+    elif mount != "flange":
+        raise ValueError(f"mount {mount!r}: expected flange, fixed or either")
     WorldFile.model_validate(data)
     return data

@@ -75,7 +75,7 @@ def rig_text(world_path: Path, host: str, workdir: Path, camera_url: str, record
                      "limits": {"pan": [-45, 45], "tilt": [-30, 30], "roll": [-180, 180]},
                      "speed_cap_dps": 120, "accel_cap_dps2": 600, "settle_s": 0.1,
                      **STAND_IN_TIMING["head"], "park": {"policy": "home"},
-                     "mount": rig_mount(world)},
+                     **_head_mount_keys(world)},
             "arm": {"host": host, "model": world.spec.arm.model,
                     "home_deg": list(world.spec.arm.home_deg),
                     "speed_cap_dps": 170, "accel_cap_dps2": 720, "settle_s": 0.1,
@@ -85,10 +85,22 @@ def rig_text(world_path: Path, host: str, workdir: Path, camera_url: str, record
         },
         "target": {"rows": world.spec.target.rows, "cols": world.spec.target.cols,
                    "square_mm": world.spec.target.square_mm, **_charuco_keys(world),
+                   **({"mount": "flange"} if world.spec.target.mount == "flange" else {}),
                    "pose": {"xyz_mm": [round(v, -1) for v in world.spec.target.xyz_mm],
                             "rpy_deg": list(world.spec.target.rpy_deg)}},
         "records": {"directory": records},
     }
+
+
+def _head_mount_keys(world) -> dict:
+    """The rig file's head mount: the hand-eye as measured (``rig_mount``), or for a head
+    standing beside the arm ``mount: fixed`` and its ``T_base_head`` rounded alike."""
+    head = world.spec.head
+    if head.mount != "fixed":
+        return {"mount": rig_mount(world)}
+    return {"mount": "fixed", "fixed_pose": {
+        "xyz_mm": [round(v, -1) for v in head.fixed_xyz_mm],
+        "rpy_deg": [round(v) for v in head.fixed_rpy_deg]}}
 
 
 def _charuco_keys(world) -> dict:

@@ -174,14 +174,17 @@ class TargetTruth(_Strict):
     marker_mm: float | None = Field(None, gt=0, description="ChArUco only: a marker's side, "
                                     "millimetres")
     legacy_pattern: bool = Field(False, description="ChArUco only: OpenCV's layout before 4.6")
+    mount: Literal["world", "flange"] = Field(
+        "world", description="world (the board stands still; xyz_mm, rpy_deg are T_base_target) "
+        "or flange (the arm's flange holds it; they are T_flange_target)")
     xyz_mm: list[float] = Field(
         default_factory=lambda: [600.0, 0.0, 0.0],
-        description="T_base_target translation, millimetres; the target frame is at the outer "
-        "board corner")
+        description="T_base_target translation (T_flange_target with mount: flange), "
+        "millimetres; the target frame is at the outer board corner")
     rpy_deg: list[float] = Field(
         default_factory=lambda: [180.0, 0.0, 0.0],
-        description="T_base_target rotation [roll, pitch, yaw], degrees; x along columns, y along"
-        " rows, z into the board")
+        description="T_base_target rotation (T_flange_target with mount: flange) [roll, pitch, "
+        "yaw], degrees; x along columns, y along rows, z into the board")
 
     @field_validator("dictionary")
     @classmethod
@@ -236,6 +239,15 @@ class WorldFile(_Strict):
     target: TargetTruth = Field(TargetTruth(), description="the checkerboard and its true pose")
     scene: SceneTruth = Field(SceneTruth(), description="the planar shapes the active-camera "
                               "calibration tracks")
+
+    @model_validator(mode="after")
+    def _mountings(self) -> WorldFile:
+        if self.head.mount == "flange" and self.target.mount == "flange":
+            raise ValueError("head.mount: flange with target.mount: flange: the camera and the "
+                             "board both ride the flange, so no arm motion moves one against "
+                             "the other; stand the head beside the arm (head.mount: fixed) or "
+                             "the board in the world (target.mount: world)")
+        return self
 
 
 def rpy_matrix(rpy_deg) -> np.ndarray:
@@ -314,7 +326,10 @@ class World:
         self.T_base_head_fixed = transform(rpy_matrix(spec.head.fixed_rpy_deg),
                                            np.array(spec.head.fixed_xyz_mm) / 1000.0)
         tg = spec.target
-        self.T_base_target = transform(rpy_matrix(tg.rpy_deg), np.array(tg.xyz_mm) / 1000.0)
+        # T_base_target for a board in the world; T_flange_target for one on the flange
+        self.T_mount_target = transform(rpy_matrix(tg.rpy_deg), np.array(tg.xyz_mm) / 1000.0)
+        self.target_on_flange = tg.mount == "flange"
+        self.T_base_target = self.T_base_target_at(np.radians(spec.arm.home_deg))
         self.home_q = np.radians(spec.arm.home_deg)
         self._scene = self._make_scene()
         self._board = self._make_board()
@@ -333,6 +348,12 @@ class World:
 
     def T_base_cam(self, q, head_angles) -> np.ndarray:
         return self.T_base_head(q) @ self.T_head_cam(*head_angles)
+
+    def T_base_target_at(self, q) -> np.ndarray:
+        """The board's pose at joints ``q``: fixed in the world, or carried by the flange."""
+        if self.target_on_flange:
+            return self.arm_true.flange(q) @ self.T_mount_target
+        return self.T_mount_target
 
     # -- objects ---------------------------------------------------------------------
 
@@ -377,6 +398,14 @@ class World:
                     items += self._marker(marker, j * s, i * s)
                     marker += 1
         return [((T[:3, :3] @ pts.T).T + T[:3, 3], shade) for pts, shade in items]
+
+    def board_at(self, q) -> list[tuple[np.ndarray, int]]:
+        """The board's polygons in the base frame at joints ``q`` (a board on the flange
+        moves with it; one in the world is where it was built)."""
+        if not self.target_on_flange or q is None:
+            return self._board
+        T = self.T_base_target_at(q) @ np.linalg.inv(self.T_base_target)
+        return [((T[:3, :3] @ pts.T).T + T[:3, 3], shade) for pts, shade in self._board]
 
     def _marker(self, marker_id: int, x0: float, y0: float) -> list[tuple[np.ndarray, int]]:
         """ArUco marker ``marker_id`` centred in the square at (x0, y0) (target frame,
@@ -457,15 +486,17 @@ class World:
                                   self.K, self.dist)
         return px.reshape(-1, 2)
 
-    def target_corner_pixels(self, T_base_cam: np.ndarray) -> np.ndarray:
+    def target_corner_pixels(self, T_base_cam: np.ndarray, q=None) -> np.ndarray:
         corners = self.target_corners()
-        pts = (self.T_base_target[:3, :3] @ corners.T).T + self.T_base_target[:3, 3]
+        T = self.T_base_target if q is None else self.T_base_target_at(q)
+        pts = (T[:3, :3] @ corners.T).T + T[:3, 3]
         return self.project(pts, T_base_cam)
 
     def render(self, T_base_cam: np.ndarray, frame_index: int = 0,
-               noise: bool = True, supersample: int = SUPERSAMPLE) -> np.ndarray:
+               noise: bool = True, supersample: int = SUPERSAMPLE, q=None) -> np.ndarray:
         """An 8-bit grey image of what the camera sees (before JPEG); each pixel the mean
-        of ``supersample``^2 samples (1: no anti-aliasing, for frames taken in motion)."""
+        of ``supersample``^2 samples (1: no anti-aliasing, for frames taken in motion).
+        ``q``: the arm's joints, where a board on the flange is (the home pose when None)."""
         w, h = self.size
         img = np.full((h * supersample, w * supersample), 118, np.uint8)
         T_cam_base = np.linalg.inv(T_base_cam)
@@ -473,7 +504,7 @@ class World:
         limit_x = 1.3 * max(self.K[0, 2], w - self.K[0, 2]) / self.K[0, 0]
         limit_y = 1.3 * max(self.K[1, 2], h - self.K[1, 2]) / self.K[1, 1]
         # Groups are painted far to near; the board is one group (outline, then squares).
-        groups = [[item] for item in self._scene] + [self._board]
+        groups = [[item] for item in self._scene] + [self.board_at(q)]
         drawables = []
         for group in groups:
             cam_polys = []
@@ -536,6 +567,10 @@ class World:
                     "units": {"length": "m", "angle": "rad"}, "links": links,
                     "T_base_link0": np.eye(4).tolist()},
             "head_mount": self.spec.head.mount,
+            "target_mount": self.spec.target.mount,
+            **({"T_base_cam": (self.T_base_head_fixed @ self.T_head_cam(0.0, 0.0, 0.0)).tolist(),
+                "T_flange_target": self.T_mount_target.tolist()}
+               if self.spec.head.mount == "fixed" else {}),
             "T_flange_cam": T_flange_cam.tolist(),
             "T_base_target": self.T_base_target.tolist(),
             "target": {"rows": self.spec.target.rows, "cols": self.spec.target.cols,

@@ -126,6 +126,12 @@ class ActiveCamera(Procedure):
         if config.devices.arm is not None:
             home = tuple(math.radians(v) for v in config.devices.arm.home_deg)
             steps.append(MoveArmJoints(home, "arm home"))
+        if home is not None and config.devices.head.fixed:
+            # the head stands beside the arm: the arm cannot move the camera
+            steps.append(Note("head beside the arm (devices.head.mount: fixed): the arm does "
+                              "not move the camera, so no sideways move measures the scene's "
+                              "depths; the parallax is not identifiable"))
+            home = None
         for label, pan, tilt, roll in head_poses(params, config.devices.head.limits_rad()):
             steps += [MoveHead(pan, tilt, roll, label), Settle(params.settle_s),
                       CaptureStep(label)]

@@ -11,7 +11,13 @@ result report how well the set determines ``T_flange_cam`` and ``T_base_target``
 against the planner's D-optimal choice of as many views (``pose_set``), with a warning
 when it cannot (every pose turned about one joint, say). With ``teach`` the operator moves
 the arm by hand and presses capture (``rigctl.teach``), up to ``poses`` views; the
-result reports the taught set the same way."""
+result reports the taught set the same way.
+
+With the head standing beside the arm (``devices.head.mount: fixed``) and the board on
+the flange (``target.mount: flange``) the result is ``T_base_cam`` (the camera with the
+head at home) and ``T_flange_target`` instead: the views hold the board in the fixed
+camera's view (``planning_e2h.board_views``), and the solve is OpenCV's closed forms on
+the inverted arm poses, then the same pixel refinement (``handeye.eye_to_hand``)."""
 
 from __future__ import annotations
 
@@ -25,9 +31,19 @@ from rigctl.errors import SolveError
 from rigctl.geometry.kinematics import nominal_ur
 from rigctl.teach import teach_plan
 
-from .base import Params, Procedure, SolveContext
+from .base import (
+    CaptureStep,
+    MoveArmJoints,
+    MoveHead,
+    Note,
+    Params,
+    Procedure,
+    Settle,
+    SolveContext,
+)
 from .intrinsics import camera_model
 from .planning import (
+    eye_to_hand,
     load_pose_file,
     planning_arm,
     planning_K,
@@ -73,6 +89,8 @@ class HandEye(Procedure):
     detects_board = True
 
     def plan(self, params: HandEyeParams, config) -> list:
+        if eye_to_hand(config):
+            return self._plan_eye_to_hand(params, config)
         if params.teach:
             return teach_plan(params, config, "view", 3, params.poses)
         if params.poses_file:
@@ -81,6 +99,28 @@ class HandEye(Procedure):
                           params.seed, "view", "view", params.settle_s,
                           K=planning_K(config, params.intrinsics),
                           arm=planning_arm(config, params.use_controller_model))
+
+    def _plan_eye_to_hand(self, params: HandEyeParams, config) -> list:
+        """Views holding the flange's board in the fixed camera's view (head at home)."""
+        from .planning_e2h import HEAD_STILL_NOTE, board_views
+
+        if params.poses_file:
+            poses = load_pose_file(params.poses_file, config, min_poses=3)
+            notes = [f"poses from {params.poses_file}"]
+        else:
+            arm = planning_arm(config, params.use_controller_model)
+            poses, notes = board_views(config, params.poses, params.view_distance_m,
+                                       params.max_tilt_deg, params.seed,
+                                       planning_K(config, params.intrinsics), arm.model)
+            notes = [arm.note, *notes]
+        steps: list = [MoveHead(0.0, 0.0, 0.0, "head home"), Note(HEAD_STILL_NOTE)]
+        steps += [Note(n) for n in notes]
+        for k, q in enumerate(poses):
+            name = f"view {k + 1}"
+            steps += [MoveArmJoints(tuple(float(v) for v in q), name), Settle(params.settle_s),
+                      CaptureStep(name, extra={"kind": "view"})]
+        steps.append(MoveArmJoints(config.devices.arm.home_rad(), "arm home"))
+        return steps
 
     def _plan_from_file(self, params: HandEyeParams, config) -> list:
         """The pose file's poses in its order, with the pose set's identifiability
@@ -116,6 +156,9 @@ class HandEye(Procedure):
         C = [o["C"] for o in found]
         tg = ctx.config.target
         obj = target_points(tg)
+        if eye_to_hand(ctx.config):
+            return _solve_eye_to_hand(ctx, obs, found, F, C, obj, K, dist, intr, controller,
+                                      robot_hash, left_out)
         closed = handeye.closed_form(F, C)
         refined = handeye.refine_pixels(F, [o["corners"] for o in found], obj, K, dist,
                                         handeye.best_closed_form(closed), C=C)
@@ -142,6 +185,28 @@ class HandEye(Procedure):
                 "order": handeye.order_samples(F), "summary": summary,
                 "arm_model_used": "controller" if controller else "nominal",
                 "robot_hash": robot_hash, "left_out_views": left_out}
+
+
+def _solve_eye_to_hand(ctx, obs, found, F, C, obj, K, dist, intr, controller, robot_hash,
+                       left_out) -> dict[str, Any]:
+    """``T_base_cam`` and ``T_flange_target`` of a fixed camera watching the flange's board
+    (``handeye.eye_to_hand``), in the result's usual shape."""
+    from .planning_e2h import HEAD_STILL_NOTE
+
+    closed, refined = handeye.eye_to_hand(F, C, [o["corners"] for o in found], obj, K, dist)
+    spread = {name: handeye.transform_error(X, refined.X) for name, X in closed.items()}
+    used = capture_use(ctx, obs)
+    return {"captures": used, "excluded": used["excluded"], "mounting": "eye-to-hand",
+            "T_base_cam": refined.X.tolist(), "T_flange_target": refined.W.tolist(),
+            "sigma": refined.sigma.tolist(), "residual_rms_px": refined.rms,
+            "closed_form": {k: v.tolist() for k, v in closed.items()},
+            "closed_form_vs_refined_deg_mm": spread, "intrinsics": intr,
+            "order": handeye.order_samples(handeye.flange_poses(F, True)),
+            "summary": {"views": len(found), "residual_rms_px": refined.rms,
+                        "t_mm": (1000 * refined.X[:3, 3]).tolist(), "note": HEAD_STILL_NOTE},
+            "notes": [HEAD_STILL_NOTE],
+            "arm_model_used": "controller" if controller else "nominal",
+            "robot_hash": robot_hash, "left_out_views": left_out}
 
 
 PROCEDURE = HandEye()

@@ -11,17 +11,16 @@ import numpy as np
 from rigctl.calib.board import is_charuco, orient_to_prediction, target_points
 from rigctl.calib.extrinsic import estimate_pose
 from rigctl.config import RigConfig
+from rigctl.errors import SolveError
 from rigctl.geometry.kinematics import KinematicModel, nominal_ur
-from rigctl.geometry.transforms import inv_T
 
 from .intrinsics import camera_model, intrinsics_from
 from .planning import (
     controller_dh_model,
     load_pose_file,
-    nominal_flange_cam,
+    nominal_cam_target,
     planning_arm,
     pose_file_record,
-    target_centre,
 )
 
 log = logging.getLogger(__name__)
@@ -70,7 +69,14 @@ def board_observations(ctx, intr: dict) -> list[dict]:
         if not is_charuco(tg):  # a ChArUco corner's id leaves no turn of the board open
             corners = orient_to_prediction(corners, _predicted_corners(ctx.config, q, obj, K),
                                            tg.rows, tg.cols)
-        pose = estimate_pose(obj, corners, K, dist)
+        try:
+            pose = estimate_pose(obj, corners, K, dist)
+        except SolveError as exc:  # a ChArUco view whose few corners lie on one line
+            note = f"no board pose from the corners seen ({exc}); the view is not used"
+            log.warning("capture %s: %s", capture.meta["label"], note)
+            out.append({"label": capture.meta["label"], "kind": extra.get("kind"),
+                        "index": capture.index, "found": False, "note": note})
+            continue
         out.append({"label": capture.meta["label"], "kind": extra.get("kind"),
                     "index": capture.index, "joint": extra.get("joint"), "found": True,
                     "q": q, "corners": corners,
@@ -81,9 +87,7 @@ def board_observations(ctx, intr: dict) -> list[dict]:
 def _predicted_corners(config: RigConfig, q, obj: np.ndarray, K: np.ndarray) -> np.ndarray:
     """Where the nominal arm, head mount and target pose put the board's corners (pixels,
     no distortion): enough to tell a symmetric board's half and quarter turns apart."""
-    T_base_target, _ = target_centre(config)
-    T_cam_target = inv_T(nominal_ur(config.devices.arm.model).fk(q)
-                         @ nominal_flange_cam(config)) @ T_base_target
+    T_cam_target = nominal_cam_target(config, nominal_ur(config.devices.arm.model), q)
     cam = (T_cam_target[:3, :3] @ obj.T).T + T_cam_target[:3, 3]
     px = (K @ cam.T).T
     return px[:, :2] / px[:, 2:3]
@@ -96,13 +100,22 @@ def left_out_views(observations: list[dict]) -> dict[str, str]:
             if not o["found"] and o.get("note") and "view left out" in o["note"]}
 
 
-def export_model(model: KinematicModel, X, W, uncertainty: dict, heldout: dict) -> dict:
-    """The export format of the robot issue."""
+def frame_names(fixed: bool) -> tuple[str, str]:
+    """The result's names of the solvers' X and W: ``T_flange_cam`` and ``T_base_target``,
+    or with the head beside the arm (``fixed``) ``T_base_cam`` and ``T_flange_target``."""
+    return ("T_base_cam", "T_flange_target") if fixed else ("T_flange_cam", "T_base_target")
+
+
+def export_model(model: KinematicModel, X, W, uncertainty: dict, heldout: dict,
+                 fixed: bool = False) -> dict:
+    """The export format of the robot issue; with the head beside the arm (``fixed``) X
+    and W are ``T_base_cam`` (the camera with the head at home) and ``T_flange_target``."""
+    x_name, w_name = frame_names(fixed)
     return {"convention": "A_i = Rz(theta_i + theta_offset) Tz(d) Tx(a) Rx(alpha) Ry(beta)",
             "units": {"length": "m", "angle": "rad"}, "links": model.links(),
-            "T_base_link0": model.T_base_link0.tolist(), "T_flange_cam": np.asarray(X).tolist(),
-            "T_base_target": np.asarray(W).tolist(), "uncertainty": uncertainty,
-            "heldout": heldout}
+            "T_base_link0": model.T_base_link0.tolist(), x_name: np.asarray(X).tolist(),
+            w_name: np.asarray(W).tolist(), "uncertainty": uncertainty,
+            "heldout": heldout, **({"mounting": "eye-to-hand"} if fixed else {})}
 
 
 

@@ -66,6 +66,7 @@ from .planning import (
     arm_model,
     board_visible,
     closest_plan,
+    eye_to_hand,
     fit_distance,
     informative_views,
     load_pose_file,
@@ -79,14 +80,17 @@ from .planning import (
     poses_out_of_view,
     visible_views,
 )
+from .planning_e2h import HEAD_STILL_NOTE
 from .robot_common import (
     arm_view_inputs,
     board_observations,
     capture_use,
     controller_model,
     export_model,
+    frame_names,
     left_out_views,
 )
+from .robot_e2h import plan_eye_to_hand
 
 # A refined model that leaves more than this on the board corners (their noise is a few
 # tenths of a pixel) explains the views badly: the run fails rather than export it
@@ -253,6 +257,12 @@ class RobotKinematics(Procedure):
     detects_board = True
 
     def plan(self, params: RobotKinematicsParams, config) -> list:
+        if eye_to_hand(config):  # the head beside the arm, the board on the flange
+            return plan_eye_to_hand(params, config)
+        return self._plan_on_flange(params, config)
+
+    def _plan_on_flange(self, params: RobotKinematicsParams, config) -> list:
+        """The plan with the head on the flange (module note)."""
         if params.poses_file or params.teach:
             return plan_from_file(params, config)
         steps: list = []
@@ -324,9 +334,10 @@ class RobotKinematics(Procedure):
         controller, robot_hash = controller_model(ctx)
         if not ctx.params.use_controller_model:
             controller = None  # its hash is still recorded: the drift check compares it
+        fixed = eye_to_hand(ctx.config)
         sol = solve_robot(views, nominal_ur(ctx.config.devices.arm.model), obj, K, dist,
                           intr.get("sigma") or default_prior_sigma(intr),
-                          ctx.params.refine_camera, controller=controller)
+                          ctx.params.refine_camera, controller=controller, fixed=fixed)
         if sol.ref.rms > MAX_RESIDUAL_PX:
             # a refinement stuck in a wrong minimum still "converges"; its residual says so
             # (unseen random world 4015: 20.7 px, the exported model 12 mm off the truth)
@@ -348,7 +359,10 @@ class RobotKinematics(Procedure):
         if exported["factory"] is not None:
             exported["factory"]["links"] = controller.links()
         summary, extra = _summary(sol), {}
-        if ctx.params.poses_file or ctx.params.teach:
+        if fixed:
+            summary["note"] = HEAD_STILL_NOTE
+            extra["notes"] = [HEAD_STILL_NOTE]
+        if (ctx.params.poses_file or ctx.params.teach) and not fixed:
             with ctx.stage("pose set"):
                 extra = _pose_set(ctx, sol, K, summary)
         by_label = {o["label"]: o["index"] for o in obs}
@@ -435,7 +449,7 @@ def _position_sigma_mm(sol: RobotSolution) -> dict[str, float]:
     claims about the camera anywhere in that workspace."""
     q = [v.q for v in sol.views]
     sig = robot.camera_position_sigma(sol.ref.model, sol.ref.X, sol.ref.W, sol.ref.names,
-                                      sol.ref.covariance, q)
+                                      sol.ref.covariance, q, sol.meas.fixed)
     norm = 1000 * np.linalg.norm(sig, axis=1)
     return {"median": float(np.median(norm)), "max": float(norm.max()),
             "configurations": len(q)}
@@ -467,14 +481,17 @@ def _export(sol: RobotSolution, intr: dict) -> dict[str, Any]:
               if cam else {"intrinsics": intr, "camera_note": sol.camera_note})
     names = ref.names + ([f"camera.{k}" for k in robot.CAMERA_KEYS + robot.DIST_KEYS]
                          if cam else [])
-    return {**export_model(ref.model, ref.X, ref.W, uncertainty, sol.heldout["after"] or {}),
+    fixed = sol.meas.fixed
+    x_name, w_name = frame_names(fixed)
+    return {**export_model(ref.model, ref.X, ref.W, uncertainty, sol.heldout["after"] or {},
+                           fixed),
             **camera, "covariance": {"names": names, "matrix": ref.covariance.tolist()},
-            "before": {"heldout": sol.heldout["before"], "T_flange_cam": sol.hand_eye.X.tolist(),
-                       "T_base_target": sol.hand_eye.W.tolist()},
+            "before": {"heldout": sol.heldout["before"], x_name: sol.hand_eye.X.tolist(),
+                       w_name: sol.hand_eye.W.tolist()},
             "factory": None if sol.controller_hand_eye is None else {
                 "heldout": sol.heldout.get("factory"),
-                "T_flange_cam": sol.controller_hand_eye.X.tolist(),
-                "T_base_target": sol.controller_hand_eye.W.tolist(),
+                x_name: sol.controller_hand_eye.X.tolist(),
+                w_name: sol.controller_hand_eye.W.tolist(),
                 "moved": sol.moved_from_controller},
             "axis_based": {"heldout": sol.heldout["axis_based"], "error": sol.axis_error,
                            "links": axis.model.links() if axis else None},

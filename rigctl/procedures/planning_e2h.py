@@ -1,0 +1,186 @@
+"""Views of a board held by the flange, for a head standing beside the arm (eye-to-hand).
+
+The camera stands still (``devices.head.mount: fixed``, approximate ``T_base_cam`` from
+``fixed_pose``); the arm brings the board (``target.mount: flange``, approximate
+``T_flange_target`` from ``target.pose``) into its view. A view is drawn in the camera's
+frame: the board centre along a ray through the image (so that views spread over the
+image), at the viewing distance, the board facing the camera (its normal within
+``max_tilt_deg`` of the ray) and spun freely about it. The flange pose that puts the
+board there is solved for joints (several IK seeds), kept when inside the soft limits,
+clear of the table (``planning.clearance_m``) and with the board in view
+(``planning.board_visible``). The head stays at home: re-aiming it would need its
+calibrated geometry (active-camera's), which these plans do not use yet.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from rigctl.calib import pose_selection
+from rigctl.calib.board import target_points
+from rigctl.config import RigConfig
+from rigctl.errors import SolveError
+from rigctl.geometry.kinematics import KinematicModel
+from rigctl.geometry.transforms import inv_T, make_T
+
+from .planning import (
+    MIN_CLEARANCE_M,
+    MIN_VIEWS,
+    VIEW_SEEDS_DEG,
+    arm_model,
+    board_centre,
+    board_visible,
+    clearance_m,
+    fit_distance,
+    nominal_base_cam,
+    nominal_flange_target,
+    reach_sphere,
+)
+
+HEAD_STILL_NOTE = ("head beside the arm: the head stays at home for every view (re-aiming it "
+                   "needs its calibrated pan/tilt geometry, which this plan does not use)")
+# the share of the image (about its centre) the board centre's rays are drawn from
+RAY_SHARE = 0.6
+DISTANCES = (1.0, 1.2, 0.85, 1.45)  # times the viewing distance, tried in turn
+
+
+def _ray(rng: np.random.Generator, K: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """A unit ray in the camera frame through a pixel drawn over ``RAY_SHARE`` of the
+    image about its centre."""
+    w, h = size
+    u = w / 2 + (rng.uniform() - 0.5) * RAY_SHARE * w
+    v = h / 2 + (rng.uniform() - 0.5) * RAY_SHARE * h
+    r = np.linalg.solve(K, [u, v, 1.0])
+    return r / np.linalg.norm(r)
+
+
+def _board_in_camera(rng: np.random.Generator, ray: np.ndarray, distance: float,
+                     tilt_deg: float, centre: np.ndarray) -> np.ndarray:
+    """``T_cam_target`` with the board centre on ``ray`` at ``distance``, the board's z
+    (into the board) within ``tilt_deg`` of the ray, spun freely about it."""
+    helper = np.cross(ray, [0.0, 1.0, 0.0] if abs(ray[1]) < 0.9 else [1.0, 0.0, 0.0])
+    u = helper / np.linalg.norm(helper)
+    v = np.cross(ray, u)
+    tilt = math.radians(tilt_deg) * math.sqrt(rng.uniform())
+    azimuth = rng.uniform(0, 2 * math.pi)
+    z = math.cos(tilt) * ray + math.sin(tilt) * (math.cos(azimuth) * u + math.sin(azimuth) * v)
+    spin = rng.uniform(0, 2 * math.pi)
+    x0 = np.cross([0.0, 1.0, 0.0] if abs(z[1]) < 0.9 else [1.0, 0.0, 0.0], z)
+    x0 /= np.linalg.norm(x0)
+    y0 = np.cross(z, x0)
+    x = math.cos(spin) * x0 + math.sin(spin) * y0
+    R = np.column_stack([x, np.cross(z, x), z])
+    return make_T(R, distance * ray - R @ centre)
+
+
+def board_views(config: RigConfig, n: int, distance_m: float, max_tilt_deg: float,
+                seed: int, K: np.ndarray, model: KinematicModel | None = None,
+                attempts_per_view: int = 8) -> tuple[list[np.ndarray], list[str]]:
+    """Up to ``n`` joint configurations that hold the board in the fixed camera's view
+    (module note), at ``distance_m`` (never nearer than the board fits the image with
+    ``K``, ``planning.fit_distance``) or, when too few are reachable there, at the other
+    ``DISTANCES``. Returns them and notes; fewer than ``MIN_VIEWS`` is a ``SolveError``
+    naming what to change."""
+    arm = config.devices.arm
+    model = arm_model(config, model)
+    T_base_cam, T_target_flange = nominal_base_cam(config), inv_T(nominal_flange_target(config))
+    centre = board_centre(config)
+    size = (config.devices.camera.width, config.devices.camera.height)
+    limits = arm.joint_limits_rad()
+    shoulder, reach = reach_sphere(model, make_T())
+    seeds = [np.asarray(arm.home_rad(), float)] + [np.radians(s) for s in VIEW_SEEDS_DEG]
+    start = max(distance_m, 1.1 * fit_distance(config, K))
+    best: tuple[list, float] = ([], start)
+    for factor in DISTANCES:
+        rng = np.random.default_rng([seed, int(1000 * factor)])
+        poses: list[np.ndarray] = []
+        previous = None
+        for _ in range(attempts_per_view * n):
+            if len(poses) >= n:
+                break
+            d = start * factor * rng.uniform(0.9, 1.1)
+            T_cam_target = _board_in_camera(rng, _ray(rng, K, size), d, max_tilt_deg, centre)
+            T_base_flange = T_base_cam @ T_cam_target @ T_target_flange
+            if np.linalg.norm(T_base_flange[:3, 3] - shoulder) > reach:
+                continue
+            q = _solve(model, T_base_flange, ([previous] if previous is not None else [])
+                       + seeds, limits)
+            if q is None or clearance_m(config, model, q) < MIN_CLEARANCE_M or \
+                    not board_visible(config, model, q, K):
+                continue
+            poses.append(q)
+            previous = q
+        if len(poses) > len(best[0]):
+            best = (poses, start * factor)
+        if len(best[0]) >= n:
+            break
+    poses, used = best
+    notes = [] if abs(used - distance_m) < 1e-9 else [
+        f"board views: planned at {used:.2f} m from the camera instead of {distance_m:.2f} m "
+        f"({len(poses)} of {n} views)"]
+    if len(poses) < MIN_VIEWS:
+        raise SolveError(f"board views: only {len(poses)} of {n} views hold the board in the "
+                         f"fixed camera's view at {start * min(DISTANCES):.2f}-"
+                         f"{start * max(DISTANCES):.2f} m within the soft limits; check "
+                         "devices.head.fixed_pose (the camera must look at the arm's "
+                         "workspace) and target.pose, or change view_distance_m")
+    return poses, notes
+
+
+def _solve(model: KinematicModel, T_base_flange: np.ndarray, seeds, limits):
+    """Joints reaching ``T_base_flange`` inside ``limits`` from the first seed that
+    gets there, or None."""
+    for seed_q in seeds:
+        try:
+            q = model.ik(T_base_flange, seed_q)
+        except SolveError:
+            continue
+        q = (q + np.pi) % (2 * np.pi) - np.pi
+        if all(lo <= v <= hi for v, (lo, hi) in zip(q, limits, strict=True)):
+            return q
+    return None
+
+
+def informative_board_views(config: RigConfig, params, K: np.ndarray, planned_q: list,
+                            n: int, seed: int, model: KinematicModel | None = None,
+                            links: bool = True) -> tuple[list[np.ndarray], list[str]]:
+    """``n`` views chosen D-optimally (``pose_selection.select_informative``) from
+    ``board_views`` candidates at 0.85, 1 and 1.2 times ``params.view_distance_m``,
+    together with the views already planned (``planned_q``), for the eye-to-hand model
+    (``T_base_cam``, ``T_flange_target`` and, with ``links``, the arm's identifiable link
+    parameters); ordered for short travel."""
+    model = arm_model(config, model)
+    X, W = nominal_base_cam(config), nominal_flange_target(config)
+    candidates, notes = [], []
+    for k, factor in enumerate((1.0, 0.85, 1.2)):
+        try:
+            more, _ = board_views(config, 3 * n, params.view_distance_m * factor,
+                                  params.max_tilt_deg, seed + 17 * k, K, model)
+        except SolveError:
+            continue
+        candidates += more
+    if len(candidates) < n:
+        poses, more = board_views(config, n, params.view_distance_m, params.max_tilt_deg,
+                                  seed, K, model)
+        return poses, [f"pose selection: only {len(candidates)} candidate views; using "
+                       "random views", *more]
+    from rigctl.calib import robot
+
+    mask = None if links else robot.frames_only_mask(model)
+    obj = target_points(config.target)
+
+    def jacobians(qs):
+        return pose_selection.view_jacobians(model, X, W, qs, mask, obj=obj, K=K, fixed=True)
+
+    J_cand = jacobians(candidates)
+    J_fixed = jacobians(planned_q).reshape(-1, J_cand.shape[2]) if planned_q else None
+    chosen = pose_selection.select_informative(J_cand, n, J_fixed)
+    rows = J_cand[chosen].reshape(-1, J_cand.shape[2])
+    cond = pose_selection.scaled_condition(rows if J_fixed is None else np.r_[J_fixed, rows])
+    notes.append(f"pose selection: {n} of {len(candidates)} candidate board views "
+                 f"(D-optimal); predicted condition number {cond:.0f}")
+    poses = [candidates[i] for i in chosen]
+    start = planned_q[-1] if planned_q else poses[0]
+    return [poses[i] for i in pose_selection.order_by_travel(poses, start)], notes
