@@ -77,7 +77,8 @@ class Elimination:
 
 class CaptureAngles:
     """The offsets of each motion's second capture (pan, tilt, roll; rad), eliminated,
-    with their prior sigma per axis."""
+    with their prior sigma per axis; ``scale``: the residuals' scale (px) the prior is
+    weighed against (``_Problem.scale_angle_prior``)."""
 
     def __init__(self, n_motions: int, sigma) -> None:
         sigma = np.asarray(sigma, float)
@@ -85,17 +86,18 @@ class CaptureAngles:
             raise SolveError(f"head angle sigma: three positive values (rad), got {sigma}")
         self.sigma = sigma
         self.delta = np.zeros((n_motions, 3))
+        self.scale = 1.0
 
     def eliminate(self, r: np.ndarray, G: np.ndarray, counts: list[int],
                   J: np.ndarray | None = None) -> Elimination:
         """For each motion (``counts`` consecutive rows of ``r``), the offset step
-        ``d`` minimising ``|r + G d|^2 + |(delta + d) / sigma|^2`` (``G``: d residual /
+        ``d`` minimising ``|r + G d|^2 + |(delta + d) s / sigma|^2`` (``G``: d residual /
         d offset, rows x 3) and the residuals there; with ``J`` (rows x camera
         parameters), the reduced Jacobian ``(I - A (A^T A)^-1 A^T) [J; 0]`` with
-        ``A = [G; diag(1 / sigma)]``."""
+        ``A = [G; diag(s / sigma)]`` (``s``: ``scale``)."""
         bounds = np.cumsum([0, *counts])
         starts = bounds[:-1]
-        w = 1.0 / self.sigma
+        w = self.scale / self.sigma
         H = _segment_sum(G[:, :, None] * G[:, None, :], starts, len(counts)) \
             + np.diag(w ** 2)
         b = _segment_sum(G * r[:, None], starts, len(counts)) + self.delta * w ** 2
