@@ -97,5 +97,8 @@ def test_encoder_sigma_is_one_pulse_quantized_plus_noise():
     assert encoder_sigma_rad("xm430-w350") == pytest.approx(PULSE * math.sqrt(1 / 12 + 1))
     assert encoder_sigma_rad("ph54-200-s500-r") < encoder_sigma_rad("mx-64") / 100
     assert head_encoder_sigmas({"pan": "xh540-w270", "tilt": "xh540-w270"}) is None
+    assert head_encoder_sigmas({"pan": "mx-64", "tilt": "mx-64", "roll": "model 9"}) is None
+    assert head_encoder_sigmas({"pan": "mx-64", "tilt": "mx-64", "roll": "PH42-020-S300-R"}) \
+        == pytest.approx([encoder_sigma_rad("mx-64")] * 2 + [encoder_sigma_rad("ph42-020-s300-r")])
     with pytest.raises(SolveError, match="unknown servo model 'xq999'"):
         encoder_sigma_rad("xq999")

@@ -21,6 +21,7 @@ and roll from the recorded reading, with a prior of the encoder's sigma
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 
@@ -50,10 +51,14 @@ def encoder_sigma_rad(model: str, noise_ticks: float = ENCODER_NOISE_TICKS) -> f
 
 def head_encoder_sigmas(models: dict[str, str] | None) -> tuple[float, float, float] | None:
     """Per axis (pan, tilt, roll) the encoder sigma (rad) of the named servo models
-    (``{"pan": "xm430-w350", ...}``); None when any axis's model is unknown."""
+    (``{"pan": "xm430-w350", ...}``); None when any axis's model is missing or not in
+    the rig's servo tables (then the recorded angles are taken as exact)."""
     if not models or any(not models.get(axis) for axis in ("pan", "tilt", "roll")):
         return None
-    return tuple(encoder_sigma_rad(models[axis]) for axis in ("pan", "tilt", "roll"))
+    try:
+        return tuple(encoder_sigma_rad(models[axis]) for axis in ("pan", "tilt", "roll"))
+    except SolveError:
+        return None
 
 
 @dataclass
@@ -72,7 +77,7 @@ class Elimination:
     def project(self, J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Columns ``J`` (residual rows) of further parameters, reduced as the camera's
         were: the part no offset can explain, and their prior rows."""
-        return _project(J, self._G, self._solve, self._bounds, self._w)
+        return _project(np.array(J, float), self._G, self._solve, self._bounds, self._w)
 
 
 class CaptureAngles:
@@ -93,17 +98,19 @@ class CaptureAngles:
         """For each motion (``counts`` consecutive rows of ``r``), the offset step
         ``d`` minimising ``|r + G d|^2 + |(delta + d) s / sigma|^2`` (``G``: d residual /
         d offset, rows x 3) and the residuals there; with ``J`` (rows x camera
-        parameters), the reduced Jacobian ``(I - A (A^T A)^-1 A^T) [J; 0]`` with
-        ``A = [G; diag(s / sigma)]`` (``s``: ``scale``)."""
+        parameters, overwritten), the reduced Jacobian ``(I - A (A^T A)^-1 A^T) [J; 0]``
+        with ``A = [G; diag(s / sigma)]`` (``s``: ``scale``)."""
         bounds = np.cumsum([0, *counts])
-        starts = bounds[:-1]
         w = self.scale / self.sigma
-        H = _segment_sum(G[:, :, None] * G[:, None, :], starts, len(counts)) \
-            + np.diag(w ** 2)
-        b = _segment_sum(G * r[:, None], starts, len(counts)) + self.delta * w ** 2
-        solve = np.linalg.inv(H)
-        step = -np.einsum("mij,mj->mi", solve, b)
-        reduced = r + np.einsum("ij,ij->i", G, _expand(step, counts))
+        G = np.ascontiguousarray(G)
+        solve = np.empty((len(counts), 3, 3))
+        step = np.empty((len(counts), 3))
+        reduced = r.copy()
+        for m, (a, b) in enumerate(itertools.pairwise(bounds)):
+            Gm = G[a:b]
+            solve[m] = np.linalg.inv(Gm.T @ Gm + np.diag(w ** 2))
+            step[m] = -solve[m] @ (Gm.T @ r[a:b] + self.delta[m] * w ** 2)
+            reduced[a:b] += Gm @ step[m]
         out = Elimination(reduced, ((self.delta + step) * w).ravel(), step)
         out._G, out._solve, out._bounds, out._w = G, solve, bounds, w
         if J is not None:
@@ -113,25 +120,10 @@ class CaptureAngles:
 
 def _project(J, G, solve, bounds, w) -> tuple[np.ndarray, np.ndarray]:
     """``(I - A H^-1 A^T) [J; 0]`` per motion: the residual rows ``J - G H^-1 G^T J``
-    and the prior rows ``-diag(w) H^-1 G^T J`` (3 per motion)."""
-    n_motions = len(bounds) - 1
-    GtJ = _segment_sum(G[:, :, None] * J[:, None, :], bounds[:-1], n_motions)
-    coef = np.einsum("mij,mjk->mik", solve, GtJ)          # motions x 3 x columns
-    counts = np.diff(bounds)
-    rows = J - np.einsum("ri,rik->rk", G, np.repeat(coef, counts, axis=0))
-    prior = -(w[None, :, None] * coef).reshape(3 * n_motions, J.shape[1])
-    return rows, prior
-
-
-def _segment_sum(values: np.ndarray, starts: np.ndarray, n: int) -> np.ndarray:
-    """Sums of consecutive row segments (empty segments give zeros)."""
-    out = np.zeros((n, *values.shape[1:]))
-    ends = np.r_[starts[1:], len(values)]
-    has = ends > starts
-    if has.any():
-        out[has] = np.add.reduceat(values, starts[has], axis=0)
-    return out
-
-
-def _expand(per_motion: np.ndarray, counts: list[int]) -> np.ndarray:
-    return np.repeat(per_motion, counts, axis=0)
+    (in place) and the prior rows ``-diag(w) H^-1 G^T J`` (3 per motion)."""
+    prior = np.empty((3 * (len(bounds) - 1), J.shape[1]))
+    for m, (a, b) in enumerate(itertools.pairwise(bounds)):
+        coef = solve[m] @ (G[a:b].T @ J[a:b])
+        J[a:b] -= G[a:b] @ coef
+        prior[3 * m:3 * m + 3] = -w[:, None] * coef
+    return J, prior

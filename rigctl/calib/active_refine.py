@@ -603,6 +603,9 @@ class _Problem:
             self.free[n_cam:n_cam + n_rho] = depths.sigma > 0  # sigma 0: measured, held
         self.n_cam, self.n_rho = n_cam, n_rho
         self._elimination: tuple | None = None  # (key, Elimination)
+        # whether the captures' own offsets are estimated (eliminated) in the solves; the
+        # first solve from a far start leaves them at the readings
+        self.eliminating = self.angles is not None
         self.groups = None if depths is None else \
             np.concatenate([m.groups for m in motions])
         self.masks = [np.ones(len(m.ref_points), bool) for m in motions]
@@ -663,7 +666,7 @@ class _Problem:
         xv = self.full(xf)
         has = np.isfinite(self.prior_sigma[self.free])
         prior_rows = (xf - self.prior_mean[self.free])[has] / self.prior_sigma[self.free][has]
-        if self.angles is not None:
+        if self.eliminating:
             e = self.eliminated(xf, assoc, targets)
             return np.concatenate([e.residuals, e.prior_rows, prior_rows])
         return np.concatenate([self.residuals(xv, assoc, targets), prior_rows])
@@ -690,7 +693,7 @@ class _Problem:
         with_prior = np.flatnonzero(has)
         prior = np.zeros((len(with_prior), len(xf)))
         prior[np.arange(len(with_prior)), with_prior] = 1.0 / self.prior_sigma[self.free][has]
-        if self.angles is not None:
+        if self.eliminating:
             e = self.eliminated(xf, assoc, targets)
             return np.vstack([e.jac_rows, e.jac_prior, prior])
         J, _, _ = self._raw_jacobian(self.full(xf), assoc, targets, len(with_prior))
@@ -735,9 +738,10 @@ class _Problem:
         # the reference captures' offsets: their columns (after the free depths), each
         # motion's rows in its station's three
         first = len(free_cam) + int(free_rho.sum())
-        station_rows = np.repeat(self.station_of, counts)
-        for k in range(3):
-            J[np.arange(n_rows), first + 3 * station_rows + k] = J_cam[:, self.n_cam + k]
+        bounds = np.cumsum([0, *counts])
+        for station, a, b in zip(self.station_of, bounds[:-1], bounds[1:], strict=True):
+            column = first + 3 * station
+            J[a:b, column:column + 3] = J_cam[a:b, self.n_cam:self.n_cam + 3]
         return J, J_cam[:, self.n_cam + 3:], counts
 
     def _row_layout(self, assoc, targets) -> tuple[np.ndarray, np.ndarray, list[int]]:
@@ -766,7 +770,7 @@ class _Problem:
         fit = least_squares(self.fun, self.x[self.free], jac=self.jac, args=(assoc, targets),
                             loss=loss, f_scale=1.0, x_scale="jac", max_nfev=max_nfev)
         self.x = self.full(fit.x)
-        if self.angles is not None:  # the captures' offsets move to their best
+        if self.eliminating:  # the captures' offsets move to their best
             self.angles.delta += self.eliminated(fit.x, assoc, targets).step
         return fit
 
@@ -806,8 +810,10 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
     pb = _Problem(motions, initial, n_dist, prior_deg, parallax_sigma, depths, offset_sigma_m,
                   angle_sigma)
     started = time.perf_counter()
-    for _ in range(outer_iterations):
+    for round_ in range(outer_iterations):
         assoc = pb.associate(pb.x)
+        # from a far start the camera moves first, the captures' offsets after
+        pb.eliminating = pb.angles is not None and round_ > 0
         pb.solve(assoc, "soft_l1", 200)
         kept = sum(int(mk.sum()) for mk in pb.masks)
         r = pb.residuals(pb.x, assoc, cache=False)
@@ -816,6 +822,7 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
         if dropped <= OUTLIERS_SETTLED * kept:
             break
     assoc = pb.associate(pb.x)
+    pb.eliminating = pb.angles is not None
     final = pb.solve(assoc, "linear", 100)
     r = pb.residuals(pb.x, assoc, cache=False)
     if not np.all(np.isfinite(pb.x)) or not np.all(np.isfinite(r)):
