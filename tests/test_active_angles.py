@@ -70,7 +70,7 @@ def _focal_error_pct(res) -> float:
 def test_estimating_the_capture_angles_beats_taking_the_readings_as_exact():
     """Over five draws of the encoders (measured: taking the readings as exact, the
     worst centre 7.9 px off, focal 0.152 %, |error / sigma| up to 12.1; estimating each
-    capture's offset 0.17 px, 0.062 %, 1.25): the centre, the focal length and the
+    capture's offset 0.15 px, 0.065 %, 1.19): the centre, the focal length and the
     reported sigma all hold only with the offsets estimated."""
     start = {"fx": 1080.0, "fy": 1080.0, "cx": 640.0, "cy": 360.0}
     sigma = [encoder_sigma_rad("xm430-w350")] * 3

@@ -85,7 +85,7 @@ def test_quantized_head_encoders_are_estimated_within_their_sigma():
     the focal length by about 0.5 % and the centre by a few px (0.003 % and 0.1 px with
     the commanded angles). The refinement now estimates each capture's offset from its
     reading within the servo model's encoder sigma (``active_angles``): 0.07 % and
-    0.25 px, |z| 1.2."""
+    0.22 px, |z| 1.2."""
     row = world_trial((26, None, 0.010))
     assert "error" not in row, row.get("error")
     assert row["encoders"] == "hardware"

@@ -82,8 +82,11 @@ class Elimination:
 
 class CaptureAngles:
     """The offsets of each motion's second capture (pan, tilt, roll; rad), eliminated,
-    with their prior sigma per axis; ``scale``: the residuals' scale (px) the prior is
-    weighed against (``_Problem.scale_angle_prior``)."""
+    with their prior sigma per axis. ``scale``: the residuals' scale (px) the prior is
+    weighed against; 1, as the refinement's other priors: a contour's points share their
+    error, so the data carry less than ``J^T J / s^2`` (weighed against the residuals'
+    robust scale, the prior loosened 3-5 times and the focal length with ideal encoders
+    on random worlds 310000-310011 went from p90 0.028 % to 0.076 %)."""
 
     def __init__(self, n_motions: int, sigma) -> None:
         sigma = np.asarray(sigma, float)

@@ -64,9 +64,6 @@ UNDISTORT_TOL = 1e-12
 # true -3e-4, cx 1.4 px off); with this prior 0.9 px, within 2 sigma. Random worlds
 # 2000-2011 (p drawn with sigma 5e-4): share of |error/sigma| > 3 went 4 % -> 2 %.
 TANGENTIAL_PRIOR = 5e-4
-# the head angles' prior is weighed against residuals of at least this scale (px;
-# ``_Problem.scale_angle_prior``)
-MIN_RESIDUAL_SCALE_PX = 0.05
 # the outlier rejection has settled once a round drops at most this share of the points
 # (a 3-sigma cut on Gaussian residuals always drops ~0.3 %)
 OUTLIERS_SETTLED = 0.005
@@ -622,18 +619,6 @@ class _Problem:
         return None if self.groups is None else \
             xv[self.n_cam:self.n_cam + self.n_rho][self.groups]
 
-    def scale_angle_prior(self, r: np.ndarray) -> None:
-        """Weigh the head angles' prior against residuals of their robust scale ``s``
-        (px): the cost counts residuals in pixels, so a reading of sigma ``sigma`` is a
-        prior row ``offset s / sigma`` (residuals of 0.3 px would otherwise hold the
-        offsets ten times too tightly to the readings)."""
-        if self.angles is None or not len(r):
-            return
-        scale = max(1.4826 * float(np.median(np.abs(r))), MIN_RESIDUAL_SCALE_PX)
-        self.angles.scale = scale
-        first = self.n_cam + self.n_rho
-        self.prior_sigma[first:] = np.tile(self.angles.sigma / scale, len(self.stations))
-
     def offsets(self, xv: np.ndarray) -> np.ndarray | None:
         """Each motion's head-angle offsets (motions x 6: its station's reference
         capture's, then its own capture's), or None when the angles are exact."""
@@ -816,9 +801,8 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
         pb.eliminating = pb.angles is not None and round_ > 0
         pb.solve(assoc, "soft_l1", 200)
         kept = sum(int(mk.sum()) for mk in pb.masks)
-        r = pb.residuals(pb.x, assoc, cache=False)
-        pb.scale_angle_prior(r)
-        dropped = _reject_outliers(r, motions, pb.masks, outlier_sigmas)
+        dropped = _reject_outliers(pb.residuals(pb.x, assoc, cache=False), motions, pb.masks,
+                                   outlier_sigmas)
         if dropped <= OUTLIERS_SETTLED * kept:
             break
     assoc = pb.associate(pb.x)
