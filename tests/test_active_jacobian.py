@@ -29,7 +29,8 @@ def _motions(rng, curve: bool, n_contours: int) -> list[Motion]:
     return out
 
 
-def _problem(curve: bool, depths: bool, n_dist: int) -> tuple[_Problem, list]:
+def _problem(curve: bool, depths: bool, n_dist: int, angles: bool = False
+             ) -> tuple[_Problem, list]:
     rng = np.random.default_rng(11 + curve + 2 * depths + n_dist)
     n_contours = 7
     motions = _motions(rng, curve, n_contours)
@@ -39,7 +40,11 @@ def _problem(curve: bool, depths: bool, n_dist: int) -> tuple[_Problem, list]:
     if depths:  # three contours measured (held), four free about their prior
         sigma = np.array([0.0, 0.3, 0.0, 0.2, 0.0, 0.25, 0.4])
         prior = DepthPrior(rng.uniform(0.8, 3.0, n_contours), sigma)
-    pb = _Problem(motions, initial, n_dist, 5.0, 0.003, prior, 0.003)
+    pb = _Problem(motions, initial, n_dist, 5.0, 0.003, prior, 0.003,
+                  np.radians([0.09, 0.09, 0.05]) if angles else None)
+    if angles:  # the reference's and every capture's readings some pulses off
+        pb.x[-3:] = np.radians([0.05, -0.08, 0.1])
+        pb.angles.delta[:] = np.radians(rng.uniform(-0.1, 0.1, pb.angles.delta.shape))
     pb.x[7:9] = [0.003, -0.002]  # a tilted roll axis
     if depths:
         pb.x[9:12] = [0.002, -0.001, 0.003]  # the centre of projection off the axes
@@ -75,3 +80,49 @@ def test_analytic_jacobian_equals_central_differences(curve, depths, n_dist):
     # the rows of a contour whose depth is held carry nothing in the free depths' columns
     if depths:
         assert np.any(J[:, N_BASE + n_dist:] != 0)
+
+
+@pytest.mark.parametrize(("curve", "depths", "n_dist"), [(True, True, 5), (False, False, 2)])
+def test_head_angle_columns_equal_central_differences(curve, depths, n_dist):
+    """With uncertain head angles: the reference capture's offsets are columns of the
+    Jacobian, each capture's own offsets the eliminated block ``G``; both against
+    central differences of the residuals at those offsets."""
+    from rigctl.calib.active_refine import CurveTargets
+
+    pb, assoc = _problem(curve, depths, n_dist, angles=True)
+    targets = CurveTargets.build(pb.motions, pb.masks, assoc)
+    xv = pb.x.copy()
+    J, G, counts = pb._raw_jacobian(xv, assoc, targets)
+    xf = xv[pb.free]
+    assert J.shape == (sum(counts), len(xf)) and G.shape == (sum(counts), 3)
+    assert np.abs(J[:, -3:]).max() > 0  # the reference's offsets reach every motion
+
+    def res(xf_):
+        return pb.residuals(pb.full(xf_), assoc, targets, cache=False)
+
+    numeric = np.empty_like(J)
+    for j in range(len(xf)):
+        h = 1e-6 * max(1.0, abs(xf[j]))
+        up, down = xf.copy(), xf.copy()
+        up[j] += h
+        down[j] -= h
+        numeric[:, j] = (res(up) - res(down)) / (2 * h)
+    scale = np.abs(numeric).max(axis=0) + 1e-9
+    worst = np.max(np.abs(J - numeric) / scale, axis=0)
+    assert worst.max() < 1e-5, f"columns off: {np.flatnonzero(worst >= 1e-5)} ({worst.max():.2e})"
+    # each capture's own offsets: only its motion's rows move
+    numeric_G = np.zeros_like(G)
+    bounds = np.cumsum([0, *counts])
+    for m in range(len(pb.motions)):
+        for k in range(3):
+            keep = pb.angles.delta[m, k]
+            pb.angles.delta[m, k] = keep + 1e-6
+            up = res(xf)
+            pb.angles.delta[m, k] = keep - 1e-6
+            down = res(xf)
+            pb.angles.delta[m, k] = keep
+            d = (up - down) / 2e-6
+            assert np.all(np.delete(d, np.arange(bounds[m], bounds[m + 1])) == 0)
+            numeric_G[bounds[m]:bounds[m + 1], k] = d[bounds[m]:bounds[m + 1]]
+    err = np.abs(G - numeric_G).max(axis=0) / (np.abs(numeric_G).max(axis=0) + 1e-9)
+    assert err.max() < 1e-5, f"own-offset columns off by {err.max():.2e}"

@@ -19,6 +19,7 @@ from concurrent.futures import ProcessPoolExecutor
 import cv2
 import numpy as np
 
+from rigctl.calib.active_angles import head_encoder_sigmas
 from rigctl.calib.active_depth import camera_shift_joints
 from rigctl.calib.active_pipeline import SHIFT, STATION_PREFIX, ActiveSettings, solve_active
 from rigctl.errors import SolveError
@@ -39,6 +40,8 @@ from rigctl.procedures.active_camera import (
 POSES_DEG = {label: tuple(math.degrees(a) for a in angles)
              for label, *angles in head_poses(ActiveCameraParams())}
 KEYS = ("fx", "fy", "cx", "cy")
+# how the head's encoders read (``encoder_reading``)
+ENCODER_MODES = ("ideal", "hardware", "quantized", "noisy", "true")
 # the soft limits of the rig file ``rigctl sim up`` writes (the config's default)
 SIM_RIG_JOINT_LIMITS = [(-2 * math.pi, 2 * math.pi)] * 6
 
@@ -50,11 +53,12 @@ def _delivered(image: np.ndarray, quality: int) -> np.ndarray:
     return cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
 
 
-def render_views(world: World, poses_deg: dict, rng=None, ideal_encoders: bool = False
+def render_views(world: World, poses_deg: dict, rng=None, ideal_encoders: bool | str = False
                  ) -> tuple[dict, dict]:
     """What the stand-in camera would deliver at each head pose (arm at home), and the
     head angles the procedure would record there (``encoder_reading``; ``rng`` draws
-    where each move ends and the readings' noise)."""
+    where each move ends and the readings' noise; ``ideal_encoders``: True, or one of
+    ``ENCODER_MODES``)."""
     images, angles = {}, {}
     quality = world.spec.camera.jpeg_quality
     rng = np.random.default_rng(0) if rng is None else rng
@@ -67,15 +71,22 @@ def render_views(world: World, poses_deg: dict, rng=None, ideal_encoders: bool =
     return images, angles
 
 
-def encoder_reading(world: World, goal: tuple, rng, ideal: bool = False
+def encoder_reading(world: World, goal: tuple, rng, ideal: bool | str = False
                     ) -> tuple[tuple, tuple]:
     """Where the head is and what its encoders read after a move to ``goal`` (rad), as the
     bus stand-in plays servos with hardware encoders (``head.encoder: hardware``): the
     shaft stops within half a pulse of the goal, its reading is that angle plus the
     model's noise and the world's (``encoder_noise_deg``), quantized to one pulse (0.088
-    deg on the X series). An ideal encoder (or ``ideal``) reads the goal exactly."""
+    deg on the X series). An ideal encoder (or ``ideal``) reads the goal exactly.
+
+    ``ideal`` may instead name one of ``ENCODER_MODES`` (the controlled experiment of
+    issue 40): ``quantized`` (no noise), ``noisy`` (noise, no quantization) or ``true``
+    (the shaft where the hardware puts it, read exactly)."""
     head = world.spec.head
-    if ideal or head.encoder != "hardware":
+    mode = "ideal" if ideal is True else ("hardware" if ideal is False else ideal)
+    if mode not in ENCODER_MODES:
+        raise ValueError(f"encoder mode: one of {ENCODER_MODES}, got {mode!r}")
+    if mode == "ideal" or head.encoder != "hardware":
         return goal, goal
     true, read = [], []
     for angle, model in zip(goal, head.models, strict=True):
@@ -83,8 +94,10 @@ def encoder_reading(world: World, goal: tuple, rng, ideal: bool = False
         pulse = 2 * math.pi / spec.pulses_per_rev
         sigma = math.hypot(spec.noise_ticks, math.radians(head.encoder_noise_deg) / pulse)
         shaft = angle + rng.uniform(-0.5, 0.5) * pulse
+        noise = rng.normal(0.0, sigma)
         true.append(shaft)
-        read.append(round(shaft / pulse + rng.normal(0.0, sigma)) * pulse)
+        ticks = shaft / pulse + (0.0 if mode in ("quantized", "true") else noise)
+        read.append((round(ticks) if mode in ("hardware", "quantized") else ticks) * pulse)
     return tuple(true), tuple(read)
 
 
@@ -133,7 +146,9 @@ def world_trial(args) -> dict:
     encoders read the commanded angles exactly (else as the world's servos do)."""
     seed, distortion_terms, shift_m, *rest = args
     back_m = rest[0] if rest else 0.0
-    ideal_encoders = bool(rest[1]) if len(rest) > 1 else False
+    ideal_encoders = rest[1] if len(rest) > 1 else False
+    estimate_angles = bool(rest[2]) if len(rest) > 2 else True
+    ideal_encoders = ideal_encoders if isinstance(ideal_encoders, str) else bool(ideal_encoders)
     spec = WorldFile.model_validate(random_world(seed))
     world = World(spec)
     cam = spec.camera
@@ -141,7 +156,8 @@ def world_trial(args) -> dict:
            "k": cam.distortion, "camera_offset_mm": spec.head.camera_offset_mm}
     images, angles = render_views(world, POSES_DEG, np.random.default_rng([seed, 7]),
                                   ideal_encoders)
-    row["encoders"] = "ideal" if ideal_encoders else spec.head.encoder
+    row["encoders"] = ideal_encoders if isinstance(ideal_encoders, str) else \
+        "ideal" if ideal_encoders else spec.head.encoder
     if shift_m > 0:
         images[SHIFT], angles[SHIFT] = render_shift(world, shift_m)
     if back_m > 0 and shift_m > 0:
@@ -151,8 +167,13 @@ def world_trial(args) -> dict:
         if not far:
             row["second_station"] = "not planned: out of reach"
     try:
+        # the solver knows the servo models (as the procedure reads them from the
+        # captures), not whether this run's encoders are ideal
+        sigma = head_encoder_sigmas(dict(zip(("pan", "tilt", "roll"), spec.head.models,
+                                             strict=True))) if estimate_angles else None
         sol = solve_active(images, angles, ActiveSettings(distortion_terms=distortion_terms,
-                                                          shift_m=shift_m))
+                                                          shift_m=shift_m,
+                                                          encoder_sigma_rad=sigma))
     except SolveError as exc:
         return {**row, "error": str(exc)}
     res = sol.result
@@ -198,9 +219,12 @@ def summarise(rows: list[dict]) -> dict:
 
 def run(n: int = 20, first_seed: int = 0, distortion_terms: int | None = None,
         workers: int = 1, shift_m: float = 0.010, second_station_m: float = 0.0,
-        ideal_encoders: bool = False) -> dict:
-    jobs = [(first_seed + i, distortion_terms, shift_m, second_station_m, ideal_encoders)
-            for i in range(n)]
+        ideal_encoders: bool | str = False, estimate_angles: bool = True) -> dict:
+    """``n`` worlds from ``first_seed`` (``world_trial``); ``estimate_angles``: the solve
+    takes the recorded head angles as readings of the servos' encoder sigma (False: as
+    exact, as before issue 40)."""
+    jobs = [(first_seed + i, distortion_terms, shift_m, second_station_m, ideal_encoders,
+             estimate_angles) for i in range(n)]
     if workers > 1:
         with ProcessPoolExecutor(workers) as pool:
             rows = list(pool.map(world_trial, jobs))

@@ -57,7 +57,10 @@ def residual_jacobian(x: np.ndarray, n_dist: int, dist_slots: tuple, und_unique:
                       d_rotations: list[np.ndarray], counts: list[int], s: np.ndarray,
                       rho: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
     """d residual / d x over the camera parameters (rows, N_BASE + n_dist), and with
-    depths d residual / d rho of each row's own inverse depth (rows,). A residual is the
+    depths d residual / d rho of each row's own inverse depth (rows,). With the head
+    angles' derivatives in ``d_rotations`` (11 per motion, ``rotation_derivatives(...,
+    angles=True)``) six more columns follow: d residual / d (pan, tilt, roll) of the
+    motion's first capture, then of its second. A residual is the
     predicted pixel's distance along ``normals`` (rows, 2) from its target (thesis eq. 3.3
     with the parallax, module docstring); a point correspondence is two rows, with the
     normals (1, 0) and (0, 1).
@@ -102,12 +105,15 @@ def residual_jacobian(x: np.ndarray, n_dist: int, dist_slots: tuple, und_unique:
     outer = (rays[:, :, None] * dr_dm[:, None, :]).reshape(n, 9)
     dr_du = np.empty((n, 2))
     dr_ds = np.empty((n, 3))
-    out = np.zeros((n, N_BASE + n_dist))
+    n_rot = d_rotations[0].shape[0] if d_rotations else 5  # 11: with the head angles
+    out = np.zeros((n, N_BASE + n_dist + n_rot - 5))
     eye = np.eye(3)
     for R, dR, a, b in zip(rotations, d_rotations, bounds[:-1], bounds[1:], strict=True):
         dr_du[a:b] = dr_dm[a:b] @ R[:2, :].T
         dr_ds[a:b] = dr_dm[a:b] @ (R - eye).T
-        out[a:b, 4:9] = outer[a:b] @ dR.reshape(5, 9).T
+        rot = outer[a:b] @ dR.reshape(n_rot, 9).T
+        out[a:b, 4:9] = rot[:, :5]
+        out[a:b, N_BASE + n_dist:] = rot[:, 5:]
     # back through the undistortion u = D^-1(u0): du / du0 = Jd(u)^-1, at each distinct
     # reference point once
     if n_dist:
@@ -130,7 +136,7 @@ def residual_jacobian(x: np.ndarray, n_dist: int, dist_slots: tuple, und_unique:
     if n_dist:
         slots = list(dist_slots)
         Jk_in = Jk_in[:, :, slots][point]
-        out[:, N_BASE:] = nf[:, 0, None] * Jk_out[:, 0, slots] \
+        out[:, N_BASE:N_BASE + n_dist] = nf[:, 0, None] * Jk_out[:, 0, slots] \
             + nf[:, 1, None] * Jk_out[:, 1, slots] \
             - dr_du0[:, 0, None] * Jk_in[:, 0] - dr_du0[:, 1, None] * Jk_in[:, 1]
     return out, d_rho

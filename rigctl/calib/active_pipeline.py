@@ -88,6 +88,10 @@ class ActiveSettings:
     nodal_offset_mm: float = 3.0   # how far the centre of projection may be off the axes
     scene_depth_m: float = 1.0     # the scene's (inverse-mean) depth from the camera
     shift_m: float = 0.0           # the arm's sideways move before the SHIFT capture
+    # sigma (rad) of the recorded pan, tilt and roll (``active_angles.encoder_sigma_rad``
+    # of the head's servos): the final refinement estimates each capture's offset from
+    # its reading; None: the recorded angles are exact
+    encoder_sigma_rad: tuple[float, float, float] | None = None
 
     @property
     def parallax_sigma(self) -> float:
@@ -434,7 +438,8 @@ def second_station(images: dict, angles: dict, K: RefineResult, settings: Active
     for label in labels:
         tr.track(label, K, TIER_WINDOW_PX,
                  ROLL_JOINT_WINDOW_PX if label.startswith("roll") else 0.0)
-    motions = [replace(m, label=STATION_PREFIX + m.label, groups=m.groups + first_ids)
+    motions = [replace(m, label=STATION_PREFIX + m.label, groups=m.groups + first_ids,
+                       reference=STATION_PREFIX + m.reference)
                for m in (tr.motion(lb, REFINE_STRIDE) for lb in labels) if m is not None]
     if len(motions) < 2:
         raise SolveError(f"{len(motions)} motions tracked (need 2)")
@@ -552,7 +557,8 @@ def solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, f
     refined, tr.report["final_starts"] = _refine_from_starts(
         motions, _starts(start, K_pans, K0),
         dict(n_dist=_distortion_terms(settings, depths), parallax_sigma=settings.parallax_sigma,
-             depths=prior, offset_sigma_m=settings.nodal_offset_mm / 1000.0), timings)
+             depths=prior, offset_sigma_m=settings.nodal_offset_mm / 1000.0,
+             angle_sigma=settings.encoder_sigma_rad), timings)
     strategies["refined"] = refined.as_dict()
     result = _result(tr, refined, depths, settings, strategies, second)
     return ActiveSolution(result, refined, tr.contours, tr.matches, order, timings)
@@ -591,8 +597,20 @@ def _result(tr: Tracker, refined: RefineResult, depths: SceneDepths | None,
         "distortion": [refined.k1, refined.k2, refined.p1, refined.p2, refined.k3],
         "roll_axis_in_cam": refined.roll_axis.tolist(),
         "parallax": parallax,
+        "head_angles": _head_angles_report(refined, settings),
         "centre_identifiability": centre_identifiability(names, cov),
         "assumed_centre": tr.centre.tolist(),
         "strategies": strategies, "tracking": tr.report,
         "summary": summary,
     }
+
+
+def _head_angles_report(refined: RefineResult, settings: ActiveSettings) -> dict[str, Any]:
+    """How the recorded head angles entered: as exact, or as readings of the servos'
+    encoder sigma with each capture's estimated offset from its reading (degrees)."""
+    if settings.encoder_sigma_rad is None:
+        return {"estimated": False,
+                "why": "the head's servo models are unknown: the recorded angles are exact"}
+    return {"estimated": True,
+            "encoder_sigma_deg": [math.degrees(v) for v in settings.encoder_sigma_rad],
+            "offsets_deg": refined.angle_offsets_deg}

@@ -39,6 +39,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
+from rigctl.calib.active_angles import CaptureAngles
 from rigctl.calib.active_jacobian import N_BASE, distort, residual_jacobian
 from rigctl.calib.covariance import (
     cluster_meat,
@@ -83,6 +84,7 @@ class Motion:
     moved_normals: np.ndarray | None = None  # (M, 2) unit normals: curve mode
     label: str = ""
     groups: np.ndarray | None = None         # (N,) contour id of each reference point
+    reference: str = "ref"                   # the first capture (shared by a station)
     _tree: cKDTree | None = field(default=None, repr=False)
 
     @property
@@ -176,19 +178,30 @@ class PredictionCache:
         """``_undistort(pts, ...)``, each distinct point once."""
         return self.undistort_distinct(pts, fx, fy, cx, cy, k)[self.distinct(pts)[1]]
 
-    def rotations(self, motions: list[Motion], N: np.ndarray, a: np.ndarray
-                  ) -> list[np.ndarray]:
+    def rotations(self, motions: list[Motion], N: np.ndarray, a: np.ndarray,
+                  offsets: np.ndarray | None = None) -> list[np.ndarray]:
         if motions is not self._motions:
             self._rotations.clear()
             self._motions = motions
-        return self._lookup(self._rotations, (N.tobytes(), a.tobytes()),
-                            lambda: _rotations(motions, N, a))
+        key = (N.tobytes(), a.tobytes(), None if offsets is None else offsets.tobytes())
+        return self._lookup(self._rotations, key, lambda: _rotations(motions, N, a, offsets))
 
 
-def _rotations(motions: list[Motion], N: np.ndarray, a: np.ndarray) -> list[np.ndarray]:
+def capture_angles(motions: list[Motion], offsets: np.ndarray | None = None
+                   ) -> list[tuple[tuple, tuple]]:
+    """Each motion's head angles (rad) of its two captures, as recorded plus ``offsets``
+    (motions x 6: the first capture's pan, tilt, roll, then the second's; None: none)."""
+    if offsets is None:
+        return [(tuple(m.angles0), tuple(m.angles1)) for m in motions]
+    return [(tuple(np.add(m.angles0, o[:3])), tuple(np.add(m.angles1, o[3:])))
+            for m, o in zip(motions, offsets, strict=True)]
+
+
+def _rotations(motions: list[Motion], N: np.ndarray, a: np.ndarray,
+               offsets: np.ndarray | None = None) -> list[np.ndarray]:
     """Each motion's rotation of the camera rays, from its first to its second pose."""
-    return [camera_orientation(m.angles0, N, a).T @ camera_orientation(m.angles1, N, a)
-            for m in motions]
+    return [camera_orientation(a0, N, a).T @ camera_orientation(a1, N, a)
+            for a0, a1 in capture_angles(motions, offsets)]
 
 
 def _mounting(rotvec: np.ndarray) -> np.ndarray:
@@ -200,12 +213,17 @@ def _roll_axis(tilts: np.ndarray) -> np.ndarray:
     return rot_x(tilts[0]) @ rot_y(tilts[1]) @ np.array([0.0, 0.0, 1.0])
 
 
-def rotation_derivatives(motions: list[Motion], x: np.ndarray, step: float = 1e-6
+def rotation_derivatives(motions: list[Motion], x: np.ndarray, step: float = 1e-6,
+                         offsets: np.ndarray | None = None, angles: bool = False
                          ) -> list[np.ndarray]:
     """d R / d x[4:9] (the mounting's rotation vector and the roll axis's two tilts) of
     each motion's rotation ``R = C0^T C1`` (a list of (5, 3, 3)), with
     ``C = Ry(p) Rx(t) N R_a(r)``: the mounting ``N`` and each capture's roll ``R_a(r)``
-    by central differences (a few 3x3 matrices), the rest by the product rule."""
+    by central differences (a few 3x3 matrices), the rest by the product rule. The
+    captures' angles are the recorded ones plus ``offsets`` (``capture_angles``). With
+    ``angles``, (11, 3, 3) each: then d R / d (pan, tilt, roll) of the first capture and
+    of the second, in closed form (``dRy(p)/dp = Ry(p) [e_y]x``, ``dRx(t)/dt = Rx(t)
+    [e_x]x``, ``dR_a(r)/dr = R_a(r) [a]x``)."""
     N = _mounting(x[4:7])
     a = _roll_axis(x[7:9])
     dN = []
@@ -231,15 +249,31 @@ def rotation_derivatives(motions: list[Motion], x: np.ndarray, step: float = 1e-
                 dRa = (rot_axis(_roll_axis(x[7:9] + e), r) -
                        rot_axis(_roll_axis(x[7:9] - e), r)) / (2 * step)
                 dC[3 + j] = H @ N @ dRa
-            cache[key] = (H @ N @ Ra, dC)
+            C = H @ N @ Ra
+            if angles:
+                Ry, Rx = rot_y(p), rot_x(t)
+                dA = np.stack([Ry @ _SKEW_Y @ Rx @ N @ Ra, Ry @ Rx @ _SKEW_X @ N @ Ra,
+                               C @ _skew(a)])
+                dC = np.concatenate([dC, dA])
+            cache[key] = (C, dC)
         return cache[key]
 
     out = []
-    for m in motions:
-        C0, dC0 = capture(m.angles0)
-        C1, dC1 = capture(m.angles1)
-        out.append(np.transpose(dC0, (0, 2, 1)) @ C1 + C0.T @ dC1)
+    for a0, a1 in capture_angles(motions, offsets):
+        C0, dC0 = capture(a0)
+        C1, dC1 = capture(a1)
+        dR = np.transpose(dC0[:5], (0, 2, 1)) @ C1 + C0.T @ dC1[:5]
+        if angles:
+            dR = np.concatenate([dR, np.transpose(dC0[5:], (0, 2, 1)) @ C1, C0.T @ dC1[5:]])
+        out.append(dR)
     return out
+
+
+def _skew(v) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+_SKEW_X, _SKEW_Y = _skew((1.0, 0.0, 0.0)), _skew((0.0, 1.0, 0.0))
 
 
 def predict(motion: Motion, x: np.ndarray, n_dist: int) -> np.ndarray:
@@ -251,18 +285,21 @@ def predict(motion: Motion, x: np.ndarray, n_dist: int) -> np.ndarray:
 
 def predict_many(motions: list[Motion], x: np.ndarray, n_dist: int,
                  refs: np.ndarray | None = None, rho: np.ndarray | None = None,
-                 cache: PredictionCache | None = None) -> list[np.ndarray]:
+                 cache: PredictionCache | None = None, offsets: np.ndarray | None = None
+                 ) -> list[np.ndarray]:
     """``predict`` for several motions at once: the reference points of all of them
     (``refs``, their concatenation, if already built) are undistorted and distorted in
     one pass each; only the rotation differs per motion. With ``rho`` (each reference
     point's inverse depth, 1/m) the parallax parameters are the centre of projection's
     offset ``o`` (m) and each point moves by its own ``s = rho o``. ``cache`` (with
-    ``refs``, and always the same ``motions``): reuse undistortions and rotations."""
-    pixels = _predict_all(motions, x, n_dist, refs, rho, cache)
+    ``refs``, and always the same ``motions``): reuse undistortions and rotations;
+    ``offsets``: added to the captures' head angles (``capture_angles``)."""
+    pixels = _predict_all(motions, x, n_dist, refs, rho, cache, offsets)
     return np.split(pixels, np.cumsum([len(m.ref_points) for m in motions])[:-1])
 
 
-def _predict_all(motions, x, n_dist, refs=None, rho=None, cache=None) -> np.ndarray:
+def _predict_all(motions, x, n_dist, refs=None, rho=None, cache=None, offsets=None
+                 ) -> np.ndarray:
     """``predict_many``'s pixels, concatenated over the motions."""
     fx, fy, cx, cy, N, a, s, k = _unpack(x, n_dist)
     if refs is None:
@@ -273,8 +310,8 @@ def _predict_all(motions, x, n_dist, refs=None, rho=None, cache=None) -> np.ndar
         _undistort(refs, fx, fy, cx, cy, k)
     rays = np.column_stack([und, np.ones(len(refs))]) + s
     moved, start = np.empty_like(rays), 0
-    rotations = cache.rotations(motions, N, a) if cache is not None else \
-        _rotations(motions, N, a)
+    rotations = cache.rotations(motions, N, a, offsets) if cache is not None else \
+        _rotations(motions, N, a, offsets)
     for motion, R in zip(motions, rotations, strict=True):
         end = start + len(motion.ref_points)
         moved[start:end] = rays[start:end] @ R - (s[start:end] if s.ndim == 2 else s)
@@ -320,6 +357,8 @@ class RefineResult:
     # seconds of the refinement's parts: the least-squares solves, the covariance, the
     # delete-one-contour jackknife
     timings_s: dict[str, float] = field(default_factory=dict)
+    # with uncertain head angles: each capture's estimated offset from its reading (deg)
+    angle_offsets_deg: dict = field(default_factory=dict)
 
     def predictor(self, angles0, angles1, inv_depth: float | None = None):
         """Where reference pixels land after the head moves from ``angles0`` to
@@ -369,16 +408,15 @@ class CurveTargets:
 
 
 def _residuals(x, motions, n_dist, masks, associations, refs=None, rho=None, cache=None,
-               targets: CurveTargets | None = None):
+               targets: CurveTargets | None = None, offsets=None):
     """Point-to-contour distances along the contour's normal (curve mode) or point
     differences (correspondences), motion by motion; ``targets``: the same for motions
     all in curve mode, in one pass."""
     if targets is not None:
-        return targets.residuals(_predict_all(motions, x, n_dist, refs, rho, cache))
+        return targets.residuals(_predict_all(motions, x, n_dist, refs, rho, cache, offsets))
+    predicted_all = predict_many(motions, x, n_dist, refs, rho, cache, offsets)
     out = []
-    for m, (motion, predicted) in enumerate(zip(motions, predict_many(motions, x, n_dist, refs,
-                                                                      rho, cache),
-                                                strict=True)):
+    for m, (motion, predicted) in enumerate(zip(motions, predicted_all, strict=True)):
         pred = predicted[masks[m]]
         if motion.curve_mode:
             idx = associations[m]
@@ -469,11 +507,11 @@ def _influence(changes: np.ndarray, contours: np.ndarray, names: list[str],
 def _covariance(J: np.ndarray, r: np.ndarray, clusters: np.ndarray,
                 prior: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Cluster-robust (sandwich) covariance ``A^-1 (sum_c g_c g_c^T + P) A^-1`` with
-    ``A = J^T J + P``, ``g_c = J_c^T r_c`` and ``P`` the prior information, scaled for
-    the number of clusters; never smaller than the classical ``s^2 A^-1``. Returns it,
-    ``A^-1`` and ``A``."""
+    ``A = J^T J + P``, ``g_c = J_c^T r_c`` and ``P`` the prior information (``prior``:
+    the sigmas, or the information matrix), scaled for the number of clusters; never
+    smaller than the classical ``s^2 A^-1``. Returns it, ``A^-1`` and ``A``."""
     n_params = J.shape[1]
-    P = np.diag(1.0 / prior ** 2)
+    P = prior if prior.ndim == 2 else np.diag(1.0 / prior ** 2)
     A = J.T @ J + P
     try:
         A_inv = np.linalg.inv(A)
@@ -530,11 +568,19 @@ class _Problem:
     associations."""
 
     def __init__(self, motions: list[Motion], initial: dict, n_dist: int, prior_deg: float,
-                 parallax_sigma: float, depths: DepthPrior | None, offset_sigma_m: float):
+                 parallax_sigma: float, depths: DepthPrior | None, offset_sigma_m: float,
+                 angle_sigma=None):
         self.motions, self.n_dist = motions, n_dist
         n_cam = N_BASE + n_dist
         n_rho = 0 if depths is None else len(depths.mean)
-        self.x = np.zeros(n_cam + n_rho)
+        # with ``angle_sigma``: each station's reference capture's angle offsets are
+        # parameters after the inverse depths, the other captures' are eliminated
+        self.stations = [] if angle_sigma is None else \
+            sorted({m.reference for m in motions})
+        self.angles = None if angle_sigma is None else CaptureAngles(len(motions), angle_sigma)
+        self.station_of = np.array([self.stations.index(m.reference) for m in motions]
+                                   if self.stations else [], int)
+        self.x = np.zeros(n_cam + n_rho + 3 * len(self.stations))
         self.x[:4] = [initial["fx"], initial["fy"], initial["cx"], initial["cy"]]
         # a start may carry a distortion (OpenCV's k1, k2, p1, p2, k3) and a mounting
         for j, slot in enumerate(DIST_SLOTS[n_dist]):
@@ -546,12 +592,17 @@ class _Problem:
         self.prior_mean = np.zeros(len(self.x))
         self.prior_sigma = np.r_[_prior_sigmas(
             n_dist, prior_deg, offset_sigma_m if depths is not None else parallax_sigma),
-            np.zeros(n_rho)]
+            np.zeros(n_rho), np.tile(self.angles.sigma if self.angles else [], len(self.stations))]
         if depths is not None:
-            self.x[n_cam:] = self.prior_mean[n_cam:] = depths.mean
-            self.prior_sigma[n_cam:] = depths.sigma
-            self.free[n_cam:] = depths.sigma > 0  # sigma 0: measured, held
-        self.n_cam = n_cam
+            rho = slice(n_cam, n_cam + n_rho)
+            self.x[rho] = self.prior_mean[rho] = depths.mean
+            self.prior_sigma[rho] = depths.sigma
+            self.free[n_cam:n_cam + n_rho] = depths.sigma > 0  # sigma 0: measured, held
+        self.n_cam, self.n_rho = n_cam, n_rho
+        self._elimination: tuple | None = None  # (key, Elimination)
+        # whether the captures' own offsets are estimated (eliminated) in the solves; the
+        # first solve from a far start leaves them at the readings
+        self.eliminating = self.angles is not None
         self.groups = None if depths is None else \
             np.concatenate([m.groups for m in motions])
         self.masks = [np.ones(len(m.ref_points), bool) for m in motions]
@@ -565,11 +616,20 @@ class _Problem:
 
     def rho(self, xv: np.ndarray) -> np.ndarray | None:
         """Each reference point's inverse depth (its contour's), or None without depths."""
-        return None if self.groups is None else xv[self.n_cam:][self.groups]
+        return None if self.groups is None else \
+            xv[self.n_cam:self.n_cam + self.n_rho][self.groups]
+
+    def offsets(self, xv: np.ndarray) -> np.ndarray | None:
+        """Each motion's head-angle offsets (motions x 6: its station's reference
+        capture's, then its own capture's), or None when the angles are exact."""
+        if self.angles is None:
+            return None
+        ref = xv[self.n_cam + self.n_rho:].reshape(-1, 3)[self.station_of]
+        return np.hstack([ref, self.angles.delta])
 
     def predicted(self, xv: np.ndarray) -> list[np.ndarray]:
         return predict_many(self.motions, xv[:self.n_cam], self.n_dist, self.refs,
-                            self.rho(xv), self.cache)
+                            self.rho(xv), self.cache, self.offsets(xv))
 
     def associate(self, xv: np.ndarray) -> list:
         """For curve-mode motions, the nearest tracked contour point to each prediction."""
@@ -581,20 +641,54 @@ class _Problem:
 
     def residuals(self, xv: np.ndarray, assoc, targets=None, cache: bool = True) -> np.ndarray:
         return _residuals(xv[:self.n_cam], self.motions, self.n_dist, self.masks, assoc,
-                          self.refs, self.rho(xv), self.cache if cache else None, targets)
+                          self.refs, self.rho(xv), self.cache if cache else None, targets,
+                          self.offsets(xv))
 
     def fun(self, xf: np.ndarray, assoc, targets) -> np.ndarray:
-        """Residuals and the priors' rows, over the free parameters."""
+        """Residuals and the priors' rows, over the free parameters; with the head
+        angles, the residuals at each capture's best offsets and those offsets' prior
+        rows (``active_angles``)."""
         xv = self.full(xf)
         has = np.isfinite(self.prior_sigma[self.free])
         prior_rows = (xf - self.prior_mean[self.free])[has] / self.prior_sigma[self.free][has]
+        if self.eliminating:
+            e = self.eliminated(xf, assoc, targets)
+            return np.concatenate([e.residuals, e.prior_rows, prior_rows])
         return np.concatenate([self.residuals(xv, assoc, targets), prior_rows])
+
+    def eliminated(self, xf: np.ndarray, assoc, targets):
+        """The captures' offsets eliminated at ``xf`` (``CaptureAngles.eliminate``, with
+        the reduced Jacobian), kept for the next call at the same point (the optimiser
+        asks for the Jacobian where it has just evaluated the residuals)."""
+        key = (xf.tobytes(), id(assoc), id(targets), self.angles.delta.tobytes(),
+               self.angles.scale)
+        if self._elimination is None or self._elimination[0] != key:
+            xv = self.full(xf)
+            J, G, counts = self._raw_jacobian(xv, assoc, targets)
+            r = self.residuals(xv, assoc, targets)
+            self._elimination = (key, self.angles.eliminate(r, G, counts, J))
+        return self._elimination[1]
 
     def jac(self, xf: np.ndarray, assoc, targets) -> np.ndarray:
         """The analytic Jacobian of ``fun`` (``active_jacobian``): the camera's free
         columns, then each free inverse depth's column, which only its contour's rows
-        touch."""
-        xv = self.full(xf)
+        touch, then the reference captures' angle offsets; with the head angles, reduced
+        by the other captures' (``active_angles``)."""
+        has = np.isfinite(self.prior_sigma[self.free])
+        with_prior = np.flatnonzero(has)
+        prior = np.zeros((len(with_prior), len(xf)))
+        prior[np.arange(len(with_prior)), with_prior] = 1.0 / self.prior_sigma[self.free][has]
+        if self.eliminating:
+            e = self.eliminated(xf, assoc, targets)
+            return np.vstack([e.jac_rows, e.jac_prior, prior])
+        J, _, _ = self._raw_jacobian(self.full(xf), assoc, targets, len(with_prior))
+        J[len(J) - len(with_prior):] = prior
+        return J
+
+    def _raw_jacobian(self, xv: np.ndarray, assoc, targets, extra_rows: int = 0):
+        """d residual / d free parameters (at the captures' current offsets; rows, then
+        ``extra_rows`` of zeros), d residual / d the captures' own offsets (rows x 3, or
+        None) and each motion's row count."""
         cam = xv[:self.n_cam]
         fx, fy, cx, cy, N, a, o, k = _unpack(cam, self.n_dist)
         point, normals, counts = self._row_layout(assoc, targets)
@@ -603,18 +697,20 @@ class _Problem:
         rho = self.rho(xv)
         rho_rows = None if rho is None else rho[point]
         s = o if rho is None else rho_rows[:, None] * o
+        offsets = self.offsets(xv)
         J_cam, d_rho = residual_jacobian(
             cam, self.n_dist, DIST_SLOTS[self.n_dist], und, inverse[point], normals,
-            self.cache.rotations(self.motions, N, a), rotation_derivatives(self.motions, cam),
+            self.cache.rotations(self.motions, N, a, offsets),
+            rotation_derivatives(self.motions, cam, offsets=offsets,
+                                 angles=self.angles is not None),
             counts, s, rho_rows)
         # one array for the whole Jacobian: the residual rows' camera and inverse-depth
         # columns, then the priors' rows (copying a Jacobian of 100,000 rows costs as
         # much as forming it)
         free_cam = np.flatnonzero(self.free[:self.n_cam])
-        free_rho = self.free[self.n_cam:]
-        with_prior = np.flatnonzero(np.isfinite(self.prior_sigma[self.free]))
+        free_rho = self.free[self.n_cam:self.n_cam + self.n_rho]
         n_rows = len(point)
-        J = np.zeros((n_rows + len(with_prior), len(xf)))
+        J = np.zeros((n_rows + extra_rows, int(self.free.sum())))
         J[:n_rows, :len(free_cam)] = J_cam[:, free_cam]
         if free_rho.any():  # each point's inverse depth is its contour's parameter
             column = np.full(len(free_rho), -1)
@@ -622,9 +718,16 @@ class _Problem:
             row_column = column[self.groups[point]]
             has = np.flatnonzero(row_column >= 0)
             J[has, row_column[has]] = d_rho[has]
-        J[n_rows + np.arange(len(with_prior)), with_prior] = \
-            1.0 / self.prior_sigma[self.free][with_prior]
-        return J
+        if self.angles is None:
+            return J, None, counts
+        # the reference captures' offsets: their columns (after the free depths), each
+        # motion's rows in its station's three
+        first = len(free_cam) + int(free_rho.sum())
+        bounds = np.cumsum([0, *counts])
+        for station, a, b in zip(self.station_of, bounds[:-1], bounds[1:], strict=True):
+            column = first + 3 * station
+            J[a:b, column:column + 3] = J_cam[a:b, self.n_cam:self.n_cam + 3]
+        return J, J_cam[:, self.n_cam + 3:], counts
 
     def _row_layout(self, assoc, targets) -> tuple[np.ndarray, np.ndarray, list[int]]:
         """For each residual row, in ``_residuals``' order: its reference point (row of
@@ -652,14 +755,16 @@ class _Problem:
         fit = least_squares(self.fun, self.x[self.free], jac=self.jac, args=(assoc, targets),
                             loss=loss, f_scale=1.0, x_scale="jac", max_nfev=max_nfev)
         self.x = self.full(fit.x)
+        if self.eliminating:  # the captures' offsets move to their best
+            self.angles.delta += self.eliminated(fit.x, assoc, targets).step
         return fit
 
 
 def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
            outlier_sigmas: float = 3.0, outer_iterations: int = 4,
            prior_deg: float = 5.0, parallax_sigma: float = 0.003,
-           depths: DepthPrior | None = None, offset_sigma_m: float = 0.003
-           ) -> RefineResult:
+           depths: DepthPrior | None = None, offset_sigma_m: float = 0.003,
+           angle_sigma=None) -> RefineResult:
     """Joint refinement of fx, fy, cx, cy, the mounting rotation and the roll axis (and
     ``n_dist`` distortion terms, ``DIST_SLOTS``) over all motions with the exact rotation
     model (thesis Lemma 3.1, eq. 3.3), from ``initial`` (fx, fy, cx, cy; e.g. Strategy
@@ -675,17 +780,25 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
     With ``depths`` (each contour's inverse depth as a prior, ``DepthPrior``) the
     parallax is estimated instead: the centre of projection's offset ``o`` from the axes
     (prior sigma ``offset_sigma_m`` per axis) and every contour's inverse depth ``rho``,
-    each contour moving by its own ``rho o``; no consider term then."""
+    each contour moving by its own ``rho o``; no consider term then.
+
+    With ``angle_sigma`` (rad, per axis: pan, tilt, roll; ``active_angles``) the
+    recorded head angles are readings of that sigma: each capture's offset from its
+    reading is estimated with that prior, and the reported sigma is marginal over them.
+    Without, the recorded angles are exact."""
     if len(motions) < 2:
         raise SolveError("refinement: needs at least two motions")
     if sum(len(m.ref_points) for m in motions) < 20:
         raise SolveError("refinement: too few contour points")
     if n_dist not in DIST_SLOTS:
         raise SolveError(f"refinement: n_dist must be one of {sorted(DIST_SLOTS)}, got {n_dist}")
-    pb = _Problem(motions, initial, n_dist, prior_deg, parallax_sigma, depths, offset_sigma_m)
+    pb = _Problem(motions, initial, n_dist, prior_deg, parallax_sigma, depths, offset_sigma_m,
+                  angle_sigma)
     started = time.perf_counter()
-    for _ in range(outer_iterations):
+    for round_ in range(outer_iterations):
         assoc = pb.associate(pb.x)
+        # from a far start the camera moves first, the captures' offsets after
+        pb.eliminating = pb.angles is not None and round_ > 0
         pb.solve(assoc, "soft_l1", 200)
         kept = sum(int(mk.sum()) for mk in pb.masks)
         dropped = _reject_outliers(pb.residuals(pb.x, assoc, cache=False), motions, pb.masks,
@@ -693,6 +806,7 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
         if dropped <= OUTLIERS_SETTLED * kept:
             break
     assoc = pb.associate(pb.x)
+    pb.eliminating = pb.angles is not None
     final = pb.solve(assoc, "linear", 100)
     r = pb.residuals(pb.x, assoc, cache=False)
     if not np.all(np.isfinite(pb.x)) or not np.all(np.isfinite(r)):
@@ -716,6 +830,8 @@ def _robust_cost(pb: _Problem) -> float:
         pb.masks = masks
     has = np.isfinite(pb.prior_sigma) & pb.free
     prior = (pb.x - pb.prior_mean)[has] / pb.prior_sigma[has]
+    if pb.angles is not None:  # the captures' offsets' priors
+        prior = np.r_[prior, (pb.angles.delta * pb.angles.scale / pb.angles.sigma).ravel()]
     return float(np.sum(2.0 * (np.sqrt(1.0 + r ** 2) - 1.0)) + np.sum(prior ** 2))
 
 
@@ -726,8 +842,15 @@ def _result(pb: _Problem, final, r: np.ndarray, assoc, parallax_sigma: float) ->
     J = final.jac[:len(r)]
     J = J.toarray() if hasattr(J, "toarray") else np.asarray(J)
     prior = pb.prior_sigma[pb.free]
+    information = np.diag(1.0 / prior ** 2)
     started = time.perf_counter()
-    cov, A_inv, A = _covariance(J, r, _clusters(pb.motions, pb.masks), prior)
+    elimination = None
+    if pb.angles is not None:  # marginal over the captures' angle offsets
+        elimination = pb.eliminated(x[pb.free], assoc,
+                                    CurveTargets.build(pb.motions, pb.masks, assoc))
+        J = elimination.jac_rows
+        information = information + elimination.jac_prior.T @ elimination.jac_prior
+    cov, A_inv, A = _covariance(J, r, _clusters(pb.motions, pb.masks), information)
     timings = {"covariance": time.perf_counter() - started}
     influence: dict = {}
     if pb.groups is not None:
@@ -741,13 +864,15 @@ def _result(pb: _Problem, final, r: np.ndarray, assoc, parallax_sigma: float) ->
         changes = jackknife_changes(J, r, clusters, A)
         free_names = [n for n, f in zip(_all_names(pb), pb.free, strict=True) if f]
         influence = _influence(changes, contours, free_names, cov)
-        cov = larger_variances(cov, jackknife_spread(changes)
-                               + A_inv @ np.diag(1.0 / prior ** 2) @ A_inv)
+        cov = larger_variances(cov, jackknife_spread(changes) + A_inv @ information @ A_inv)
         timings["jackknife"] = time.perf_counter() - started
     # the consider parameters: the parallax when it is held (no depths); measured inverse
     # depths are held too, but as known values, not as consider parameters
     held = np.flatnonzero(~pb.free[:pb.n_cam])
     J_s = _jacobian_columns(lambda xv: pb.residuals(xv, assoc, cache=False), x, held, r)
+    if elimination is not None:  # the offsets follow the held parameters too
+        J_s, J_s_prior = elimination.project(J_s)
+        J, J_s = np.vstack([J, elimination.jac_prior]), np.vstack([J_s, J_s_prior])
     cov = _consider(J, J_s, cov, A_inv, np.full(len(held), parallax_sigma))
     full = np.zeros((len(x), len(x)))  # held inverse depths (measured) stay at zero
     full[np.ix_(pb.free, pb.free)] = cov
@@ -763,13 +888,27 @@ def _result(pb: _Problem, final, r: np.ndarray, assoc, parallax_sigma: float) ->
                         float(np.sqrt(np.mean(r ** 2))), inliers, total - inliers,
                         _rms_by_motion(r, pb.motions, pb.masks), parallax.copy(), float(k[4]),
                         x[:pb.n_cam].copy(), n_dist, full[:pb.n_cam, :pb.n_cam],
-                        influence=influence, timings_s=timings)
+                        influence=influence, timings_s=timings,
+                        angle_offsets_deg=_angle_offsets(pb))
+
+
+def _angle_offsets(pb: _Problem) -> dict[str, list[float]]:
+    """Each capture's estimated head-angle offset from its recorded reading (pan, tilt,
+    roll; degrees), by label; empty when the angles were taken as exact."""
+    if pb.angles is None:
+        return {}
+    ref = pb.x[pb.n_cam + pb.n_rho:].reshape(-1, 3)
+    out = {name: np.degrees(ref[i]).tolist() for i, name in enumerate(pb.stations)}
+    for motion, delta in zip(pb.motions, pb.angles.delta, strict=True):
+        out[motion.label or f"motion {len(out)}"] = np.degrees(delta).tolist()
+    return out
 
 
 def _all_names(pb: _Problem) -> list[str]:
     """The names of the refinement's parameters: the camera's, then each contour's
-    inverse depth."""
-    return param_names(pb.n_dist) + [f"rho{i}" for i in range(len(pb.x) - pb.n_cam)]
+    inverse depth, then the reference captures' angle offsets."""
+    return param_names(pb.n_dist) + [f"rho{i}" for i in range(pb.n_rho)] + \
+        [f"{axis}@{name}" for name in pb.stations for axis in ("pan", "tilt", "roll")]
 
 
 def _jacobian_columns(residuals, x: np.ndarray, columns, r0: np.ndarray,

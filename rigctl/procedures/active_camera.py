@@ -20,6 +20,7 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import Field
 
+from rigctl.calib.active_angles import head_encoder_sigmas
 from rigctl.calib.active_pipeline import SHIFT, STATION_PREFIX, ActiveSettings, solve_active
 from rigctl.errors import SolveError
 
@@ -159,7 +160,9 @@ class ActiveCamera(Procedure):
                                   assumed_centre=params.assumed_centre,
                                   nodal_offset_mm=params.nodal_offset_mm,
                                   scene_depth_m=params.scene_depth_m,
-                                  shift_m=params.shift_mm / 1000.0)
+                                  shift_m=params.shift_mm / 1000.0,
+                                  encoder_sigma_rad=head_encoder_sigmas(
+                                      servo_models(caps.values(), ctx.config)))
         with ctx.stage("pipeline"):
             solution = solve_active(images, angles, settings)
         ctx.timings_s.update({f"pipeline: {k}": v for k, v in solution.timings_s.items()})
@@ -170,6 +173,21 @@ class ActiveCamera(Procedure):
         ctx.defer("plots", lambda: _plots(ctx, images, solution.contours, solution.matches,
                                           solution.refined, solution.order))
         return solution.result
+
+
+def servo_models(captures, config) -> dict[str, str]:
+    """The head's servo model per axis: as the captures recorded them (each servo's
+    health, read from the servo), else as the rig file names them; axes with neither
+    are left out."""
+    for capture in captures:
+        health = capture.meta.get("head_health") or {}
+        models = {axis: h.get("model") for axis, h in health.items() if isinstance(h, dict)}
+        if all(models.get(axis) for axis in ("pan", "tilt", "roll")):
+            return models
+    head = getattr(getattr(config, "devices", None), "head", None)
+    if head is None or not hasattr(head, "model_of"):
+        return {}
+    return {axis: m for axis in ("pan", "tilt", "roll") if (m := head.model_of(axis))}
 
 
 def head_poses(params: ActiveCameraParams, limits_rad: dict | None = None
