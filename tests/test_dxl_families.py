@@ -227,7 +227,10 @@ def test_heating_under_load_and_low_supply_are_seen_by_health_and_doctor(start_b
 def test_over_temperature_stops_a_run_with_the_reason(start_bus, tmp_path):
     bus = start_bus("--model", "ph54-200-s500-r", "ph54-200-s500-r", "xm430-w350")
     rig = tmp_path / "rig.yaml"
+    # pausing off (``max_pause_s: 0``): the alert ends the run (tests/test_cli_runs.py
+    # checks that an alert pauses a run until `rigctl head reboot`)
     rig.write_text(yaml.safe_dump({"name": "dxl", "records": {"directory": "rec"},
+                                   "max_pause_s": 0,
                                    "devices": {"head": {"port": bus.ready["link"],
                                                         **STAND_IN_TIMING["head"]}}}))
 

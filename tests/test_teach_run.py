@@ -15,6 +15,7 @@ import math
 import signal
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -67,11 +68,11 @@ def _captures(records) -> int:
 class Taught:
     """`rigctl run ... teach=true` with its terminal on a pipe; stopped by PID."""
 
-    def __init__(self, sim, truth, *params: str) -> None:
+    def __init__(self, sim, truth, *params: str, rig_path: Path | None = None) -> None:
         rig, self.records = sim
         self.sim = sim
         args = [sys.executable, "-m", "rigctl.cli", "run", "hand-eye", "--rig",
-                str(rig.rig_path), "--json", "--param", "teach=true",
+                str(rig_path or rig.rig_path), "--json", "--param", "teach=true",
                 "--param", f"intrinsics={_intrinsics(truth)}", "--param", "settle_s=0"]
         for p in params:
             args += ["--param", p]
@@ -111,8 +112,8 @@ class Taught:
 def taught(sim, truth):
     started: list[Taught] = []
 
-    def start(*params: str) -> Taught:
-        started.append(Taught(sim, truth, *params))
+    def start(*params: str, rig_path: Path | None = None) -> Taught:
+        started.append(Taught(sim, truth, *params, rig_path=rig_path))
         return started[-1]
 
     yield start
@@ -191,8 +192,12 @@ def test_teach_mode_ends_on_an_abort(sim, truth, taught):
 
 
 @pytest.mark.timeout(600)
-def test_teach_mode_ends_on_a_fault(sim, truth, taught):
-    run = taught()
+def test_teach_mode_ends_on_a_fault(sim, truth, taught, tmp_path):
+    # pausing off (``max_pause_s: 0``): the stalled stream ends the run instead of
+    # pausing it (tests/test_resume_runs.py checks the pause)
+    rig = tmp_path / "no-pause-rig.yaml"
+    rig.write_text(sim[0].rig_path.read_text() + "max_pause_s: 0\n")
+    run = taught(rig_path=rig)
     control(sim[0].ready["camera"]["control"], {"cmd": "stall", "seconds": 60})
     try:
         moved = _arm(sim, {"cmd": "freedrive", "q_deg": list(np.degrees(
