@@ -1,11 +1,23 @@
 from __future__ import annotations
 
+import os
 import textwrap
 from pathlib import Path
 
 import pytest
 
-from rigctl.config import load_rig
+# One BLAS thread in every test process and in everything the tests start (stand-ins,
+# `rigctl run`, the service): the suite runs one pytest worker per core, and OpenBLAS's
+# spinning helper threads only compete with the other worker (the solves' own
+# ``one_blas_thread`` covers a run, not the tests that call the math directly).
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+from threadpoolctl import threadpool_limits  # noqa: E402
+
+from rigctl.config import load_rig  # noqa: E402
+
+threadpool_limits(limits=1, user_api="blas")  # numpy may be loaded before this file
 
 ROOT = Path(__file__).resolve().parents[1]
 
