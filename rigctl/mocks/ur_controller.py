@@ -592,8 +592,9 @@ class Controller:
         key = (self.q.tobytes(), self.tcp.tobytes())
         if key != getattr(self, "_pose_key", None):
             self._pose_key = key
-            self._pose = matrix_to_pose(self.ctrl_model.tool(self.q, self.tcp))
-            self._elbow = self.ctrl_model.flange(self.q)[:3, 3] * 0.5
+            flange = self.ctrl_model.flange(self.q)
+            self._pose = matrix_to_pose(flange @ self.tcp)
+            self._elbow = flange[:3, 3] * 0.5
         pose = self._pose
         J = self.ctrl_model.jacobian(self.q, self.tcp) if np.any(self.qd) else None
         tcp_speed = J @ self.qd if J is not None else _ZERO6

@@ -10,6 +10,7 @@ Rx(alpha_i) Ry(beta_i)``. The nominal values are Universal Robots' published DH 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -56,13 +57,19 @@ def matrix_to_pose(T) -> np.ndarray:
 
 
 def _link(theta: float, d: float, a: float, alpha: float, beta: float) -> np.ndarray:
-    ct, st = np.cos(theta), np.sin(theta)
-    ca, sa = np.cos(alpha), np.sin(alpha)
-    cb, sb = np.cos(beta), np.sin(beta)
-    rz = np.array([[ct, -st, 0, 0], [st, ct, 0, 0], [0, 0, 1, d], [0, 0, 0, 1]])
-    tx_rx = np.array([[1, 0, 0, a], [0, ca, -sa, 0], [0, sa, ca, 0], [0, 0, 0, 1]])
-    ry = np.array([[cb, 0, sb, 0], [0, 1, 0, 0], [-sb, 0, cb, 0], [0, 0, 0, 1]])
-    return rz @ tx_rx @ ry
+    """Rz(theta) Tz(d) Tx(a) Rx(alpha) Ry(beta), written out (the first four are the
+    classic D-H product; Hayati's beta a rotation about the new y)."""
+    ct, st = math.cos(theta), math.sin(theta)
+    ca, sa = math.cos(alpha), math.sin(alpha)
+    A = np.array([[ct, -st * ca, st * sa, a * ct],
+                  [st, ct * ca, -ct * sa, a * st],
+                  [0.0, sa, ca, d],
+                  [0.0, 0.0, 0.0, 1.0]])
+    if beta:
+        cb, sb = math.cos(beta), math.sin(beta)
+        x, z = A[:3, 0].copy(), A[:3, 2].copy()
+        A[:3, 0], A[:3, 2] = cb * x - sb * z, sb * x + cb * z
+    return A
 
 
 @dataclass
@@ -93,29 +100,32 @@ class ArmModel:
                         self.beta + arr(beta_deg, np.pi / 180),
                         self.theta_offset + arr(theta_deg, np.pi / 180), self.tcp.copy())
 
-    def flange(self, q) -> np.ndarray:
-        """T_base_flange for joint angles ``q``."""
+    def frames(self, q) -> list[np.ndarray]:
+        """T_base_link_i for i = 0..6 (identity first, the flange last)."""
         T = np.eye(4)
+        out = [T]
         for i in range(6):
             T = T @ _link(q[i] + self.theta_offset[i], self.d[i], self.a[i], self.alpha[i],
                           self.beta[i])
-        return T
+            out.append(T)
+        return out
+
+    def flange(self, q) -> np.ndarray:
+        """T_base_flange for joint angles ``q``."""
+        return self.frames(q)[-1]
 
     def tool(self, q, tcp: np.ndarray | None = None) -> np.ndarray:
         return self.flange(q) @ (self.tcp if tcp is None else tcp)
 
-    def jacobian(self, q, tcp: np.ndarray | None = None, eps: float = 1e-7) -> np.ndarray:
-        """6x6 numerical Jacobian of (position, small rotation) w.r.t. q."""
-        T0 = self.tool(q, tcp)
-        J = np.zeros((6, 6))
-        for i in range(6):
-            dq = np.array(q, float)
-            dq[i] += eps
-            T1 = self.tool(dq, tcp)
-            J[:3, i] = (T1[:3, 3] - T0[:3, 3]) / eps
-            dR = T1[:3, :3] @ T0[:3, :3].T
-            J[3:, i] = np.array([dR[2, 1] - dR[1, 2], dR[0, 2] - dR[2, 0],
-                                 dR[1, 0] - dR[0, 1]]) / (2 * eps)
+    def jacobian(self, q, tcp: np.ndarray | None = None) -> np.ndarray:
+        """6x6 Jacobian of (tool position, small rotation) w.r.t. q: joint i turns about
+        the z axis of link frame i - 1, so its column is (z x (p_tool - o), z)."""
+        frames = np.array(self.frames(q))
+        p = (frames[-1] @ (self.tcp if tcp is None else tcp))[:3, 3]
+        z, r = frames[:6, :3, 2], p - frames[:6, :3, 3]  # axis and lever of each joint
+        J = np.empty((6, 6))
+        J[:3] = (z[:, [1, 2, 0]] * r[:, [2, 0, 1]] - z[:, [2, 0, 1]] * r[:, [1, 2, 0]]).T
+        J[3:] = z.T
         return J
 
     def ik(self, target: np.ndarray, q_near, tcp: np.ndarray | None = None,
