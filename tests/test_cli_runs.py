@@ -135,6 +135,35 @@ def test_a_servo_alert_pauses_the_run_until_head_reboot(bus, tmp_path):  # noqa:
     assert json.loads(out)["poses"] == len(steps)
 
 
+@pytest.mark.timeout(300)
+def test_an_overheated_servo_pauses_the_run_until_cooled_and_rebooted(bus, tmp_path):  # noqa: F811
+    """A servo at its temperature limit mid-run (the stand-in's heating): the run pauses
+    naming the servo and the overheating; it continues to success once the servo has
+    cooled and `rigctl head reboot` cleared its latched alert."""
+    sock = bus.ready["control"]
+    rig = head_rig(tmp_path, bus.ready["link"])
+    control(sock, {"cmd": "freeze", "id": 1, "at_fraction": 0.5})
+    run = CliRun("head-sweep", "--rig", str(rig), "--json", *SWEEP)
+    try:
+        wait_until(lambda: servos(sock)[1]["frozen"], timeout=60, what="the first move held")
+        control(sock, {"cmd": "set", "id": 1, "temperature": 80})
+        row = wait_until(lambda: (r := RecordIndex(load_rig(rig).database_url()).list())
+                         and r[0]["status"] == "paused" and r[0], timeout=60,
+                         what="the run paused")
+        assert "servo 1 (pan)" in row["reason"] and "overheating" in row["reason"]
+        control(sock, {"cmd": "set", "id": 1, "temperature": 40})
+        rebooted = rigctl("head", "reboot", "--rig", str(rig))
+        assert rebooted.returncode == 0, rebooted.stderr
+        _out, err = run.finish()
+    finally:
+        run.stop()
+    assert run.proc.returncode == 0, err[-2000:]
+    row = only_run(rig)
+    assert row["status"] == "succeeded"
+    segments = json.loads(Path(row["run_dir"], "segments.json").read_text())
+    assert [s["end"] for s in segments] == ["paused", "succeeded"]
+
+
 @pytest.mark.timeout(180)
 def test_ctrl_c_ends_a_run_with_exit_3_keeps_its_captures_and_parks(bus, tmp_path):  # noqa: F811
     """SIGINT (Ctrl-C) to `rigctl run` while its second move is held half-way: the run
