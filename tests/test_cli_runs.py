@@ -31,13 +31,19 @@ def rigctl(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
                           text=True, timeout=timeout, cwd=ROOT)
 
 
+def _sigint_as_in_a_terminal() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 class CliRun:
     """`rigctl run ...` in the background; killed by PID if it outlives the test."""
 
     def __init__(self, *args: str) -> None:
+        # Ctrl-C's SIGINT as in a terminal: a pytest-xdist worker ignores SIGINT, and a
+        # child inherits that (Python then installs no KeyboardInterrupt handler)
         self.proc = subprocess.Popen([sys.executable, "-m", "rigctl.cli", "run", *args],
                                      cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                     text=True)
+                                     text=True, preexec_fn=_sigint_as_in_a_terminal)
 
     def finish(self, timeout: float = 120) -> tuple[str, str]:
         try:

@@ -193,3 +193,41 @@ def test_a_stall_past_the_hardware_timing_fails_with_a_load_aware_message(start_
     reason = outcome.reason
     assert "failed after 4 tries in" in reason, reason
     assert "host load" in reason and "devices.head.packet_timeout_ms" in reason, reason
+
+
+@pytest.mark.timeout(300)
+def test_a_stalled_camera_pauses_the_run_until_its_stream_is_back(start_sim):
+    """The camera's stream stalls (latched: the stand-in sends nothing until told) after
+    the run's first capture: the run pauses, naming the camera, with nothing moving; when
+    the stream is back it continues by itself and ends with every planned capture."""
+    sim = start_sim(world="ideal")
+    config = load_rig(sim.rig_path)
+    steps, _ = _survey_steps(config)
+    sock = sim.ready["camera"]["control"]
+    events: list[dict] = []
+
+    def on_event(event: dict) -> None:
+        events.append(event)
+        if event["type"] == "step" and event.get("index") == _first(steps, "capture") + 1:
+            control(sock, {"cmd": "stall", "seconds": 3600})
+
+    runner = Runner(config, show_progress=False, on_event=on_event)
+    outcome: dict = {}
+    worker = threading.Thread(target=lambda: outcome.update(
+        run=runner.run("capture-survey", PARAMS)), daemon=True)
+    worker.start()
+    try:
+        paused = wait_until(lambda: next((e for e in events if e["type"] == "paused"), None),
+                            timeout=120, what="the run paused")
+        assert "camera" in str(paused).lower(), paused
+        row = wait_until(lambda: (r := runner.index.list()) and r[0]["status"] == "paused"
+                         and r[0], timeout=30, what="the index row paused")
+        assert "camera" in row["reason"].lower()
+    finally:
+        control(sock, {"cmd": "stall", "seconds": 0})
+    worker.join(timeout=240)
+    assert not worker.is_alive(), "the run did not continue after the stream came back"
+    result = outcome["run"]
+    assert result.status == "succeeded", result.reason
+    assert any(e["type"] == "continued" for e in events)
+    assert result.result["captures"] == len([s for s in steps if "capture" in s.lower()])
