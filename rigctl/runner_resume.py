@@ -12,6 +12,7 @@ from typing import Any
 from rigctl import procedures
 from rigctl import resume as resuming
 from rigctl.errors import ConfigError, RigError
+from rigctl.plan_check import PlanCheck, check_plan, refuse_violations
 from rigctl.records import JournaledIndex, RunDirectory, replay_pending, write_json
 
 log = logging.getLogger("rigctl.run")
@@ -27,8 +28,6 @@ class ResumeMixin:
         nothing moved) for a run that is running, succeeded or failed on other than a
         device, or when the rig differs from the one it ran on. A paused run of another
         process on this host is told to continue instead (SIGUSR1); returns None then."""
-        from rigctl.runner import PlanCheck, check_plan, refuse_violations
-
         try:
             row = self.index.get(run_id, rig_name=self.config.name)
         except RigError as exc:
