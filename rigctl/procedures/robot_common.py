@@ -4,6 +4,7 @@ recorded it, the board observations of the captures, the export format."""
 from __future__ import annotations
 
 import logging
+import math
 from typing import Any
 
 import numpy as np
@@ -14,6 +15,7 @@ from rigctl.config import RigConfig
 from rigctl.errors import SolveError
 from rigctl.geometry.kinematics import KinematicModel, nominal_ur
 
+from .base import CaptureStep, MoveArmJoint, MoveArmJoints, Settle
 from .intrinsics import camera_model, intrinsics_from
 from .planning import (
     controller_dh_model,
@@ -145,3 +147,34 @@ def arm_view_inputs(params, config) -> dict[str, Any]:
         inputs["pose_file"] = pose_file_record(
             params.poses_file, load_pose_file(params.poses_file, config))
     return inputs
+
+
+def sweep_steps(sweeps: dict, settle_s: float) -> tuple[list, list[np.ndarray]]:
+    """The moves and captures of the joint sweeps (``plan_sweeps``; thesis ch. 4: one
+    joint moved at a time): one capture at each distinct sweep base (``joint`` None;
+    sweeps that share a base move back to it), then one at each offset of the swept
+    joint. Also every configuration captured, in order (the D-optimal views are chosen
+    to add to them)."""
+    steps: list = []
+    sweep_q: list[np.ndarray] = []
+    base_q: list[np.ndarray] = []
+
+    def capture(label: str, **extra) -> list:
+        return [Settle(settle_s), CaptureStep(label, extra=extra)]
+
+    for j, sweep in sweeps.items():
+        q0 = sweep.q_base
+        if not any(np.allclose(q0, q, atol=1e-9) for q in base_q):
+            base_q.append(q0)
+            sweep_q.append(q0)
+            label = f"sweep base {len(base_q)}"
+            steps.append(MoveArmJoints(tuple(float(v) for v in q0), label))
+            steps += capture(label, kind="sweep", joint=None)
+        else:
+            steps.append(MoveArmJoints(tuple(float(v) for v in q0), f"joint {j + 1} base"))
+        for off in sweep.offsets:
+            label = f"joint {j + 1} {off:+g} deg"
+            steps.append(MoveArmJoint(j, float(q0[j] + math.radians(off)), label))
+            steps += capture(label, kind="sweep", joint=j)
+            sweep_q.append(q0 + np.eye(6)[j] * math.radians(off))
+    return steps, sweep_q

@@ -14,15 +14,12 @@ need the camera on the flange).
 
 from __future__ import annotations
 
-import math
-
-import numpy as np
-
 from rigctl.errors import SolveError
 
-from .base import CaptureStep, MoveArmJoint, MoveArmJoints, MoveHead, Note, Settle
+from .base import CaptureStep, MoveArmJoints, MoveHead, Note, Settle
 from .planning import load_pose_file, plan_sweeps, planning_arm, planning_K, pose_file_steps
 from .planning_e2h import HEAD_STILL_NOTE, board_views, informative_board_views
+from .robot_common import sweep_steps
 
 
 def plan_eye_to_hand(params, config) -> list:
@@ -49,21 +46,8 @@ def plan_eye_to_hand(params, config) -> list:
     def capture(label, **extra):
         return [Settle(params.settle_s), CaptureStep(label, extra=extra)]
 
-    sweep_q: list[np.ndarray] = []
-    for j, sweep in sweeps.items():
-        q0 = sweep.q_base
-        if not any(np.allclose(q0, q, atol=1e-9) for q in sweep_q):
-            label = f"sweep base joint {j + 1}"
-            steps.append(MoveArmJoints(tuple(float(v) for v in q0), label))
-            steps += capture(label, kind="sweep", joint=None)
-            sweep_q.append(q0)
-        else:
-            steps.append(MoveArmJoints(tuple(float(v) for v in q0), f"joint {j + 1} base"))
-        for off in sweep.offsets:
-            label = f"joint {j + 1} {off:+g} deg"
-            steps.append(MoveArmJoint(j, float(q0[j] + math.radians(off)), label))
-            steps += capture(label, kind="sweep", joint=j)
-            sweep_q.append(q0 + np.eye(6)[j] * math.radians(off))
+    swept, sweep_q = sweep_steps(sweeps, params.settle_s)
+    steps += swept
     for kind, n, seed in (("train", params.random_poses, params.seed + 1),
                           ("heldout", params.heldout_poses, params.seed + 1000)):
         if n == 0:

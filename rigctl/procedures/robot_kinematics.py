@@ -28,7 +28,6 @@ as many views (``pose_set``), with a warning when it cannot determine the model.
 
 from __future__ import annotations
 
-import math
 from typing import Any, Literal
 
 import cv2
@@ -50,7 +49,6 @@ from rigctl.teach import teach_plan
 
 from .base import (
     CaptureStep,
-    MoveArmJoint,
     MoveArmJoints,
     MoveHead,
     Note,
@@ -89,6 +87,7 @@ from .robot_common import (
     export_model,
     frame_names,
     left_out_views,
+    sweep_steps,
 )
 from .robot_e2h import plan_eye_to_hand
 
@@ -285,24 +284,8 @@ class RobotKinematics(Procedure):
         def capture(label, **extra):
             return [Settle(params.settle_s), CaptureStep(label, extra=extra)]
 
-        sweep_q: list[np.ndarray] = []  # every configuration captured in the sweeps
-        base_q: list[np.ndarray] = []
-        for j, sweep in sweeps.items():
-            q0 = sweep.q_base
-            # one capture per distinct base (joint None); sweeps that share it move back
-            if not any(np.allclose(q0, q, atol=1e-9) for q in base_q):
-                base_q.append(q0)
-                sweep_q.append(q0)
-                label = f"sweep base {len(base_q)}"
-                steps.append(MoveArmJoints(tuple(float(v) for v in q0), label))
-                steps += capture(label, kind="sweep", joint=None)
-            else:
-                steps.append(MoveArmJoints(tuple(float(v) for v in q0), f"joint {j + 1} base"))
-            for off in sweep.offsets:
-                label = f"joint {j + 1} {off:+g} deg"
-                steps.append(MoveArmJoint(j, float(q0[j] + math.radians(off)), label))
-                steps += capture(label, kind="sweep", joint=j)
-                sweep_q.append(q0 + np.eye(6)[j] * math.radians(off))
+        swept, sweep_q = sweep_steps(sweeps, params.settle_s)
+        steps += swept
         for kind, n, seed in (("train", params.random_poses, params.seed + 1),
                               ("heldout", params.heldout_poses, params.seed + 1000)):
             if n == 0:
