@@ -911,6 +911,11 @@ def bench_worlds(as_json: bool = typer.Option(False, "--json"),
                 ["seed", "arm", "target-mount", "f", "f err %", "centre px", "model rms mm",
                  "model max mm", "held-out mm", "coverage", "validate mm", "failure"], rows,
                 out)
+    per_model = [[model, m["worlds"], m["failed"],
+                  *((m["model_rms_mm"] or {}).get(k, "-") for k in ("median", "max"))]
+                 for model, m in result["summary"]["by_arm_model"].items()]
+    print_table("per arm model", ["arm", "worlds", "failed", "model rms median mm",
+                                  "model rms worst mm"], per_model, out)
     out.print_json(json.dumps(result["summary"]))
     out.print(f"plot: {result.get('plot')}")
     if stopped:

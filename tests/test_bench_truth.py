@@ -24,3 +24,23 @@ def test_d2_left_at_its_start_and_d4_carrying_the_rest_is_no_error():
     assert z["link4.d"] == pytest.approx(2.0)  # the 20 um it is really off, over 10 um
     assert z["link5.d"] == pytest.approx(0.0, abs=1e-9)
     assert identified_value(result["links"], "link4.d") == pytest.approx(0.17437, abs=1e-12)
+
+
+def test_bench_worlds_reports_each_arm_model_and_the_solve_over_the_motion():
+    from rigctl.bench.worlds import summarise
+
+    def row(seed, model, rms, failed=False, motion=30.0, solve=3.0):
+        return {"seed": seed, "model": model, "failed": failed, "procedures": {
+            "robot-kinematics": {"model_rms_mm": rms},
+            "active-camera": {"timings_s": {"motion_s": motion, "solve_s": solve}}}}
+
+    rows = [row(1, "ur5e", 0.05), row(2, "ur5e", 0.11, solve=6.0), row(3, "ur10", 0.2, True)]
+    summary = summarise(rows)
+    per_model = summary["by_arm_model"]
+    assert per_model["ur5e"]["worlds"] == 2 and per_model["ur5e"]["failed"] == 0
+    assert per_model["ur5e"]["model_rms_mm"]["median"] == pytest.approx(0.08)
+    assert per_model["ur5e"]["model_rms_mm"]["max"] == pytest.approx(0.11)
+    assert per_model["ur10"]["failed_seeds"] == [3]
+    ratio = summary["solve_over_motion"]["active-camera"]
+    assert ratio["median"] == pytest.approx(0.1) and ratio["max"] == pytest.approx(0.2)
+    assert summary["solve_over_motion"]["hand-eye"] is None

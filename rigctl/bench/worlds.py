@@ -286,6 +286,28 @@ def by_combination(rows: list[dict]) -> dict[str, dict]:
     return out
 
 
+def by_arm_model(rows: list[dict]) -> dict[str, dict]:
+    """Per UR model (issue 40's targets stand for each): worlds, failed runs and the
+    exported model's RMS against the truth (median, worst)."""
+    out = {}
+    for model in sorted({r.get("model", "?") for r in rows}):
+        mine = [r for r in rows if r.get("model", "?") == model]
+        out[model] = {"worlds": len(mine), "failed": sum(r["failed"] for r in mine),
+                      "failed_seeds": [r["seed"] for r in mine if r["failed"]],
+                      "model_rms_mm": _dist(_values(mine, "robot-kinematics",
+                                                    "model_rms_mm"))}
+    return out
+
+
+def solve_over_motion(rows: list[dict], name: str) -> dict | None:
+    """Each world's ``name`` solve time over its motion time in the run (issue 43: the
+    active-camera solve should take at most 0.1 of the motion)."""
+    ratios = [t["solve_s"] / t["motion_s"] for r in rows
+              if (t := r["procedures"].get(name, {}).get("timings_s", {}))
+              and t.get("motion_s") and "solve_s" in t]
+    return _dist(ratios)
+
+
 def summarise(rows: list[dict]) -> dict:
     z_cam = [v for r in rows for v in r["procedures"].get("active-camera", {})
              .get("z", {}).values()]
@@ -320,6 +342,8 @@ def summarise(rows: list[dict]) -> dict:
                      "all": _coverage(z_cam + z_arm + z_final)},
         "times_s": times,
         "by_combination": by_combination(rows),
+        "by_arm_model": by_arm_model(rows),
+        "solve_over_motion": {name: solve_over_motion(rows, name) for name in PIPELINE},
     }
 
 
