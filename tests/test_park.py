@@ -165,6 +165,24 @@ def test_a_protective_stop_mid_run_aborts_it_and_nothing_moves_after(arm_proc, t
     assert np.allclose(after["qd"], 0.0)
 
 
+def test_an_emergency_stop_mid_run_ends_it_even_with_pausing_on(arm_proc, tmp_path):  # noqa: F811
+    """Pausing on (the default ``max_pause_s``): a protective stop would pause the run,
+    but an emergency stop always ends it, recorded aborted, naming it."""
+    rig = _arm_rig(tmp_path, arm_proc.ready["host"])
+    config = load_rig(rig)
+    assert config.max_pause_s > 0
+    runner = Runner(config, show_progress=False)
+    control(arm_proc.ready["control"], {"cmd": "freeze", "at_fraction": 0.5})
+    thread, out = _sweep_in_thread(runner)
+    _held_mid_move(arm_proc)
+    control(arm_proc.ready["control"], {"cmd": "emergency_stop"})
+    outcome = _outcome(thread, out)
+    assert outcome.status == "aborted" and "emergency stop" in outcome.reason.lower(), \
+        outcome.reason
+    assert runner.index.get(outcome.run_id)["status"] == "aborted"
+    control(arm_proc.ready["control"], {"cmd": "release_estop"})
+
+
 def _head_rig(tmp_path, link: str, policy: str = "home") -> Path:
     """A rig with the head alone on the stand-in's bus, at the timing `sim up` writes for
     stand-in processes, parking per ``policy``."""
