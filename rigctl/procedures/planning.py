@@ -260,6 +260,22 @@ def reach_sphere(model: KinematicModel, T_flange_cam: np.ndarray) -> tuple[np.nd
     return base, radius
 
 
+def joints_within_limits(model: KinematicModel, T_base_flange: np.ndarray, seeds, limits,
+                         accept=None) -> np.ndarray | None:
+    """Joints (wrapped to [-pi, pi)) reaching ``T_base_flange`` inside ``limits`` (and
+    passing ``accept``), from the first IK seed that gets there; None if none does."""
+    for seed_q in seeds:
+        try:
+            q = model.ik(T_base_flange, seed_q)
+        except SolveError:
+            continue
+        q = (q + np.pi) % (2 * np.pi) - np.pi
+        if all(lo <= v <= hi for v, (lo, hi) in zip(q, limits, strict=True)) and \
+                (accept is None or accept(q)):
+            return q
+    return None
+
+
 def plan_target_views(config: RigConfig, n: int, distance_m: float = 0.45,
                       max_tilt_deg: float = 25.0, seed: int = 0,
                       up_axis: np.ndarray | None = None, max_spin_deg: float = 60.0,
@@ -317,17 +333,9 @@ def plan_target_views(config: RigConfig, n: int, distance_m: float = 0.45,
         T_base_flange = look_at(eye, looked_at, up) @ T_cam_flange
         seeds = ([previous] if previous is not None else []) + \
             [np.radians(s) for s in VIEW_SEEDS_DEG]
-        q = None
-        for seed_q in seeds:
-            try:
-                q = model.ik(T_base_flange, seed_q)
-            except SolveError:
-                continue
-            q = (q + np.pi) % (2 * np.pi) - np.pi
-            if all(lo <= v <= hi for v, (lo, hi) in zip(q, limits, strict=True)) and \
-                    clearance_m(config, model, q) >= MIN_CLEARANCE_M:
-                break
-            q = None
+        q = joints_within_limits(
+            model, T_base_flange, seeds, limits,
+            accept=lambda q: clearance_m(config, model, q) >= MIN_CLEARANCE_M)
         if q is None:
             notes.append(f"view {attempts}: eye {np.round(eye, 3).tolist()} m unreachable, "
                          "outside the soft limits or closer than "

@@ -34,6 +34,7 @@ from .planning import (
     board_visible,
     clearance_m,
     fit_distance,
+    joints_within_limits,
     nominal_base_cam,
     nominal_flange_target,
     reach_sphere,
@@ -105,8 +106,9 @@ def board_views(config: RigConfig, n: int, distance_m: float, max_tilt_deg: floa
             T_base_flange = T_base_cam @ T_cam_target @ T_target_flange
             if np.linalg.norm(T_base_flange[:3, 3] - shoulder) > reach:
                 continue
-            q = _solve(model, T_base_flange, ([previous] if previous is not None else [])
-                       + seeds, limits)
+            q = joints_within_limits(model, T_base_flange,
+                                     ([previous] if previous is not None else []) + seeds,
+                                     limits)
             if q is None or clearance_m(config, model, q) < MIN_CLEARANCE_M or \
                     not board_visible(config, model, q, K):
                 continue
@@ -127,20 +129,6 @@ def board_views(config: RigConfig, n: int, distance_m: float, max_tilt_deg: floa
                          "devices.head.fixed_pose (the camera must look at the arm's "
                          "workspace) and target.pose, or change view_distance_m")
     return poses, notes
-
-
-def _solve(model: KinematicModel, T_base_flange: np.ndarray, seeds, limits):
-    """Joints reaching ``T_base_flange`` inside ``limits`` from the first seed that
-    gets there, or None."""
-    for seed_q in seeds:
-        try:
-            q = model.ik(T_base_flange, seed_q)
-        except SolveError:
-            continue
-        q = (q + np.pi) % (2 * np.pi) - np.pi
-        if all(lo <= v <= hi for v, (lo, hi) in zip(q, limits, strict=True)):
-            return q
-    return None
 
 
 def informative_board_views(config: RigConfig, params, K: np.ndarray, planned_q: list,

@@ -149,6 +149,11 @@ def arm_view_inputs(params, config) -> dict[str, Any]:
     return inputs
 
 
+def capture_steps(settle_s: float, label: str, **extra) -> list:
+    """Settle, then capture ``label`` (``extra``: what the solve reads of it)."""
+    return [Settle(settle_s), CaptureStep(label, extra=extra)]
+
+
 def sweep_steps(sweeps: dict, settle_s: float) -> tuple[list, list[np.ndarray]]:
     """The moves and captures of the joint sweeps (``plan_sweeps``; thesis ch. 4: one
     joint moved at a time): one capture at each distinct sweep base (``joint`` None;
@@ -160,7 +165,7 @@ def sweep_steps(sweeps: dict, settle_s: float) -> tuple[list, list[np.ndarray]]:
     base_q: list[np.ndarray] = []
 
     def capture(label: str, **extra) -> list:
-        return [Settle(settle_s), CaptureStep(label, extra=extra)]
+        return capture_steps(settle_s, label, **extra)
 
     for j, sweep in sweeps.items():
         q0 = sweep.q_base

@@ -16,10 +16,10 @@ from __future__ import annotations
 
 from rigctl.errors import SolveError
 
-from .base import CaptureStep, MoveArmJoints, MoveHead, Note, Settle
+from .base import MoveArmJoints, MoveHead, Note
 from .planning import load_pose_file, plan_sweeps, planning_arm, planning_K, pose_file_steps
 from .planning_e2h import HEAD_STILL_NOTE, board_views, informative_board_views
-from .robot_common import sweep_steps
+from .robot_common import capture_steps, sweep_steps
 
 
 def plan_eye_to_hand(params, config) -> list:
@@ -43,9 +43,6 @@ def plan_eye_to_hand(params, config) -> list:
         if params.sweep_steps else ({}, [])
     steps += [Note(n) for n in sweep_notes]
 
-    def capture(label, **extra):
-        return [Settle(params.settle_s), CaptureStep(label, extra=extra)]
-
     swept, sweep_q = sweep_steps(sweeps, params.settle_s)
     steps += swept
     for kind, n, seed in (("train", params.random_poses, params.seed + 1),
@@ -66,6 +63,6 @@ def plan_eye_to_hand(params, config) -> list:
         steps += [Note(m) for m in more]
         for k, q in enumerate(poses):
             steps.append(MoveArmJoints(tuple(float(v) for v in q), f"{kind} {k + 1}"))
-            steps += capture(f"{kind} {k + 1}", kind=kind)
+            steps += capture_steps(params.settle_s, f"{kind} {k + 1}", kind=kind)
     steps.append(MoveArmJoints(config.devices.arm.home_rad(), "arm home"))
     return steps

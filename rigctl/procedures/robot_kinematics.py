@@ -48,13 +48,11 @@ from rigctl.geometry.kinematics import nominal_ur
 from rigctl.teach import teach_plan
 
 from .base import (
-    CaptureStep,
     MoveArmJoints,
     MoveHead,
     Note,
     Params,
     Procedure,
-    Settle,
     SolveContext,
 )
 from .intrinsics import camera_model, default_prior_sigma
@@ -82,6 +80,7 @@ from .planning_e2h import HEAD_STILL_NOTE
 from .robot_common import (
     arm_view_inputs,
     board_observations,
+    capture_steps,
     capture_use,
     controller_model,
     export_model,
@@ -281,9 +280,6 @@ class RobotKinematics(Procedure):
                              f"{params.sweep_distance_m:.2f} m; " + "; ".join(sweep_notes))
         steps += [Note(n) for n in [arm.note, *notes, *sweep_notes]]
 
-        def capture(label, **extra):
-            return [Settle(params.settle_s), CaptureStep(label, extra=extra)]
-
         swept, sweep_q = sweep_steps(sweeps, params.settle_s)
         steps += swept
         for kind, n, seed in (("train", params.random_poses, params.seed + 1),
@@ -297,7 +293,7 @@ class RobotKinematics(Procedure):
             steps += [Note(m) for m in more]
             for k, q in enumerate(poses):
                 steps.append(MoveArmJoints(tuple(float(v) for v in q), f"{kind} {k + 1}"))
-                steps += capture(f"{kind} {k + 1}", kind=kind)
+                steps += capture_steps(params.settle_s, f"{kind} {k + 1}", kind=kind)
         steps.append(MoveArmJoints(config.devices.arm.home_rad(), "arm home"))
         return steps
 
