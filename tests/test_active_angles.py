@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pytest
 
-from rigctl.calib.active_angles import encoder_sigma_rad, head_encoder_sigmas
+from rigctl.calib.active_angles import CaptureAngles, encoder_sigma_rad, head_encoder_sigmas
 from rigctl.calib.active_refine import Motion, refine
 from rigctl.errors import SolveError
 from rigctl.mocks.world import CameraTruth, HeadTruth, SceneTruth, World, WorldFile
@@ -102,3 +102,17 @@ def test_encoder_sigma_is_one_pulse_quantized_plus_noise():
         == pytest.approx([encoder_sigma_rad("mx-64")] * 2 + [encoder_sigma_rad("ph42-020-s300-r")])
     with pytest.raises(SolveError, match="unknown servo model 'xq999'"):
         encoder_sigma_rad("xq999")
+
+
+def test_a_trial_step_that_turns_the_model_over_gives_non_finite_residuals_not_an_error():
+    """The optimiser's trial step can reach parameters whose derivatives overflow; the
+    elimination answers with non-finite residuals (``least_squares`` then steps back)
+    instead of raising numpy's singular-matrix error. Finite input is eliminated."""
+    angles = CaptureAngles(2, (1e-3, 1e-3, 1e-3))
+    rng = np.random.default_rng(3)
+    r, G = rng.normal(size=8), rng.normal(size=(8, 3))
+    finite = angles.eliminate(r, G, [4, 4])
+    assert np.all(np.isfinite(finite.residuals)) and finite.step.shape == (2, 3)
+    G[5, 1] = np.inf
+    over = angles.eliminate(r, G, [4, 4])
+    assert np.all(np.isnan(over.residuals)) and np.all(np.isnan(over.prior_rows))

@@ -403,3 +403,23 @@ def test_influence_names_the_contour_that_moves_each_parameter():
     assert out["cx"] == {"contour": 7, "share": 1.0,
                          "sigma_ratio": pytest.approx(np.sqrt(2 / 3) / 0.2)}
     assert out["cy"]["share"] == pytest.approx(1 / 3)
+
+
+def test_a_refinement_that_only_predicts_skips_the_uncertainty_not_the_estimate():
+    """``uncertainty=False`` (the tiers' predicting refinements) returns the same
+    estimate with every sigma NaN: no covariance is computed for it."""
+    _, poses, obs, _ = scenario(theta_deg=5.0, sigma=0.5, seed=7, count=6, points=30)
+    start = {"fx": 880, "fy": 890, "cx": 640, "cy": 360}
+    full = refine(motions_of(poses, obs), start)
+    quick = refine(motions_of(poses, obs), start, uncertainty=False)
+    assert [quick.fx, quick.fy, quick.cx, quick.cy] == [full.fx, full.fy, full.cx, full.cy]
+    assert all(math.isnan(s) for s in quick.sigma.values())
+    assert 0 < full.sigma["fx"] < 5
+
+
+def test_a_refinement_from_a_non_finite_start_is_a_named_solve_error():
+    """A start the model cannot evaluate is a ``SolveError`` naming the refinement (it
+    was a numpy error that ended the whole solve)."""
+    _, poses, obs, _ = scenario(theta_deg=5.0, sigma=0.5, seed=7, count=6, points=30)
+    with pytest.raises(SolveError, match="refinement diverged"):
+        refine(motions_of(poses, obs), {"fx": float("nan"), "fy": 890, "cx": 640, "cy": 360})

@@ -106,6 +106,11 @@ class CaptureAngles:
         bounds = np.cumsum([0, *counts])
         w = self.scale / self.sigma
         G = np.ascontiguousarray(G)
+        if not (np.all(np.isfinite(G)) and np.all(np.isfinite(r))):
+            # a trial step of the optimiser that turned the model over: non-finite
+            # residuals make it step back (``least_squares`` shrinks its trust region)
+            nan = np.full(len(counts) * 3, np.nan)
+            return Elimination(np.full(len(r), np.nan), nan, nan.reshape(-1, 3))
         solve = np.empty((len(counts), 3, 3))
         step = np.empty((len(counts), 3))
         reduced = r.copy()

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -58,6 +59,8 @@ TIER_WINDOW_PX = 24.0  # search window around a tier's prediction (the first K's
 MODEL_ERROR_FOCAL = 1.0e-4   # relative, per focal length
 MODEL_ERROR_CENTRE_PX = 0.15  # per coordinate
 DISTINCT_START_PX = 3.0  # the final refinement also starts from centres this far apart
+# the final refinement's starts are refined side by side in this many threads
+FINAL_THREADS = 2
 # A roll predicted about a centre e px off is off by (I - R) e, one shift for the whole
 # image (2 e at 180 degrees): searched for all contours at once within this many px
 # before each is searched in TIER_WINDOW_PX. The pans' centre of a narrow or strongly
@@ -171,7 +174,7 @@ def _predicting_refinement(motions, start: dict, settings: ActiveSettings,
     return refine(motions, start, n_dist=_distortion_terms(settings, None),
                   outer_iterations=PREDICTION_ROUNDS,
                   depths=None if depths is None else depths.prior(),
-                  offset_sigma_m=settings.nodal_offset_mm / 1000.0)
+                  offset_sigma_m=settings.nodal_offset_mm / 1000.0, uncertainty=False)
 
 
 def _measured_depths(tr: Tracker, K: RefineResult, settings: ActiveSettings, images: dict
@@ -216,22 +219,35 @@ def _refine_from_starts(motions, starts: dict[str, dict], kwargs: dict,
     """The refinement from each start; the one of least ``robust_cost`` (comparable across
     starts: every point counts, whatever each run rejected). A start whose refinement
     fails is reported and skipped; if all fail, the first's error is raised. Each
-    start's seconds, and those of its refinement's parts, go into ``timings``."""
+    start's seconds, and those of its refinement's parts, go into ``timings``.
+
+    The starts are refined side by side in ``FINAL_THREADS`` threads (each refinement is
+    independent and spends its time in numpy, which releases the interpreter), so the
+    result is the same as one after the other."""
     timings = {} if timings is None else timings
+
+    def refine_from(start: dict) -> tuple[RefineResult | SolveError, float]:
+        started = time.perf_counter()
+        try:
+            return refine(motions, start, **kwargs), time.perf_counter() - started
+        except SolveError as exc:
+            return exc, time.perf_counter() - started
+
+    with ThreadPoolExecutor(max_workers=min(FINAL_THREADS, len(starts))) as pool:
+        done = dict(zip(starts, pool.map(refine_from, starts.values()), strict=True))
     results: dict[str, RefineResult] = {}
     report: dict[str, dict] = {}
     first_error: SolveError | None = None
     for name, start in starts.items():
-        try:
-            with stage_timer(timings)(f"final refinement from {name}"):
-                results[name] = refine(motions, start, **kwargs)
-        except SolveError as exc:
-            first_error = first_error or exc
-            report[name] = {"centre": [start["cx"], start["cy"]], "error": str(exc)}
+        outcome, seconds = done[name]
+        timings[f"final refinement from {name}"] = seconds
+        if isinstance(outcome, SolveError):
+            first_error = first_error or outcome
+            report[name] = {"centre": [start["cx"], start["cy"]], "error": str(outcome)}
             continue
-        r = results[name]
-        timings.update({f"final refinement from {name}: {part}": seconds
-                        for part, seconds in r.timings_s.items()})
+        results[name] = r = outcome
+        timings.update({f"final refinement from {name}: {part}": sec
+                        for part, sec in r.timings_s.items()})
         report[name] = {"centre": [start["cx"], start["cy"]], "ended_at": [r.cx, r.cy],
                         "robust_cost": r.robust_cost, "rms_px": r.rms_px}
     if not results:

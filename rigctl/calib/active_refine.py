@@ -32,6 +32,7 @@ image (images): then the residual is the point-to-curve distance along the norma
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -231,6 +232,13 @@ def rotation_derivatives(motions: list[Motion], x: np.ndarray, step: float = 1e-
         e = np.zeros(3)
         e[i] = step
         dN.append((_mounting(x[4:7] + e) - _mounting(x[4:7] - e)) / (2 * step))
+    # the roll axis a = Rx(t0) Ry(t1) e_z is a unit vector whose derivatives are
+    # perpendicular to it, so d R_a(r) = sin r dK + (1 - cos r) (dK K + K dK) with
+    # K = [a]x, dK = [da]x (Rodrigues' formula differentiated)
+    Rx0, Ry1 = rot_x(x[7]), rot_y(x[8])
+    K = _skew(a)
+    dK = [_skew(Rx0 @ _SKEW_X @ Ry1 @ _E_Z), _skew(Rx0 @ Ry1 @ _SKEW_Y @ _E_Z)]
+    dK2 = [d @ K + K @ d for d in dK]
     cache: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
 
     def capture(angles) -> tuple[np.ndarray, np.ndarray]:
@@ -239,17 +247,15 @@ def rotation_derivatives(motions: list[Motion], x: np.ndarray, step: float = 1e-
         if key not in cache:
             p, t, r = angles
             H = rot_y(p) @ rot_x(t)
-            Ra = rot_axis(a, r)
+            sin_r, versin_r = math.sin(r), 1.0 - math.cos(r)
+            Ra = np.eye(3) + sin_r * K + versin_r * (K @ K)
+            HN = H @ N
             dC = np.empty((5, 3, 3))
             for i in range(3):
                 dC[i] = H @ dN[i] @ Ra
             for j in range(2):
-                e = np.zeros(2)
-                e[j] = step
-                dRa = (rot_axis(_roll_axis(x[7:9] + e), r) -
-                       rot_axis(_roll_axis(x[7:9] - e), r)) / (2 * step)
-                dC[3 + j] = H @ N @ dRa
-            C = H @ N @ Ra
+                dC[3 + j] = HN @ (sin_r * dK[j] + versin_r * dK2[j])
+            C = HN @ Ra
             if angles:
                 Ry, Rx = rot_y(p), rot_x(t)
                 dA = np.stack([Ry @ _SKEW_Y @ Rx @ N @ Ra, Ry @ Rx @ _SKEW_X @ N @ Ra,
@@ -274,6 +280,7 @@ def _skew(v) -> np.ndarray:
 
 
 _SKEW_X, _SKEW_Y = _skew((1.0, 0.0, 0.0)), _skew((0.0, 1.0, 0.0))
+_E_Z = np.array([0.0, 0.0, 1.0])
 
 
 def predict(motion: Motion, x: np.ndarray, n_dist: int) -> np.ndarray:
@@ -586,6 +593,7 @@ class _Problem:
         for j, slot in enumerate(DIST_SLOTS[n_dist]):
             self.x[N_BASE + j] = (initial.get("distortion") or [0.0] * 5)[slot]
         self.x[4:7] = initial.get("mount_rotvec", np.zeros(3))
+        self.x[7:9] = initial.get("roll_axis", np.zeros(2))
         self.free = np.ones(len(self.x), bool)
         # the parallax: estimated with depths, else a consider parameter (held at zero)
         self.free[9:12] = depths is not None
@@ -752,8 +760,12 @@ class _Problem:
 
     def solve(self, assoc, loss: str, max_nfev: int):
         targets = CurveTargets.build(self.motions, self.masks, assoc)
-        fit = least_squares(self.fun, self.x[self.free], jac=self.jac, args=(assoc, targets),
-                            loss=loss, f_scale=1.0, x_scale="jac", max_nfev=max_nfev)
+        try:
+            fit = least_squares(self.fun, self.x[self.free], jac=self.jac,
+                                args=(assoc, targets), loss=loss, f_scale=1.0, x_scale="jac",
+                                max_nfev=max_nfev)
+        except (ValueError, np.linalg.LinAlgError) as exc:  # non-finite at its start
+            raise SolveError(f"refinement diverged: {exc}") from exc
         self.x = self.full(fit.x)
         if self.eliminating:  # the captures' offsets move to their best
             self.angles.delta += self.eliminated(fit.x, assoc, targets).step
@@ -764,7 +776,7 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
            outlier_sigmas: float = 3.0, outer_iterations: int = 4,
            prior_deg: float = 5.0, parallax_sigma: float = 0.003,
            depths: DepthPrior | None = None, offset_sigma_m: float = 0.003,
-           angle_sigma=None) -> RefineResult:
+           angle_sigma=None, uncertainty: bool = True) -> RefineResult:
     """Joint refinement of fx, fy, cx, cy, the mounting rotation and the roll axis (and
     ``n_dist`` distortion terms, ``DIST_SLOTS``) over all motions with the exact rotation
     model (thesis Lemma 3.1, eq. 3.3), from ``initial`` (fx, fy, cx, cy; e.g. Strategy
@@ -785,7 +797,10 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
     With ``angle_sigma`` (rad, per axis: pan, tilt, roll; ``active_angles``) the
     recorded head angles are readings of that sigma: each capture's offset from its
     reading is estimated with that prior, and the reported sigma is marginal over them.
-    Without, the recorded angles are exact."""
+    Without, the recorded angles are exact.
+
+    Without ``uncertainty`` (a refinement that only predicts, or probes a start) no
+    covariance is computed: every sigma is NaN."""
     if len(motions) < 2:
         raise SolveError("refinement: needs at least two motions")
     if sum(len(m.ref_points) for m in motions) < 20:
@@ -812,7 +827,7 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
     if not np.all(np.isfinite(pb.x)) or not np.all(np.isfinite(r)):
         raise SolveError("refinement diverged (non-finite parameters)")
     solves_s = time.perf_counter() - started
-    result = _result(pb, final, r, assoc, parallax_sigma)
+    result = _result(pb, final, r, assoc, parallax_sigma, uncertainty)
     result.timings_s = {"solves": solves_s, **result.timings_s}
     result.robust_cost = _robust_cost(pb)
     result.with_depths = pb.groups is not None
@@ -835,10 +850,36 @@ def _robust_cost(pb: _Problem) -> float:
     return float(np.sum(2.0 * (np.sqrt(1.0 + r ** 2) - 1.0)) + np.sum(prior ** 2))
 
 
-def _result(pb: _Problem, final, r: np.ndarray, assoc, parallax_sigma: float) -> RefineResult:
-    """The refinement's estimate with its 1-sigma uncertainties (cluster-robust, plus the
-    consider term of the parallax when it was held)."""
+def _result(pb: _Problem, final, r: np.ndarray, assoc, parallax_sigma: float,
+            uncertainty: bool = True) -> RefineResult:
+    """The refinement's estimate with its 1-sigma uncertainties (``_uncertainty``; NaN
+    without ``uncertainty``)."""
     x, n_dist = pb.x, pb.n_dist
+    if uncertainty:
+        full, influence, timings = _uncertainty(pb, final, r, assoc, parallax_sigma)
+    else:
+        full, influence, timings = np.full((len(x), len(x)), np.nan), {}, {}
+    sig = np.sqrt(np.clip(np.diag(full), 0, None))
+    fx, fy, cx, cy, _, a, parallax, k = _unpack(x, n_dist)
+    names = _all_names(pb)
+    total = sum(len(m.ref_points) for m in pb.motions)
+    inliers = int(sum(mk.sum() for mk in pb.masks))
+    return RefineResult(float(fx), float(fy), float(cx), float(cy), float(k[0]), float(k[1]),
+                        float(k[2]), float(k[3]), x[4:7].copy(),
+                        a, {name: float(s) for name, s in zip(names, sig, strict=True)},
+                        float(np.sqrt(np.mean(r ** 2))), inliers, total - inliers,
+                        _rms_by_motion(r, pb.motions, pb.masks), parallax.copy(), float(k[4]),
+                        x[:pb.n_cam].copy(), n_dist, full[:pb.n_cam, :pb.n_cam],
+                        influence=influence, timings_s=timings,
+                        angle_offsets_deg=_angle_offsets(pb))
+
+
+def _uncertainty(pb: _Problem, final, r: np.ndarray, assoc, parallax_sigma: float
+                 ) -> tuple[np.ndarray, dict, dict]:
+    """The covariance of all parameters (cluster-robust, the delete-one-contour
+    jackknife with depths, plus the consider term of the parallax when it was held),
+    which contour carries each intrinsic, and the seconds of each part."""
+    x = pb.x
     J = final.jac[:len(r)]
     J = J.toarray() if hasattr(J, "toarray") else np.asarray(J)
     prior = pb.prior_sigma[pb.free]
@@ -877,19 +918,7 @@ def _result(pb: _Problem, final, r: np.ndarray, assoc, parallax_sigma: float) ->
     full = np.zeros((len(x), len(x)))  # held inverse depths (measured) stay at zero
     full[np.ix_(pb.free, pb.free)] = cov
     full[held, held] = parallax_sigma ** 2
-    sig = np.sqrt(np.clip(np.diag(full), 0, None))
-    fx, fy, cx, cy, _, a, parallax, k = _unpack(x, n_dist)
-    names = _all_names(pb)
-    total = sum(len(m.ref_points) for m in pb.motions)
-    inliers = int(sum(mk.sum() for mk in pb.masks))
-    return RefineResult(float(fx), float(fy), float(cx), float(cy), float(k[0]), float(k[1]),
-                        float(k[2]), float(k[3]), x[4:7].copy(),
-                        a, {name: float(s) for name, s in zip(names, sig, strict=True)},
-                        float(np.sqrt(np.mean(r ** 2))), inliers, total - inliers,
-                        _rms_by_motion(r, pb.motions, pb.masks), parallax.copy(), float(k[4]),
-                        x[:pb.n_cam].copy(), n_dist, full[:pb.n_cam, :pb.n_cam],
-                        influence=influence, timings_s=timings,
-                        angle_offsets_deg=_angle_offsets(pb))
+    return full, influence, timings
 
 
 def _angle_offsets(pb: _Problem) -> dict[str, list[float]]:
