@@ -24,7 +24,8 @@ from tests.service_stack import TOKEN, Stack, get, post, wait_for
 from tests.waiting import wait_until
 
 # one worker runs the module, so its service stack and browser are started once
-pytestmark = [pytest.mark.integration, pytest.mark.xdist_group("console-browser")]
+pytestmark = [pytest.mark.integration, pytest.mark.heavy,
+              pytest.mark.xdist_group("console-browser")]
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 INSTALL = "apt-get install chromium (Debian/Ubuntu), then pip install playwright"

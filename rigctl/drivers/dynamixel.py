@@ -2,7 +2,8 @@
 
 Facts this driver is built around (see ``shared/reference/dynamixel-protocol.md``):
 
-- the SDK's ``is_using`` flag is not a lock: every transaction here holds ``self._lock``;
+- the SDK's ``is_using`` flag is not a lock: every transaction here holds ``self._lock``,
+  which other processes on the same bus respect too (``bus_lock``);
 - the SDK's group reads drop each servo's error byte, so an Alert (hardware error) is
   found by reading Hardware Error Status (70); the driver does so whenever a servo stops
   short of its goal, at the end of every move, and on any unicast reply whose error byte
@@ -41,6 +42,7 @@ from rigctl.drivers.base import (
     Status,
     load_note,
 )
+from rigctl.drivers.bus_lock import BusLock
 from rigctl.drivers.dynamixel_models import (
     BY_NUMBER,
     STANDARD_BAUDS,
@@ -119,7 +121,9 @@ class DynamixelHead(Head):
         self.cfg = cfg
         self.ids = {axis: getattr(cfg.ids, axis) for axis in AXES}
         self.axis_of = {v: k for k, v in self.ids.items()}
-        self._lock = threading.RLock()
+        # every transaction holds it, against this process's other threads and any
+        # other process on the same bus (``bus_lock``)
+        self._lock = BusLock(self._port_fileno)
         self.port: sdk.PortHandler | None = None
         self.packet = sdk.PacketHandler(2.0)
         self.info: dict[int, dict[str, Any]] = {}
@@ -173,6 +177,11 @@ class DynamixelHead(Head):
         if not opened or not port.setBaudRate(self.cfg.baud):
             raise DeviceError(f"head: cannot open {self.cfg.port} at {self.cfg.baud} baud")
         self.port = port
+        self._lock.port_reopened()  # opened inside a held lock: lock the new file too
+
+    def _port_fileno(self) -> int | None:
+        serial_port = getattr(self.port, "ser", None) if self.port is not None else None
+        return serial_port.fileno() if serial_port is not None else None
 
     def _reopen(self) -> None:
         log.warning("head: port %s vanished (EIO); reopening", self.cfg.port)
