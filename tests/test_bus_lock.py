@@ -53,7 +53,7 @@ def test_two_processes_reading_one_bus_each_get_their_own_replies(bus):  # noqa:
             if p.poll() is None:
                 p.kill()
                 p.wait()
-    for p, (out, err) in zip(procs, outs, strict=True):
+    for p, (_, err) in zip(procs, outs, strict=True):
         assert p.returncode == 0, err[-2000:]
     (ident, wrong_ident), (status, wrong_status) = (map(int, out.split()) for out, _ in outs)
     assert (ident, status) == (1, 0)
