@@ -593,7 +593,6 @@ class _Problem:
         for j, slot in enumerate(DIST_SLOTS[n_dist]):
             self.x[N_BASE + j] = (initial.get("distortion") or [0.0] * 5)[slot]
         self.x[4:7] = initial.get("mount_rotvec", np.zeros(3))
-        self.x[7:9] = initial.get("roll_axis", np.zeros(2))
         self.free = np.ones(len(self.x), bool)
         # the parallax: estimated with depths, else a consider parameter (held at zero)
         self.free[9:12] = depths is not None
@@ -799,7 +798,7 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
     reading is estimated with that prior, and the reported sigma is marginal over them.
     Without, the recorded angles are exact.
 
-    Without ``uncertainty`` (a refinement that only predicts, or probes a start) no
+    Without ``uncertainty`` (a refinement that only predicts the next tier) no
     covariance is computed: every sigma is NaN."""
     if len(motions) < 2:
         raise SolveError("refinement: needs at least two motions")

@@ -41,9 +41,9 @@ class BusLock:
             self._depth -= 1
             self._rlock.release()
 
-    def port_reopened(self) -> None:
-        """The port was closed and opened again inside a held lock: its flock went with
-        the old file; take it on the new one."""
+    def port_opened(self) -> None:
+        """The port was (re)opened: inside a held lock, take the flock on the new file
+        (a closed port's flock went with its old file); outside one, nothing."""
         if self._depth:
             self._release()
             self._locked_fd = self._take()

@@ -177,7 +177,7 @@ class DynamixelHead(Head):
         if not opened or not port.setBaudRate(self.cfg.baud):
             raise DeviceError(f"head: cannot open {self.cfg.port} at {self.cfg.baud} baud")
         self.port = port
-        self._lock.port_reopened()  # opened inside a held lock: lock the new file too
+        self._lock.port_opened()  # opened inside a held lock: lock the new file too
 
     def _port_fileno(self) -> int | None:
         serial_port = getattr(self.port, "ser", None) if self.port is not None else None
