@@ -84,7 +84,7 @@ def residual_jacobian(x: np.ndarray, n_dist: int, dist_slots: tuple, und_unique:
     bounds = np.cumsum([0, *counts])
     m = np.empty((n, 3))
     for R, a, b in zip(rotations, bounds[:-1], bounds[1:], strict=True):
-        m[a:b] = rays[a:b] @ R
+        np.matmul(rays[a:b], R, out=m[a:b])
     m -= s
     inv_z = 1 / np.maximum(m[:, 2], 1e-3)
     xn = m[:, :2] * inv_z[:, None]
@@ -96,24 +96,31 @@ def residual_jacobian(x: np.ndarray, n_dist: int, dist_slots: tuple, und_unique:
         g = nf[:, 0, None] * Jd[:, 0, :] + nf[:, 1, None] * Jd[:, 1, :]
     else:
         g = nf
-    dr_dm = np.empty((n, 3))
+    # [ray_j dr_dm_c for j, c] (9 columns) then dr_dm (3): per motion one product gives
+    # d / d q for the rotation's parameters q (sum over j, c of ray_j dr_dm_c dR_q[j, c]),
+    # d / d und (R's first two rows) and d / d s (R - I)
+    n_rot = d_rotations[0].shape[0] if d_rotations else 5  # 11: with the head angles
+    terms = np.empty((n, 12))
+    dr_dm = terms[:, 9:]
     dr_dm[:, 0] = g[:, 0] * inv_z
     dr_dm[:, 1] = g[:, 1] * inv_z
     dr_dm[:, 2] = -(g[:, 0] * xn[:, 0] + g[:, 1] * xn[:, 1]) * inv_z
-    # per motion: d / d und (R's first two rows), d / d s (R - I), and d / d q for the
-    # rotation's parameters q, sum over j, c of ray_j dr_dm_c dR_q[j, c]
-    outer = (rays[:, :, None] * dr_dm[:, None, :]).reshape(n, 9)
-    dr_du = np.empty((n, 2))
-    dr_ds = np.empty((n, 3))
-    n_rot = d_rotations[0].shape[0] if d_rotations else 5  # 11: with the head angles
-    out = np.zeros((n, N_BASE + n_dist + n_rot - 5))
+    np.multiply(rays[:, :, None], dr_dm[:, None, :], out=terms[:, :9].reshape(n, 3, 3))
+    n_cols = N_BASE + n_dist + n_rot - 5
+    out_t = np.zeros((n_cols, n))  # column-major: each parameter's column contiguous
+    out = out_t.T
+    per_motion = np.empty((n, n_rot + 5))
     eye = np.eye(3)
     for R, dR, a, b in zip(rotations, d_rotations, bounds[:-1], bounds[1:], strict=True):
-        dr_du[a:b] = dr_dm[a:b] @ R[:2, :].T
-        dr_ds[a:b] = dr_dm[a:b] @ (R - eye).T
-        rot = outer[a:b] @ dR.reshape(n_rot, 9).T
-        out[a:b, 4:9] = rot[:, :5]
-        out[a:b, N_BASE + n_dist:] = rot[:, 5:]
+        B = np.zeros((12, n_rot + 5))
+        B[:9, :n_rot] = dR.reshape(n_rot, 9).T
+        B[9:, n_rot:n_rot + 2] = R[:2, :].T
+        B[9:, n_rot + 2:] = (R - eye).T
+        np.matmul(terms[a:b], B, out=per_motion[a:b])
+    out[:, 4:9] = per_motion[:, :5]
+    out[:, N_BASE + n_dist:] = per_motion[:, 5:n_rot]
+    dr_du = per_motion[:, n_rot:n_rot + 2]
+    dr_ds = per_motion[:, n_rot + 2:]
     # back through the undistortion u = D^-1(u0): du / du0 = Jd(u)^-1, at each distinct
     # reference point once
     if n_dist:
@@ -125,20 +132,17 @@ def residual_jacobian(x: np.ndarray, n_dist: int, dist_slots: tuple, und_unique:
     else:
         dr_du0, u0, xd = dr_du, und, xn
     # intrinsics: the direct term of pixel = f xd + c, and u0 = (p - c) / f before
-    out[:, 0] = normals[:, 0] * xd[:, 0] - dr_du0[:, 0] * u0[:, 0] / fx
-    out[:, 1] = normals[:, 1] * xd[:, 1] - dr_du0[:, 1] * u0[:, 1] / fy
-    out[:, 2] = normals[:, 0] - dr_du0[:, 0] / fx
-    out[:, 3] = normals[:, 1] - dr_du0[:, 1] / fy
+    out_t[0] = normals[:, 0] * xd[:, 0] - dr_du0[:, 0] * u0[:, 0] / fx
+    out_t[1] = normals[:, 1] * xd[:, 1] - dr_du0[:, 1] * u0[:, 1] / fy
+    out_t[2] = normals[:, 0] - dr_du0[:, 0] / fx
+    out_t[3] = normals[:, 1] - dr_du0[:, 1] / fy
     # the parallax: s = rho o (depths), or s itself when held
     out[:, 9:12] = dr_ds * (rho[:, None] if rho is not None else 1.0)
     d_rho = dr_ds @ x[9:12] if rho is not None else None
     # distortion: at the output point, and through the undistortion of the input
-    if n_dist:
-        slots = list(dist_slots)
-        Jk_in = Jk_in[:, :, slots][point]
-        out[:, N_BASE:N_BASE + n_dist] = nf[:, 0, None] * Jk_out[:, 0, slots] \
-            + nf[:, 1, None] * Jk_out[:, 1, slots] \
-            - dr_du0[:, 0, None] * Jk_in[:, 0] - dr_du0[:, 1, None] * Jk_in[:, 1]
+    for j, slot in enumerate(dist_slots):
+        out_t[N_BASE + j] = nf[:, 0] * Jk_out[:, 0, slot] + nf[:, 1] * Jk_out[:, 1, slot] \
+            - dr_du0[:, 0] * Jk_in[point, 0, slot] - dr_du0[:, 1] * Jk_in[point, 1, slot]
     return out, d_rho
 
 
