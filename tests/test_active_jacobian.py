@@ -92,7 +92,7 @@ def test_head_angle_columns_equal_central_differences(curve, depths, n_dist):
     pb, assoc = _problem(curve, depths, n_dist, angles=True)
     targets = CurveTargets.build(pb.motions, pb.masks, assoc)
     xv = pb.x.copy()
-    J, G, counts = pb._raw_jacobian(xv, assoc, targets)
+    J, G, counts, _ = pb._raw_jacobian(xv, assoc, targets)
     xf = xv[pb.free]
     assert J.shape == (sum(counts), len(xf)) and G.shape == (sum(counts), 3)
     assert np.abs(J[:, -3:]).max() > 0  # the reference's offsets reach every motion

@@ -56,8 +56,9 @@ def residual_jacobian(x: np.ndarray, n_dist: int, dist_slots: tuple, und_unique:
                       point: np.ndarray, normals: np.ndarray, rotations: list[np.ndarray],
                       d_rotations: list[np.ndarray], counts: list[int], s: np.ndarray,
                       rho: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
-    """d residual / d x over the camera parameters (rows, N_BASE + n_dist), and with
-    depths d residual / d rho of each row's own inverse depth (rows,). With the head
+    """d residual / d x over the camera parameters (rows, N_BASE + n_dist), with depths
+    d residual / d rho of each row's own inverse depth (rows,), and each row's predicted
+    pixel (rows, 2; the residual is its distance from the target along the normal). With the head
     angles' derivatives in ``d_rotations`` (11 per motion, ``rotation_derivatives(...,
     angles=True)``) six more columns follow: d residual / d (pan, tilt, roll) of the
     motion's first capture, then of its second. A residual is the
@@ -86,8 +87,9 @@ def residual_jacobian(x: np.ndarray, n_dist: int, dist_slots: tuple, und_unique:
     for R, a, b in zip(rotations, bounds[:-1], bounds[1:], strict=True):
         np.matmul(rays[a:b], R, out=m[a:b])
     m -= s
-    inv_z = 1 / np.maximum(m[:, 2], 1e-3)
-    xn = m[:, :2] * inv_z[:, None]
+    z = np.maximum(m[:, 2:3], 1e-3)
+    inv_z = 1 / z[:, 0]
+    xn = m[:, :2] / z  # as ``active_refine._predict_all`` divides: the same pixels
     # d residual / d xn = n^T F Jd (Jd: the distortion's Jacobian at xn), then through
     # xn = m_xy / m_z
     nf = normals * F
@@ -143,7 +145,8 @@ def residual_jacobian(x: np.ndarray, n_dist: int, dist_slots: tuple, und_unique:
     for j, slot in enumerate(dist_slots):
         out_t[N_BASE + j] = nf[:, 0] * Jk_out[:, 0, slot] + nf[:, 1] * Jk_out[:, 1, slot] \
             - dr_du0[:, 0] * Jk_in[point, 0, slot] - dr_du0[:, 1] * Jk_in[point, 1, slot]
-    return out, d_rho
+    pixels = np.stack([fx * xd[:, 0] + x[2], fy * xd[:, 1] + x[3]], axis=1)
+    return out, d_rho, pixels
 
 
 def distort(xy: np.ndarray, k: np.ndarray) -> np.ndarray:

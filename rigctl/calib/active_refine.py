@@ -411,7 +411,11 @@ class CurveTargets:
         return cls(motions, masks, associations)
 
     def residuals(self, pixels: np.ndarray) -> np.ndarray:
-        return np.sum((pixels[self.rows] - self.points) * self.normals, axis=1)
+        return self.row_residuals(pixels[self.rows])
+
+    def row_residuals(self, row_pixels: np.ndarray) -> np.ndarray:
+        """The residuals of the kept points' predicted pixels (``rows`` already taken)."""
+        return np.sum((row_pixels - self.points) * self.normals, axis=1)
 
 
 def _residuals(x, motions, n_dist, masks, associations, refs=None, rho=None, cache=None,
@@ -671,8 +675,10 @@ class _Problem:
                self.angles.scale)
         if self._elimination is None or self._elimination[0] != key:
             xv = self.full(xf)
-            J, G, counts = self._raw_jacobian(xv, assoc, targets)
-            r = self.residuals(xv, assoc, targets)
+            J, G, counts, pixels = self._raw_jacobian(xv, assoc, targets)
+            # the Jacobian's pass predicted the kept points' pixels already
+            r = targets.row_residuals(pixels) if targets is not None else \
+                self.residuals(xv, assoc, targets)
             self._elimination = (key, self.angles.eliminate(r, G, counts, J))
         return self._elimination[1]
 
@@ -688,14 +694,14 @@ class _Problem:
         if self.eliminating:
             e = self.eliminated(xf, assoc, targets)
             return np.vstack([e.jac_rows, e.jac_prior, prior])
-        J, _, _ = self._raw_jacobian(self.full(xf), assoc, targets, len(with_prior))
+        J, _, _, _ = self._raw_jacobian(self.full(xf), assoc, targets, len(with_prior))
         J[len(J) - len(with_prior):] = prior
         return J
 
     def _raw_jacobian(self, xv: np.ndarray, assoc, targets, extra_rows: int = 0):
         """d residual / d free parameters (at the captures' current offsets; rows, then
         ``extra_rows`` of zeros), d residual / d the captures' own offsets (rows x 3, or
-        None) and each motion's row count."""
+        None), each motion's row count and each row's predicted pixel."""
         cam = xv[:self.n_cam]
         fx, fy, cx, cy, N, a, o, k = _unpack(cam, self.n_dist)
         point, normals, counts = self._row_layout(assoc, targets)
@@ -705,7 +711,7 @@ class _Problem:
         rho_rows = None if rho is None else rho[point]
         s = o if rho is None else rho_rows[:, None] * o
         offsets = self.offsets(xv)
-        J_cam, d_rho = residual_jacobian(
+        J_cam, d_rho, pixels = residual_jacobian(
             cam, self.n_dist, DIST_SLOTS[self.n_dist], und, inverse[point], normals,
             self.cache.rotations(self.motions, N, a, offsets),
             rotation_derivatives(self.motions, cam, offsets=offsets,
@@ -726,7 +732,7 @@ class _Problem:
             has = np.flatnonzero(row_column >= 0)
             J[has, row_column[has]] = d_rho[has]
         if self.angles is None:
-            return J, None, counts
+            return J, None, counts, pixels
         # the reference captures' offsets: their columns (after the free depths), each
         # motion's rows in its station's three
         first = len(free_cam) + int(free_rho.sum())
@@ -734,7 +740,7 @@ class _Problem:
         for station, a, b in zip(self.station_of, bounds[:-1], bounds[1:], strict=True):
             column = first + 3 * station
             J[a:b, column:column + 3] = J_cam[a:b, self.n_cam:self.n_cam + 3]
-        return J, J_cam[:, self.n_cam + 3:], counts
+        return J, J_cam[:, self.n_cam + 3:], counts, pixels
 
     def _row_layout(self, assoc, targets) -> tuple[np.ndarray, np.ndarray, list[int]]:
         """For each residual row, in ``_residuals``' order: its reference point (row of
