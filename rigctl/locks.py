@@ -5,6 +5,7 @@ from __future__ import annotations
 import fcntl
 import json
 import os
+import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -12,6 +13,11 @@ from rigctl.errors import BusyError
 
 if TYPE_CHECKING:
     from rigctl.config import RigConfig
+
+# the console reading the devices holds the rig for a moment (``console.live``); a run
+# that asks meanwhile waits this long for it
+BRIEF_HOLDER = "console-live-readings"
+BRIEF_HOLD_WAIT_S = 10.0
 
 
 class RigLock:
@@ -34,16 +40,26 @@ class RigLock:
             return {}
 
     def acquire(self, run_id: str) -> None:
+        """Take the lock, or raise ``BusyError`` naming its holder. A brief holder (the
+        console reading the devices, ``BRIEF_HOLDER``, or a holder still writing its
+        name) is waited for, up to ``BRIEF_HOLD_WAIT_S``."""
         fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            os.close(fd)
-            held = self.holder()
-            raise BusyError(
-                f"rig {self.rig_name!r} busy, held by run {held.get('run_id', '?')} "
-                f"(pid {held.get('pid', '?')})"
-            ) from None
+        deadline = time.monotonic() + BRIEF_HOLD_WAIT_S
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                held = self.holder()
+                if held.get("run_id", BRIEF_HOLDER) == BRIEF_HOLDER and \
+                        time.monotonic() < deadline:
+                    time.sleep(0.05)
+                    continue
+                os.close(fd)
+                raise BusyError(
+                    f"rig {self.rig_name!r} busy, held by run {held.get('run_id', '?')} "
+                    f"(pid {held.get('pid', '?')})"
+                ) from None
         os.ftruncate(fd, 0)
         os.write(fd, json.dumps({"run_id": run_id, "pid": os.getpid()}).encode())
         os.fsync(fd)

@@ -549,7 +549,9 @@ def test_console_for_the_operator(page, stack, artifacts):
     assert hand_eye.locator("td.age").inner_text().strip() != ""
     state = page.inner_text("#live")
     assert "rad" not in state and "(deg)" in state and "TCP (mm)" in state
-    # the newest capture: the taught run's last, where the operator's hand put the arm
+    # read now (no run holds the rig): the arm where the operator's hand left it for
+    # the taught run's last capture
+    assert page.inner_text("#state-source").startswith("read now")
     joints = page.inner_text("#live tr[data-quantity=joints] td")
     assert joints.startswith(f"J1 {math.degrees(views[-1][0]):.2f}, ")
     assert "°C" in page.inner_text("#live") and " V" in page.inner_text("#live")

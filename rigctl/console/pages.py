@@ -29,6 +29,7 @@ from rigctl import __version__, drift, procedures, teach
 from rigctl.console import compare, rigview, views
 from rigctl.console.forms import form_fields
 from rigctl.console.history import series
+from rigctl.console.live import LiveReadings
 from rigctl.errors import RigError
 from rigctl.extras import missing_extra
 from rigctl.records import RunDirectory
@@ -133,10 +134,25 @@ def console_routes(service, templates: Jinja2Templates) -> APIRouter:
     def page(request: Request, name: str, **context: Any) -> HTMLResponse:
         return templates.TemplateResponse(request, name, context)
 
+    live = LiveReadings(service, lambda: rigview.newest_readings(service))
     router = APIRouter()
-    router.include_router(_html_routes(service, results, page))
+    router.include_router(_html_routes(service, results, page, live))
     router.include_router(_image_routes(service, results))
     router.include_router(_preview_route(rigview.Preview(service)))
+    router.include_router(_live_route(live))
+    return router
+
+
+def _live_route(live: LiveReadings) -> APIRouter:
+    router = APIRouter()
+
+    @router.get("/rig/live")
+    def live_readings() -> dict:
+        """The rig's state in degrees, mm, deg C and V: read now when no run holds the
+        rig (nothing moves or is written), else the newest capture's readings;
+        ``source`` says which, ``errors`` names a device that could not be read."""
+        return rigview.live_state(live.read())
+
     return router
 
 
@@ -155,14 +171,14 @@ def _preview_route(preview: rigview.Preview) -> APIRouter:
     return router
 
 
-def _rig_context(service) -> dict[str, Any]:
+def _rig_context(service, live: LiveReadings) -> dict[str, Any]:
     return {"calibrations": rigview.calibrations(service),
-            "state": rigview.live_state(rigview.newest_readings(service)),
+            "state": rigview.live_state(live.read()),
             "rig_yaml": rigview.rig_yaml(service.config),
             "stopped": rigview.stopped_runs(service)}
 
 
-def _html_routes(service, results: ResultCache, page) -> APIRouter:
+def _html_routes(service, results: ResultCache, page, live: LiveReadings) -> APIRouter:
     """The pages: rig, runs, run, history, start."""
     router = APIRouter()
 
@@ -175,7 +191,7 @@ def _html_routes(service, results: ResultCache, page) -> APIRouter:
         """The rig: its calibrations (age, decision, next scheduled run), its state in
         degrees, mm, deg C and V, the camera's preview, runs to resume, the current run
         and the queue, and the rig file (YAML, token redacted) folded away."""
-        return page(request, "rig.html", status=service.status(), **_rig_context(service),
+        return page(request, "rig.html", status=service.status(), **_rig_context(service, live),
                     **_now(service))
 
     @router.get("/console/now", response_class=HTMLResponse)

@@ -102,14 +102,17 @@ def newest_readings(service) -> dict[str, Any]:
 
 
 def live_state(last: dict[str, Any]) -> dict[str, Any]:
-    """The newest readings (``newest_readings``) in the units of
+    """Readings (``console.live.LiveReadings``: read now, or the newest capture's) in the
+    units of
     the pendant and the servo tools: head and joint angles in degrees, the TCP position
     in mm and its rotation vector in degrees, each servo's temperature (deg C) and input
     voltage (V), the arm's safety state."""
     if not last:
         return {}
     head, arm = last.get("head") or {}, last.get("arm") or {}
-    out: dict[str, Any] = {"run_id": last.get("run_id"), "time": last.get("time")}
+    out: dict[str, Any] = {"run_id": last.get("run_id"), "time": last.get("time"),
+                           "source": last.get("source", "newest capture"),
+                           "errors": last.get("errors") or {}}
     if head:
         out["head_deg"] = {k: _deg(head.get(k)) for k in ("pan", "tilt", "roll")}
     if arm.get("q"):

@@ -35,7 +35,7 @@ log = logging.getLogger(__name__)
 ARRIVAL_TOL_RAD = 1e-3
 
 
-def _bounded(fn, timeout: float, what: str):
+def bounded_call(fn, timeout: float, what: str):
     """Run ``fn`` in a daemon thread; give up (and say so) after ``timeout``."""
     box: dict[str, Any] = {}
 
@@ -132,7 +132,7 @@ class URArm(Arm):
             if control is not None:
                 try:
                     if alive:
-                        _bounded(control.stopScript, self.cfg.teardown_timeout_s,
+                        bounded_call(control.stopScript, self.cfg.teardown_timeout_s,
                                  "control stopScript")
                     else:
                         self._let_reconnect_give_up(control)
@@ -340,7 +340,8 @@ class URArm(Arm):
         if self.control is None or not self._alive():
             return
         try:
-            _bounded(lambda: self.control.stopJ(2.0, False), self.cfg.teardown_timeout_s, "stopJ")
+            bounded_call(lambda: self.control.stopJ(2.0, False), self.cfg.teardown_timeout_s,
+                         "stopJ")
         except Exception as exc:
             log.error("arm: stopJ failed: %s", exc)
 
@@ -360,7 +361,7 @@ class URArm(Arm):
         controller refuses it (``DeviceError``). End it with ``end_teach_mode()``."""
         self._require_alive()
         self.check_safety()
-        if not _bounded(self.control.teachMode, self.cfg.teardown_timeout_s, "teachMode"):
+        if not bounded_call(self.control.teachMode, self.cfg.teardown_timeout_s, "teachMode"):
             raise DeviceError(f"arm {self.cfg.host}: teach mode refused by the controller")
         self.teaching = True
         log.info("arm: teach mode on (free drive)")
@@ -376,7 +377,7 @@ class URArm(Arm):
                         "ends it with the control script")
             return False
         try:
-            done = bool(_bounded(self.control.endTeachMode, self.cfg.teardown_timeout_s,
+            done = bool(bounded_call(self.control.endTeachMode, self.cfg.teardown_timeout_s,
                                  "endTeachMode"))
         except Exception as exc:
             log.error("arm: endTeachMode failed: %s", exc)
