@@ -21,10 +21,12 @@ import numpy as np
 import pytest
 import yaml
 
+from rigctl.bench.truth import model_against_truth
 from rigctl.config import load_rig
 from rigctl.geometry.kinematics import nominal_ur
 from rigctl.mocks.world import WORLDS, load_world
-from rigctl.procedures.planning import visible_views
+from rigctl.procedures.planning import informative_views, visible_views
+from rigctl.procedures.robot_kinematics import RobotKinematicsParams
 from rigctl.simrig import SimulatedRig
 from tests.mockproc import ROOT, control
 from tests.waiting import wait_until
@@ -68,10 +70,11 @@ def _captures(records) -> int:
 class Taught:
     """`rigctl run ... teach=true` with its terminal on a pipe; stopped by PID."""
 
-    def __init__(self, sim, truth, *params: str, rig_path: Path | None = None) -> None:
+    def __init__(self, sim, truth, *params: str, rig_path: Path | None = None,
+                 procedure: str = "hand-eye") -> None:
         rig, self.records = sim
         self.sim = sim
-        args = [sys.executable, "-m", "rigctl.cli", "run", "hand-eye", "--rig",
+        args = [sys.executable, "-m", "rigctl.cli", "run", procedure, "--rig",
                 str(rig_path or rig.rig_path), "--json", "--param", "teach=true",
                 "--param", f"intrinsics={_intrinsics(truth)}", "--param", "settle_s=0"]
         for p in params:
@@ -112,8 +115,9 @@ class Taught:
 def taught(sim, truth):
     started: list[Taught] = []
 
-    def start(*params: str, rig_path: Path | None = None) -> Taught:
-        started.append(Taught(sim, truth, *params, rig_path=rig_path))
+    def start(*params: str, rig_path: Path | None = None,
+              procedure: str = "hand-eye") -> Taught:
+        started.append(Taught(sim, truth, *params, rig_path=rig_path, procedure=procedure))
         return started[-1]
 
     yield start
@@ -164,6 +168,47 @@ def test_a_taught_hand_eye_run_calibrates(sim, truth, taught):
     assert 0 < report["camera_position_sigma_mm"]["median"] < 5.0
     teach_json = json.loads((captures[-1].parent.parent / "teach.json").read_text())
     assert teach_json["poses"] == 8 and teach_json["pose_set"]["determined"]
+
+
+RK_VIEWS = 20
+
+
+@pytest.mark.heavy
+@pytest.mark.timeout(1200)
+def test_taught_and_pose_file_robot_kinematics_runs_meet_the_truth(sim, truth, taught,
+                                                                   tmp_path):
+    """The same poses read from a file and taught by hand: both arm models within the
+    random-world targets (median 0.12 mm, worst 0.25 mm RMS) against the world's truth,
+    over configurations neither run saw."""
+    rig, _ = sim
+    config = load_rig(rig.rig_path)
+    K = np.array([[truth["fx"], 0, truth["cx"]], [0, truth["fy"], truth["cy"]], [0, 0, 1]])
+    # an informative set: the D-optimal views robot-kinematics itself would plan
+    chosen, _ = informative_views(config, RobotKinematicsParams(), K, [], RK_VIEWS, 5)
+    poses = [np.degrees(q) for q in chosen]
+    assert len(poses) == RK_VIEWS
+    pose_file = tmp_path / "poses.yaml"
+    pose_file.write_text("".join("- [" + ", ".join(f"{v:.4f}" for v in q) + "]\n"
+                                 for q in poses))
+    filed = subprocess.run(
+        [sys.executable, "-m", "rigctl.cli", "run", "robot-kinematics", "--rig",
+         str(rig.rig_path), "--json", "--param", f"poses_file={pose_file}", "--param",
+         f"intrinsics={_intrinsics(truth)}", "--param", "settle_s=0"],
+        capture_output=True, text=True, timeout=RUN_TIMEOUT_S, cwd=ROOT)
+    assert filed.returncode == 0, filed.stderr[-3000:]
+    run = taught(procedure="robot-kinematics")
+    for q in poses:
+        run.pose(q)
+    code, out, err = run.finish()
+    assert code == 0, err[-3000:]
+    _teach_off_explicitly(sim)
+    world = load_world(WORLDS / f"{WORLD}.yaml")
+    for how, result in (("pose file", json.loads(filed.stdout)), ("taught", json.loads(out))):
+        assert result["summary"]["training_views"] >= RK_VIEWS - 1, how  # an outlier at most
+        report = result["pose_set"]
+        assert report["determined"] and report["warning"] is None, how
+        rms, worst, count = model_against_truth(result, config, world)
+        assert count > 60 and rms < 0.12 and worst < 0.25, (how, rms, worst)
 
 
 @pytest.mark.timeout(600)

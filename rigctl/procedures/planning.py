@@ -544,13 +544,12 @@ def informative_views(config: RigConfig, params, K: np.ndarray, planned_q: list,
     def jacobians(qs):
         return pose_selection.view_jacobians(model, X, W, qs, obj=obj, K=K)
 
-    J_fixed = jacobians(planned_q)
-    J_fixed = J_fixed.reshape(-1, J_fixed.shape[2])
     J_cand = jacobians(candidates)
+    p = J_cand.shape[2]
+    J_fixed = jacobians(planned_q).reshape(-1, p) if len(planned_q) else np.zeros((0, p))
     chosen = pose_selection.select_informative(J_cand, n, J_fixed)
     random_q, _ = plan_target_views(config, n, params.view_distance_m, params.max_tilt_deg,
                                     seed, model=model)
-    p = J_fixed.shape[1]
     cond_chosen = pose_selection.scaled_condition(np.r_[J_fixed, J_cand[chosen].reshape(-1, p)])
     cond_random = pose_selection.scaled_condition(np.r_[J_fixed,
                                                         jacobians(random_q).reshape(-1, p)])
