@@ -86,3 +86,17 @@ def test_head_beside_the_arm_hand_eye_and_robot_kinematics(start_sim, tmp_path):
     # model's gauge): each within the world's arm errors of the truth (about 2 mm, 0.15 deg)
     assert mm < 3.5 and deg < 0.25 and mm_t < 2.5 and deg_t < 0.25
     assert out["summary"]["heldout_mm_after"] < out["summary"]["heldout_mm_before"]
+    # validate-arm on new board views, with the calibration just recorded: the model
+    # predicts where the fixed camera sees the board far better than the nominal one
+    done = rigctl("run", "validate-arm", "--rig", str(rig.rig_path), "--json",
+                  "--param", f"intrinsics={intrinsics}", "--param", "poses=5",
+                  "--param", "seed=77")
+    assert done.returncode == 0, done.stderr[-3000:]
+    check = json.loads(done.stdout)
+    before, after = check["before"], check["after"]
+    print(f"validate-arm: target in camera {before['target_in_camera_rms_mm']:.2f} -> "
+          f"{after['target_in_camera_rms_mm']:.2f} mm, {before['reprojection_rms_px']:.2f} "
+          f"-> {after['reprojection_rms_px']:.2f} px")
+    assert check["views"] >= 4
+    assert after["target_in_camera_rms_mm"] < 0.5 < before["target_in_camera_rms_mm"]
+    assert after["reprojection_rms_px"] < 0.5 < 1.0 < before["reprojection_rms_px"]

@@ -494,9 +494,6 @@ def view_steps(config: RigConfig, count: int, distance_m: float, max_tilt_deg: f
     reported as notes. With intrinsics ``K`` every view keeps the whole board in sight
     (``visible_views``), else views are only checked for reach (``reachable_views``).
     ``arm``: the model planned with (``planning_arm``; nominal when None), noted."""
-    steps: list = []
-    if config.devices.head is not None:
-        steps.append(MoveHead(0.0, 0.0, 0.0, "head home"))
     model = arm.model if arm is not None else None
     if K is not None:
         poses, notes = visible_views(config, count, distance_m, max_tilt_deg, seed, label, K,
@@ -504,8 +501,17 @@ def view_steps(config: RigConfig, count: int, distance_m: float, max_tilt_deg: f
     else:
         poses, notes = reachable_views(config, count, distance_m, max_tilt_deg, seed, label,
                                        model)
-    if arm is not None:
-        notes = [arm.note, *notes]
+    return visit_steps(config, poses, [arm.note, *notes] if arm is not None else notes,
+                       label, kind, settle_s)
+
+
+def visit_steps(config: RigConfig, poses: list, notes: list[str], label: str, kind: str,
+                settle_s: float) -> list:
+    """The head at home (when the rig has one), ``notes``, then each pose visited,
+    settled and captured (``"{label} {k}"``, of ``kind``), then the arm's home."""
+    steps: list = []
+    if config.devices.head is not None:
+        steps.append(MoveHead(0.0, 0.0, 0.0, "head home"))
     steps += [Note(n) for n in notes]
     for k, q in enumerate(poses):
         name = f"{label} {k + 1}"

@@ -1,5 +1,8 @@
 """``validate-arm``: held-out views of the target; camera position and orientation error
-before calibration (nominal model) and after (the latest robot-kinematics result).
+before calibration (nominal model) and after (the latest robot-kinematics result). With
+the head beside the arm (eye-to-hand) the views hold the flange's board in the fixed
+camera's view (``planning_e2h.board_views``) and the models are ``T_base_cam`` and
+``T_flange_target`` (the head stays at home).
 
 Three measures per state, RMS over the views:
 
@@ -33,8 +36,9 @@ from rigctl.records import RecordIndex, RunDirectory
 
 from .base import Params, Procedure, SolveContext
 from .intrinsics import camera_model, intrinsics_from
-from .planning import planning_arm, planning_K, view_steps
-from .robot_common import board_observations, left_out_views
+from .planning import eye_to_hand, planning_arm, planning_K, view_steps, visit_steps
+from .planning_e2h import HEAD_STILL_NOTE, board_views
+from .robot_common import board_observations, frame_names, left_out_views
 
 
 class ValidateArmParams(Params):
@@ -58,9 +62,14 @@ class ValidateArm(Procedure):
     detects_board = True
 
     def plan(self, params: ValidateArmParams, config) -> list:
+        K, arm = planning_K(config, params.intrinsics), planning_arm(config)
+        if eye_to_hand(config):  # the fixed camera watching the board on the flange
+            poses, notes = board_views(config, params.poses, params.view_distance_m,
+                                       params.max_tilt_deg, params.seed, K, arm.model)
+            return visit_steps(config, poses, [HEAD_STILL_NOTE, arm.note, *notes], "check",
+                               "heldout", params.settle_s)
         return view_steps(config, params.poses, params.view_distance_m, params.max_tilt_deg,
-                          params.seed, "check", "heldout", params.settle_s,
-                          K=planning_K(config, params.intrinsics), arm=planning_arm(config))
+                          params.seed, "check", "heldout", params.settle_s, K=K, arm=arm)
 
     def resolve_inputs(self, params: ValidateArmParams, config) -> dict[str, Any]:
         """The calibration to check (given run, else this rig's latest robot-kinematics)
@@ -90,9 +99,14 @@ class ValidateArm(Procedure):
                              + "".join(f"; {k}: {v}" for k, v in list(left_out.items())[:2]))
         model = KinematicModel.from_export(cal)
         nominal = nominal_ur(ctx.config.devices.arm.model)
-        states = {"before": (nominal, np.array(cal["before"]["T_flange_cam"]),
-                             np.array(cal["before"]["T_base_target"])),
-                  "after": (model, np.array(cal["T_flange_cam"]), np.array(cal["T_base_target"]))}
+        fixed = eye_to_hand(ctx.config)
+        x_name, w_name = frame_names(fixed)
+        if x_name not in cal:
+            raise SolveError(f"validate-arm: calibration run {ctx.input('calibration_run')} "
+                             f"has no {x_name} (calibrated with the head mounted otherwise)")
+        states = {"before": (nominal, np.array(cal["before"][x_name]),
+                             np.array(cal["before"][w_name])),
+                  "after": (model, np.array(cal[x_name]), np.array(cal[w_name]))}
         K, dist = camera_model(intr)
         tg = ctx.config.target
         obj = target_points(tg)
@@ -104,10 +118,10 @@ class ValidateArm(Procedure):
 
         for name, (m, X, W) in states.items():
             pos, rot = robot.pose_deviations(m, X, W, [o["q"] for o in found],
-                                             [inv_T(o["C"]) for o in found])
+                                             [inv_T(o["C"]) for o in found], fixed)
             target, px = [], []
             for o in found:
-                C_pred = inv_T(m.fk(o["q"]) @ X) @ W  # the predicted T_cam_target
+                C_pred = inv_T(robot.target_cam(m, X, W, o["q"], fixed))  # T_cam_target
                 target.append(np.linalg.norm(C_pred[:3, 3] - o["C"][:3, 3]))
                 proj, _ = cv2.projectPoints(obj.reshape(-1, 1, 3), R_to_rotvec(C_pred[:3, :3]),
                                             C_pred[:3, 3], K, dist)
