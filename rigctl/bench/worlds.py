@@ -19,7 +19,7 @@ A world counts as failed when any procedure is refused or does not succeed.
 
 Each seed's target and mounting (``COMBINATIONS``, by seed mod 4 unless one is asked
 for): a checkerboard or a ChArUco board, the head on the flange or beside the arm (the
-board then on the flange; ``validate-arm`` is not run there). The summary reports every
+board then on the flange). The summary reports every
 combination apart (``by_combination``), with the image coverage of robot-kinematics'
 board corners (``truth.image_coverage``) and the final camera's focal and centre error.
 """
@@ -68,11 +68,6 @@ def combination(seed: int, only: str | None = None) -> tuple[str, str]:
         raise ConfigError(f"--combination {only!r}: expected each or one of "
                           + ", ".join(f"{t}-{m}" for t, m in COMBINATIONS))
     return target, mount
-
-
-def pipeline(mount: str) -> tuple[str, ...]:
-    """The procedures run on a world: validate-arm needs the camera on the flange."""
-    return PIPELINE if mount == "flange" else PIPELINE[:3]
 
 
 def _write_world(seed: int, folder: Path, only: str | None = None) -> tuple[Path, World]:
@@ -131,7 +126,7 @@ def _row(seed: int, spec) -> dict:
 def _failed(row: dict) -> bool:
     """Any procedure not succeeded, or the chain stopped before its end."""
     return any(p["status"] != "succeeded" for p in row["procedures"].values()) \
-        or len(row["procedures"]) < len(pipeline(row.get("mount", "flange")))
+        or len(row["procedures"]) < len(PIPELINE)
 
 
 def _values(rows: list[dict], proc: str, key: str) -> list[float]:
@@ -184,7 +179,7 @@ def rows_from_kept(folder: Path) -> list[dict]:
         world = World(spec)
         truth = world.truth()
         row = _row(seed, spec)
-        for name in pipeline(spec.head.mount):
+        for name in PIPELINE:
             runs = sorted((folder / f"records-{seed}").glob(f"*-{name}-*"))
             if not runs:
                 break
@@ -206,7 +201,7 @@ def world_run(seed: int, folder: Path, say: Callable[[str], None],
                       log=folder / f"sim-up-{seed}.log") as sim:
         config = load_rig(sim.rig_path)
         runner = Runner(config, show_progress=False, operator="bench-worlds")
-        for name in pipeline(spec.head.mount):
+        for name in PIPELINE:
             try:
                 outcome = runner.run(name, {})
             except RigError as exc:  # refused before anything moved
