@@ -30,7 +30,7 @@ import numpy as np
 
 from rigctl.calib import handeye, robot
 from rigctl.calib.blas_threads import with_one_blas_thread
-from rigctl.calib.extrinsic import estimate_pose
+from rigctl.calib.extrinsic import CORNER_FACTOR, CORNER_MIN_PX, estimate_pose
 from rigctl.errors import SolveError
 from rigctl.geometry.kinematics import KinematicModel
 from rigctl.timing import stage_timer
@@ -43,6 +43,14 @@ MIN_TRAINING_VIEWS = 8
 # 6 px (unseen world 4015), a synthetic one 47 px against 5 px (tests/test_robot_math.py).
 OUTLIER_FACTOR = 5.0
 OUTLIER_MIN_PX = 3.0
+# A single corner is an outlier when its residual at the refined model exceeds both
+# CORNER_FACTOR times the median corner's and CORNER_MIN_PX (``extrinsic``'s limits for a
+# corner off its own view's pose): a corner the detector placed on something in front of
+# the board (random world 400008: a scene shape over the board put one corner of a view
+# 5-25 px off while the others sat at 0.2 px; the arm model came out 0.41 mm off the
+# truth).
+# a view left with fewer corners than this after its outlying ones is left out whole
+MIN_CORNERS = 6
 
 
 @dataclass
@@ -79,6 +87,8 @@ class RobotSolution:
     camera_note: str | None = None  # why the camera stayed held, when it was to be free
     views: list[BoardView] = field(default_factory=list)
     rejected_views: dict[str, float] = field(default_factory=dict)  # label: RMS px
+    # label: the board corners (indices) left out of a training view (``outlier_corners``)
+    rejected_corners: dict[str, list[int]] = field(default_factory=dict)
     # the controller's own model, when given: its hand-eye, and how far the calibrated
     # model's camera (in the target frame) lies from that model's over the held-out
     # configurations
@@ -193,11 +203,37 @@ def outlier_views(ref: robot.RefineResult, meas: robot.Measurements) -> dict[int
     """Training views (index into the measurements: RMS px) whose corner residual at the
     refined model exceeds ``OUTLIER_FACTOR`` times the median view's and
     ``OUTLIER_MIN_PX``."""
-    r = robot.residuals(ref.model, ref.X, ref.W, meas)
-    ends = np.cumsum(robot.rows_per_view(meas))[:-1]
-    per_view = np.array([np.sqrt(2 * np.mean(v ** 2)) for v in np.split(r, ends)])
+    per_view = view_rms(ref, meas)
     limit = max(OUTLIER_FACTOR * float(np.median(per_view)), OUTLIER_MIN_PX)
     return {k: float(e) for k, e in enumerate(per_view) if e > limit}
+
+
+def view_rms(ref: robot.RefineResult, meas: robot.Measurements) -> np.ndarray:
+    """Each training view's RMS corner residual (px) at the refined model."""
+    r = robot.residuals(ref.model, ref.X, ref.W, meas)
+    ends = np.cumsum(robot.rows_per_view(meas))[:-1]
+    return np.array([np.sqrt(2 * np.mean(v ** 2)) for v in np.split(r, ends)])
+
+
+def outlier_corners(ref: robot.RefineResult, meas: robot.Measurements
+                    ) -> dict[int, np.ndarray]:
+    """Per training view (index into the measurements), the board corners (indices into
+    the board's points) whose residual at the refined model exceeds ``CORNER_FACTOR``
+    times the median corner's and ``CORNER_MIN_PX``; views without any are not listed.
+    Empty for pose measurements (no corners)."""
+    if meas.corners is None:
+        return {}
+    r = robot.residuals(ref.model, ref.X, ref.W, meas).reshape(-1, 2)
+    miss = np.linalg.norm(r, axis=1)
+    limit = max(CORNER_FACTOR * float(np.median(miss)), CORNER_MIN_PX)
+    out, start = {}, 0
+    for k, corners in enumerate(meas.corners):
+        seen = np.flatnonzero(np.all(np.isfinite(np.reshape(corners, (-1, 2))), axis=1))
+        bad = seen[miss[start:start + len(seen)] > limit]
+        start += len(seen)
+        if len(bad):
+            out[k] = bad
+    return out
 
 
 def free_camera(ref: robot.RefineResult, meas: robot.Measurements,
@@ -252,13 +288,37 @@ def _sweep_spans(sweeps: dict[int, robot.Sweep]) -> dict[str, float]:
 
 
 def _again_without(views: list[BoardView], train: list[BoardView], rejected: dict[int, float],
-                   timings: dict[str, float], **solve_args) -> RobotSolution:
-    """The whole solve again without the training views ``rejected`` (``outlier_views``),
-    once; the solution names them, and its timings keep the first pass's."""
+                   corners: dict[int, np.ndarray], rms: np.ndarray, timings: dict[str, float],
+                   **solve_args) -> RobotSolution:
+    """The whole solve again without the training views ``rejected`` (``outlier_views``)
+    and the outlying ``corners`` of others (``outlier_corners``; their board pose
+    measured again without them), once; the solution names both, and its timings keep
+    the first pass's. A view left with fewer than ``MIN_CORNERS`` is rejected whole
+    (``rms``: each view's RMS px, what ``rejected_views`` records)."""
+    obj, K, dist = solve_args["obj"], solve_args["K"], solve_args["dist"]
+    rejected = dict(rejected)
+    replaced: dict[int, BoardView] = {}
+    for k, bad in corners.items():
+        if k in rejected:
+            continue
+        view = train[k]
+        kept = np.array(view.corners, float).reshape(-1, 2)
+        kept[bad] = np.nan
+        if np.all(np.isfinite(kept), axis=1).sum() < MIN_CORNERS:
+            rejected[k] = float(rms[k])
+            continue
+        try:
+            C = estimate_pose(obj, kept, K, dist).T_cam_target
+        except SolveError:
+            rejected[k] = float(rms[k])
+            continue
+        replaced[id(view)] = BoardView(view.label, view.kind, view.joint, view.q, kept, C)
     dropped = {id(train[k]) for k in rejected}
-    again = solve_robot([v for v in views if id(v) not in dropped], reject_outliers=False,
-                        **solve_args)
+    again = solve_robot([replaced.get(id(v), v) for v in views if id(v) not in dropped],
+                        reject_outliers=False, **solve_args)
     again.rejected_views = {train[k].label: e for k, e in rejected.items()}
+    again.rejected_corners = {train[k].label: [int(i) for i in bad]
+                              for k, bad in corners.items() if k not in rejected}
     again.timings_s = {f"{k} (with outliers)": t for k, t in timings.items()} | again.timings_s
     return again
 
@@ -305,9 +365,11 @@ def solve_robot(views: list[BoardView], nominal: KinematicModel, obj: np.ndarray
             named["controller"] = (controller, he_controller.X, he_controller.W)
         ref, won, start_rms = joint_refinement_from(meas, named)
     rejected = outlier_views(ref, meas) if reject_outliers else {}
-    if rejected and len(train) - len(rejected) >= MIN_TRAINING_VIEWS:
-        return _again_without(views, train, rejected, timings, nominal=nominal, obj=obj, K=K,
-                              dist=dist, prior_sigma=prior_sigma,
+    corners = outlier_corners(ref, meas) if reject_outliers else {}
+    if (rejected or corners) and len(train) - len(rejected) >= MIN_TRAINING_VIEWS:
+        return _again_without(views, train, rejected, corners, view_rms(ref, meas), timings,
+                              nominal=nominal,
+                              obj=obj, K=K, dist=dist, prior_sigma=prior_sigma,
                               refine_camera=refine_camera, controller=controller,
                               fixed=fixed)
     with stage("plain D-H"):  # its rank deficiency, at the refined solution

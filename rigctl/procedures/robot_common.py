@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from rigctl.calib.board import is_charuco, orient_to_prediction, target_points
-from rigctl.calib.extrinsic import estimate_pose
+from rigctl.calib.extrinsic import estimate_pose, stray_corners
 from rigctl.config import RigConfig
 from rigctl.errors import SolveError
 from rigctl.geometry.kinematics import KinematicModel, nominal_ur
@@ -26,6 +26,9 @@ from .planning import (
 )
 
 log = logging.getLogger(__name__)
+# a view whose own pose misses more than this share of its corners is not mended corner
+# by corner (``_without_stray_corners``)
+MAX_STRAY_SHARE = 0.25
 
 
 def controller_model(ctx) -> tuple[KinematicModel | None, str | None]:
@@ -73,17 +76,36 @@ def board_observations(ctx, intr: dict) -> list[dict]:
                                            tg.rows, tg.cols)
         try:
             pose = estimate_pose(obj, corners, K, dist)
+            corners, pose, stray = _without_stray_corners(obj, corners, K, dist, pose)
         except SolveError as exc:  # a ChArUco view whose few corners lie on one line
             note = f"no board pose from the corners seen ({exc}); the view is not used"
             log.warning("capture %s: %s", capture.meta["label"], note)
             out.append({"label": capture.meta["label"], "kind": extra.get("kind"),
                         "index": capture.index, "found": False, "note": note})
             continue
+        if len(stray):
+            log.info("capture %s: corners %s off the view's own board pose, left out",
+                     capture.meta["label"], stray.tolist())
         out.append({"label": capture.meta["label"], "kind": extra.get("kind"),
                     "index": capture.index, "joint": extra.get("joint"), "found": True,
-                    "q": q, "corners": corners,
+                    "q": q, "corners": corners, "stray_corners": stray.tolist(),
                     "C": pose.T_cam_target, "rms_px": pose.rms_px, "pnp": pose.method})
     return out
+
+
+def _without_stray_corners(obj, corners, K, dist, pose):
+    """The view's corners without those its own board pose misses by far
+    (``extrinsic.stray_corners``: one detected on a shape in front of the board), and the
+    pose again without them; unchanged when there are none, or when they are more than
+    ``MAX_STRAY_SHARE`` of the view (then the view is wrong as a whole: the solvers' view
+    checks decide)."""
+    stray = stray_corners(obj, corners, K, dist, pose.T_cam_target)
+    seen = int(np.all(np.isfinite(np.reshape(corners, (-1, 2))), axis=1).sum())
+    if not len(stray) or len(stray) > MAX_STRAY_SHARE * seen:
+        return corners, pose, np.array([], int)
+    kept = np.array(corners, float).reshape(-1, 2)
+    kept[stray] = np.nan
+    return kept, estimate_pose(obj, kept, K, dist), stray
 
 
 def _predicted_corners(config: RigConfig, q, obj: np.ndarray, K: np.ndarray) -> np.ndarray:

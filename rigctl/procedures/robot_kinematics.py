@@ -355,7 +355,14 @@ class RobotKinematics(Procedure):
                 # views showing another board than the configured one (label: what)
                 "left_out_views": left_out_views(obs),
                 # training views the refined model missed by far, left out (label: RMS px)
-                "rejected_views": sol.rejected_views}
+                "rejected_views": sol.rejected_views,
+                # board corners of training views the refined model missed by far, left
+                # out (label: corner indices)
+                "rejected_corners": sol.rejected_corners,
+                # corners each view's own board pose missed by far, left out before the
+                # solve (label: corner indices; ``robot_common.board_observations``)
+                "stray_corners": {o["label"]: o["stray_corners"] for o in obs
+                                  if o.get("stray_corners")}}
 
 
 def plan_from_file(params: RobotKinematicsParams, config) -> list:
