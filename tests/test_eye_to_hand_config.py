@@ -107,9 +107,8 @@ def test_random_worlds_draw_a_fixed_head_watching_the_flange(seed):
 def test_procedures_planning_views_of_a_board_in_the_world_refuse_a_fixed_head(tmp_path):
     rig = tmp_path / "rig.yaml"
     rig.write_text(_rig() + "records: {directory: records}\n")
-    done = subprocess.run([sys.executable, "-m", "rigctl.cli", "run", "validate-arm", "--rig",
-                           str(rig), "--dry-run", "--param", "intrinsics={\"fx\": 900, "
-                           "\"fy\": 900, \"cx\": 640, \"cy\": 360}"],
+    done = subprocess.run([sys.executable, "-m", "rigctl.cli", "run", "capture-survey",
+                           "--rig", str(rig), "--dry-run"],
                           capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert done.returncode == 2, done.stderr[-2000:]
     assert "with the head beside the arm" in done.stderr
