@@ -409,14 +409,17 @@ def _planned_with(ctx: SolveContext) -> dict[str, Any] | None:
     return None if arm is None else {k: arm.get(k) for k in ("source", "robot_hash", "note")}
 
 
-def _mm(errors: dict | None) -> float | None:
-    return None if errors is None else 1000 * errors["position_rms_m"]
+def _mm(errors: dict | None, key: str = "position_rms_m") -> float | None:
+    return None if errors is None else 1000 * errors[key]
 
 
 def _summary(sol: RobotSolution) -> dict[str, Any]:
     ref, held = sol.ref, sol.heldout
     return {"training_views": sol.training_views, "heldout_views": sol.heldout_views,
             "heldout_mm_before": _mm(held["before"]), "heldout_mm_after": _mm(held["after"]),
+            # the board's position in the camera frame: no lever arm on PnP's rotation
+            "heldout_target_mm_before": _mm(held["before"], "target_in_camera_rms_m"),
+            "heldout_target_mm_after": _mm(held["after"], "target_in_camera_rms_m"),
             "heldout_mm_link_by_link": _mm(held["link_by_link"]),
             "heldout_mm_axis_based": _mm(held["axis_based"]),
             "heldout_mm_factory": _mm(held.get("factory")),
