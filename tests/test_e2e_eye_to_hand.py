@@ -86,6 +86,9 @@ def test_head_beside_the_arm_hand_eye_and_robot_kinematics(start_sim, tmp_path):
     # model's gauge): each within the world's arm errors of the truth (about 2 mm, 0.15 deg)
     assert mm < 3.5 and deg < 0.25 and mm_t < 2.5 and deg_t < 0.25
     assert out["summary"]["heldout_mm_after"] < out["summary"]["heldout_mm_before"]
+    # the board in the camera frame, free of PnP's rotation times the distance
+    summary = out["summary"]
+    assert summary["heldout_target_mm_after"] < 0.3 < 1.0 < summary["heldout_target_mm_before"]
     # validate-arm on new board views, with the calibration just recorded: the model
     # predicts where the fixed camera sees the board far better than the nominal one
     done = rigctl("run", "validate-arm", "--rig", str(rig.rig_path), "--json",
