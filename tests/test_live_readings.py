@@ -18,22 +18,15 @@ from rigctl.config import load_rig
 from rigctl.console import live
 from rigctl.locks import BRIEF_HOLDER, rig_lock
 from rigctl.service import RigService, create_app
-from rigctl.simrig import SimulatedRig
-from tests.mockproc import control
+from tests.mockproc import control, simulated_rig
 
 pytestmark = pytest.mark.integration
 
 
 @pytest.fixture(scope="module")
 def sim(tmp_path_factory):
-    base = tmp_path_factory.mktemp("live-rig")
-    rig = SimulatedRig("ideal", records=base / "records", rig_out=base / "sim-rig.yaml",
-                       log=base / "sim-up.log")
-    try:
+    with simulated_rig(tmp_path_factory.mktemp("live-rig"), "ideal") as rig:
         yield rig
-    finally:
-        orphans = rig.stop()
-        assert not orphans, f"stand-ins {orphans} outlived `sim up`"
 
 
 @pytest.fixture

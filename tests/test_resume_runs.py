@@ -24,8 +24,7 @@ from rigctl.config import load_rig
 from rigctl.locks import rig_lock
 from rigctl.mocks.world import load_world
 from rigctl.records import RecordIndex, RunDirectory
-from rigctl.simrig import SimulatedRig
-from tests.mockproc import ROOT, control
+from tests.mockproc import ROOT, control, simulated_rig
 from tests.waiting import wait_until
 
 pytestmark = [pytest.mark.integration, pytest.mark.xdist_group("resume-runs"),
@@ -61,15 +60,8 @@ def start_run(rig: Path, log: Path) -> subprocess.Popen:
 
 @pytest.fixture(scope="module")
 def sim(tmp_path_factory):
-    base = tmp_path_factory.mktemp("resume-rig")
-    rig = SimulatedRig("default", records=base / "records", rig_out=base / "sim-rig.yaml",
-                       log=base / "sim-up.log")
-    try:
+    with simulated_rig(tmp_path_factory.mktemp("resume-rig"), "default") as rig:
         yield rig
-    finally:
-        orphans = rig.stop()
-        assert not orphans, f"stand-ins {orphans} outlived `sim up`"
-        assert not rig.crash, rig.crash
 
 
 @pytest.fixture

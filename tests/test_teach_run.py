@@ -27,8 +27,7 @@ from rigctl.geometry.kinematics import nominal_ur
 from rigctl.mocks.world import WORLDS, load_world
 from rigctl.procedures.planning import informative_views, visible_views
 from rigctl.procedures.robot_kinematics import RobotKinematicsParams
-from rigctl.simrig import SimulatedRig
-from tests.mockproc import ROOT, control
+from tests.mockproc import ROOT, control, simulated_rig
 from tests.waiting import wait_until
 
 pytestmark = pytest.mark.integration
@@ -40,14 +39,8 @@ RUN_TIMEOUT_S = 600  # a hang guard: the waits below are on observed states
 @pytest.fixture(scope="module")
 def sim(tmp_path_factory):
     base = tmp_path_factory.mktemp("teach-rig")
-    rig = SimulatedRig(WORLD, records=base / "records", rig_out=base / "sim-rig.yaml",
-                       log=base / "sim-up.log")
-    try:
+    with simulated_rig(base, WORLD) as rig:
         yield rig, base / "records"
-    finally:
-        orphans = rig.stop()
-        assert not orphans, f"stand-ins {orphans} outlived `sim up`"
-        assert not rig.crash, rig.crash
 
 
 @pytest.fixture(scope="module")
