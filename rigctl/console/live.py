@@ -14,6 +14,7 @@ in (the run reads them at every capture), marked as such.
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 from typing import Any
@@ -82,7 +83,8 @@ def _read_head(cfg, out: dict[str, Any]) -> None:
     except (RigError, OSError) as exc:
         out["errors"]["head"] = f"{cfg.port}: {exc}"
     finally:
-        head.disconnect()
+        with contextlib.suppress(OSError):  # a port that vanished: already named above
+            head.disconnect()
 
 
 def _read_arm(cfg, out: dict[str, Any]) -> None:
@@ -105,4 +107,5 @@ def _read_arm(cfg, out: dict[str, Any]) -> None:
     except RuntimeError as exc:
         out["errors"]["arm"] = f"{cfg.host}: {exc}"
     finally:
-        receive.disconnect()
+        with contextlib.suppress(RuntimeError):  # a link already lost: named above
+            receive.disconnect()
