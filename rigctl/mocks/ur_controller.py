@@ -551,7 +551,9 @@ class Controller:
             self.motion = None
             self.protective_stop("joint position limit reached")
             return
-        self.q, self.qd = q, qd
+        # a move that latched its hold this tick lands there and stands: no speed left
+        # for a stop to decelerate from
+        self.q, self.qd = q, (_ZERO6 if self.held is self.motion else qd)
         if isinstance(self.motion, LinearMove) and self.motion.failed:
             self.motion = None
             self.stop_program("moveL: path left the workspace")
