@@ -59,8 +59,11 @@ TIER_WINDOW_PX = 24.0  # search window around a tier's prediction (the first K's
 MODEL_ERROR_FOCAL = 1.0e-4   # relative, per focal length
 MODEL_ERROR_CENTRE_PX = 0.15  # per coordinate
 DISTINCT_START_PX = 3.0  # the final refinement also starts from centres this far apart
-# the final refinement's starts are refined side by side in this many threads
+# the final refinement's starts are refined side by side in this many threads, on every
+# COARSE_FACTOR-th point (``_refine_from_starts``)
 FINAL_THREADS = 2
+COARSE_FACTOR = 4
+SAME_END_PX = 1.0  # coarse refinements whose centres end this close share a basin
 # A roll predicted about a centre e px off is off by (I - R) e, one shift for the whole
 # image (2 e at 180 degrees): searched for all contours at once within this many px
 # before each is searched in TIER_WINDOW_PX. The pans' centre of a narrow or strongly
@@ -214,18 +217,67 @@ def _centre_of(K: dict | RefineResult) -> tuple[float, float]:
     return (K["cx"], K["cy"]) if isinstance(K, dict) else (K.cx, K.cy)
 
 
+def _coarse(motions: list[Motion], factor: int) -> list[Motion]:
+    """Every ``factor``-th reference point of each motion (the moved curves stay whole; a
+    point correspondence keeps its partner)."""
+    return [replace(m, ref_points=m.ref_points[::factor],
+                    moved_points=m.moved_points if m.curve_mode else m.moved_points[::factor],
+                    groups=None if m.groups is None else m.groups[::factor])
+            for m in motions]
+
+
 def _refine_from_starts(motions, starts: dict[str, dict], kwargs: dict,
                         timings: dict[str, float] | None = None) -> tuple[RefineResult, dict]:
-    """The refinement from each start; the one of least ``robust_cost`` (comparable across
-    starts: every point counts, whatever each run rejected). A start whose refinement
-    fails is reported and skipped; if all fail, the first's error is raised. Each
-    start's seconds, and those of its refinement's parts, go into ``timings``.
+    """The refinement from the best of ``starts``. Each start is first refined on every
+    ``COARSE_FACTOR``-th point (``_coarse``, no covariance). Starts that end within
+    ``SAME_END_PX`` of a cheaper one's centre are in its basin; from where each basin's
+    cheapest start ended, the refinement runs again on all points, and the one of least
+    ``robust_cost`` (comparable across starts: every point counts, whatever each run
+    rejected) is the result. A start whose refinement fails is reported and skipped; if
+    all fail, the first's error is raised. Each stage's seconds, and those of the full
+    refinements' parts, go into ``timings``.
 
-    The starts are refined side by side in ``FINAL_THREADS`` threads (each refinement is
-    independent and spends its time in numpy, which releases the interpreter), so the
-    result is the same as one after the other."""
+    Most worlds' starts end in one basin, refined on all points once: refining every
+    start on all points cost three times as long. Where they part (a start near the roll
+    centre can stop in a local minimum, ``_starts``; a scene of many mistracked contours,
+    random world 43004), every basin is refined on all points, as the coarse costs do not
+    rank them reliably. The refinements of each stage run side by side in
+    ``FINAL_THREADS`` threads (each is independent and spends its time in numpy, which
+    releases the interpreter)."""
     timings = {} if timings is None else timings
+    coarse_motions = _coarse(motions, COARSE_FACTOR)
+    report: dict[str, dict] = {name: {"centre": [start["cx"], start["cy"]]}
+                               for name, start in starts.items()}
+    coarse, first_error = _refine_each(coarse_motions, starts, {**kwargs, "uncertainty": False},
+                                       "coarse refinement from", timings, report)
+    basins: dict[str, dict] = {}
+    for name in sorted(coarse, key=lambda n: coarse[n].robust_cost):
+        r = coarse[name]
+        report[name].update(ended_at=[r.cx, r.cy], coarse_robust_cost=r.robust_cost)
+        same = next((b for b in basins if math.dist((r.cx, r.cy), (coarse[b].cx, coarse[b].cy))
+                     <= SAME_END_PX), None)
+        if same is not None:
+            report[name]["basin_of"] = same
+            continue
+        basins[name] = {**_as_start(r), "x_all": r.x_all, "angle_delta": r.angle_delta}
+    full, _ = _refine_each(motions, basins, kwargs, "final refinement from", timings, report)
+    if not full:
+        raise first_error or SolveError("refinement: no start refined on all points")
+    for name, r in full.items():
+        report[name].update(refined_to=[r.cx, r.cy], robust_cost=r.robust_cost,
+                            rms_px=r.rms_px)
+        timings.update({f"final refinement from {name}: {part}": sec
+                        for part, sec in r.timings_s.items()})
+    best = min(full, key=lambda name: full[name].robust_cost)
+    report[best]["chosen"] = True
+    return full[best], report
 
+
+def _refine_each(motions, starts: dict[str, dict], kwargs: dict, label: str,
+                 timings: dict[str, float], report: dict[str, dict]
+                 ) -> tuple[dict[str, RefineResult], SolveError | None]:
+    """``refine`` from each start, side by side in ``FINAL_THREADS`` threads: the
+    results by name, and the first error (each failed start's error is reported)."""
     def refine_from(start: dict) -> tuple[RefineResult | SolveError, float]:
         started = time.perf_counter()
         try:
@@ -233,28 +285,20 @@ def _refine_from_starts(motions, starts: dict[str, dict], kwargs: dict,
         except SolveError as exc:
             return exc, time.perf_counter() - started
 
+    if not starts:
+        return {}, None
     with ThreadPoolExecutor(max_workers=min(FINAL_THREADS, len(starts))) as pool:
         done = dict(zip(starts, pool.map(refine_from, starts.values()), strict=True))
     results: dict[str, RefineResult] = {}
-    report: dict[str, dict] = {}
     first_error: SolveError | None = None
-    for name, start in starts.items():
-        outcome, seconds = done[name]
-        timings[f"final refinement from {name}"] = seconds
+    for name, (outcome, seconds) in done.items():
+        timings[f"{label} {name}"] = seconds
         if isinstance(outcome, SolveError):
             first_error = first_error or outcome
-            report[name] = {"centre": [start["cx"], start["cy"]], "error": str(outcome)}
-            continue
-        results[name] = r = outcome
-        timings.update({f"final refinement from {name}: {part}": sec
-                        for part, sec in r.timings_s.items()})
-        report[name] = {"centre": [start["cx"], start["cy"]], "ended_at": [r.cx, r.cy],
-                        "robust_cost": r.robust_cost, "rms_px": r.rms_px}
-    if not results:
-        raise first_error
-    best = min(results, key=lambda name: results[name].robust_cost)
-    report[best]["chosen"] = True
-    return results[best], report
+            report[name]["error"] = str(outcome)
+        else:
+            results[name] = outcome
+    return results, first_error
 
 
 def _distortion_terms(settings: ActiveSettings, depths: SceneDepths | None) -> int:

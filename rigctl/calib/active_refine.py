@@ -366,6 +366,10 @@ class RefineResult:
     timings_s: dict[str, float] = field(default_factory=dict)
     # with uncertain head angles: each capture's estimated offset from its reading (deg)
     angle_offsets_deg: dict = field(default_factory=dict)
+    # where the refinement ended, to start another of the same motions there (``refine``'s
+    # ``initial``): every parameter, and each capture's eliminated head-angle offsets
+    x_all: np.ndarray | None = field(default=None, repr=False)
+    angle_delta: np.ndarray | None = field(default=None, repr=False)
 
     def predictor(self, angles0, angles1, inv_depth: float | None = None):
         """Where reference pixels land after the head moves from ``angles0`` to
@@ -597,6 +601,7 @@ class _Problem:
         for j, slot in enumerate(DIST_SLOTS[n_dist]):
             self.x[N_BASE + j] = (initial.get("distortion") or [0.0] * 5)[slot]
         self.x[4:7] = initial.get("mount_rotvec", np.zeros(3))
+        warm = initial.get("x_all")  # a refinement of the same motions ended there
         self.free = np.ones(len(self.x), bool)
         # the parallax: estimated with depths, else a consider parameter (held at zero)
         self.free[9:12] = depths is not None
@@ -610,6 +615,10 @@ class _Problem:
             self.prior_sigma[rho] = depths.sigma
             self.free[n_cam:n_cam + n_rho] = depths.sigma > 0  # sigma 0: measured, held
         self.n_cam, self.n_rho = n_cam, n_rho
+        if warm is not None and len(warm) == len(self.x):
+            self.x[:] = warm
+            if self.angles is not None and initial.get("angle_delta") is not None:
+                self.angles.delta[:] = initial["angle_delta"]
         self._elimination: tuple | None = None  # (key, Elimination)
         # whether the captures' own offsets are estimated (eliminated) in the solves; the
         # first solve from a far start leaves them at the readings
@@ -785,7 +794,8 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
     """Joint refinement of fx, fy, cx, cy, the mounting rotation and the roll axis (and
     ``n_dist`` distortion terms, ``DIST_SLOTS``) over all motions with the exact rotation
     model (thesis Lemma 3.1, eq. 3.3), from ``initial`` (fx, fy, cx, cy; e.g. Strategy
-    D; optionally ``distortion`` and ``mount_rotvec``), with a soft-L1 robust loss, then
+    D; optionally ``distortion`` and ``mount_rotvec``, or a ``RefineResult``'s ``x_all``
+    and ``angle_delta`` of the same motions and settings), with a soft-L1 robust loss, then
     3-sigma outlier rejection.
 
     Without ``depths`` the parallax ``s`` (module docstring) is held at zero: estimating
@@ -876,7 +886,8 @@ def _result(pb: _Problem, final, r: np.ndarray, assoc, parallax_sigma: float,
                         _rms_by_motion(r, pb.motions, pb.masks), parallax.copy(), float(k[4]),
                         x[:pb.n_cam].copy(), n_dist, full[:pb.n_cam, :pb.n_cam],
                         influence=influence, timings_s=timings,
-                        angle_offsets_deg=_angle_offsets(pb))
+                        angle_offsets_deg=_angle_offsets(pb), x_all=pb.x.copy(),
+                        angle_delta=None if pb.angles is None else pb.angles.delta.copy())
 
 
 def _uncertainty(pb: _Problem, final, r: np.ndarray, assoc, parallax_sigma: float
