@@ -423,3 +423,42 @@ def test_a_refinement_from_a_non_finite_start_is_a_named_solve_error():
     _, poses, obs, _ = scenario(theta_deg=5.0, sigma=0.5, seed=7, count=6, points=30)
     with pytest.raises(SolveError, match="refinement diverged"):
         refine(motions_of(poses, obs), {"fx": float("nan"), "fy": 890, "cx": 640, "cy": 360})
+
+
+def test_a_refinement_started_where_another_ended_stays_there():
+    """A start carrying a refinement's whole state (``x_all``) of the same motions ends
+    where that refinement did: the full refinement after the coarse one starts there."""
+    _, poses, obs, _ = scenario(theta_deg=5.0, sigma=0.5, seed=7, count=6, points=30)
+    first = refine(motions_of(poses, obs), {"fx": 880, "fy": 890, "cx": 640, "cy": 360})
+    again = refine(motions_of(poses, obs), {"fx": 1.0, "fy": 1.0, "cx": 0.0, "cy": 0.0,
+                                            "x_all": first.x_all})
+    assert [again.fx, again.fy, again.cx, again.cy] == pytest.approx(
+        [first.fx, first.fy, first.cx, first.cy], abs=1e-6)
+
+
+def test_starts_in_one_basin_are_refined_on_all_points_once(monkeypatch):
+    """Two starts 6 px apart end in one basin on a quarter of the points: only the
+    cheaper is refined on every point, and the result meets the truth. With too few
+    points for a quarter, every start is refined on all of them instead."""
+    from rigctl.calib import active_pipeline
+
+    _, poses, obs, _ = scenario(theta_deg=5.0, sigma=0.3, seed=11, count=8, points=40)
+    motions = motions_of(poses, obs)
+    starts = {"near": {"fx": 880, "fy": 890, "cx": CX - 3, "cy": CY + 3},
+              "far": {"fx": 880, "fy": 890, "cx": CX + 3, "cy": CY - 3}}
+    timings: dict[str, float] = {}
+    best, report = active_pipeline._refine_from_starts(motions, starts, {}, timings)
+    refined = [name for name in starts if "refined_to" in report[name]]
+    assert len(refined) == 1 and report[refined[0]].get("chosen")
+    other = next(name for name in starts if name not in refined)
+    assert report[other]["basin_of"] == refined[0]
+    assert abs(best.cx - CX) < 0.5 and abs(best.cy - CY) < 0.5
+    assert best.fx == pytest.approx(FX, rel=2e-3)
+
+    monkeypatch.setattr(active_pipeline, "COARSE_FACTOR", 10 ** 6)  # a point per motion
+    timings = {}
+    again, report = active_pipeline._refine_from_starts(motions, starts, {}, timings)
+    assert all("too few contour points" in report[name]["error"] for name in starts)
+    assert sorted(k for k in timings if k.startswith("fallback")) == \
+        ["fallback refinement from far", "fallback refinement from near"]
+    assert abs(again.cx - CX) < 0.5 and abs(again.cy - CY) < 0.5

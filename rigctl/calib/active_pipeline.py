@@ -241,9 +241,10 @@ def _refine_from_starts(motions, starts: dict[str, dict], kwargs: dict,
     start on all points cost three times as long. Where they part (a start near the roll
     centre can stop in a local minimum, ``_starts``; a scene of many mistracked contours,
     random world 43004), every basin is refined on all points, as the coarse costs do not
-    rank them reliably. The refinements of each stage run side by side in
-    ``FINAL_THREADS`` threads (each is independent and spends its time in numpy, which
-    releases the interpreter)."""
+    rank them reliably. Should no start refine on a quarter of the points, or no basin on
+    all of them, every start is refined on all points from where it was. The refinements
+    of each stage run side by side in ``FINAL_THREADS`` threads (each is independent and
+    spends its time in numpy, which releases the interpreter)."""
     timings = {} if timings is None else timings
     coarse_motions = _coarse(motions, COARSE_FACTOR)
     report: dict[str, dict] = {name: {"centre": [start["cx"], start["cy"]]}
@@ -260,9 +261,14 @@ def _refine_from_starts(motions, starts: dict[str, dict], kwargs: dict,
             report[name]["basin_of"] = same
             continue
         basins[name] = {**_as_start(r), "x_all": r.x_all, "angle_delta": r.angle_delta}
-    full, _ = _refine_each(motions, basins, kwargs, "final refinement from", timings, report)
+    full, full_error = _refine_each(motions, basins, kwargs, "final refinement from", timings,
+                                    report)
+    if not full:  # too few points for a quarter, or every basin's refinement failed: as
+        # before the coarse stage, every start refined on all points from where it was
+        full, full_error = _refine_each(motions, starts, kwargs, "fallback refinement from",
+                                        timings, report)
     if not full:
-        raise first_error or SolveError("refinement: no start refined on all points")
+        raise full_error or first_error or SolveError("refinement: no start refined")
     for name, r in full.items():
         report[name].update(refined_to=[r.cx, r.cy], robust_cost=r.robust_cost,
                             rms_px=r.rms_px)
