@@ -436,29 +436,76 @@ def test_a_refinement_started_where_another_ended_stays_there():
         [first.fx, first.fy, first.cx, first.cy], abs=1e-6)
 
 
-def test_starts_in_one_basin_are_refined_on_all_points_once(monkeypatch):
-    """Two starts 6 px apart end in one basin on a quarter of the points: only the
-    cheaper is refined on every point, and the result meets the truth. With too few
-    points for a quarter, every start is refined on all of them instead."""
-    from rigctl.calib import active_pipeline
+def test_a_start_laid_out_for_other_motions_is_a_named_solve_error():
+    _, poses, obs, _ = scenario(theta_deg=5.0, sigma=0.5, seed=7, count=6, points=30)
+    first = refine(motions_of(poses, obs), {"fx": 880, "fy": 890, "cx": 640, "cy": 360})
+    with pytest.raises(SolveError, match="x_all has"):
+        refine(motions_of(poses, obs), {"fx": 880, "fy": 890, "cx": 640, "cy": 360,
+                                        "x_all": first.x_all[:-1]})
 
+
+def _basin_case():
     _, poses, obs, _ = scenario(theta_deg=5.0, sigma=0.3, seed=11, count=8, points=40)
-    motions = motions_of(poses, obs)
     starts = {"near": {"fx": 880, "fy": 890, "cx": CX - 3, "cy": CY + 3},
               "far": {"fx": 880, "fy": 890, "cx": CX + 3, "cy": CY - 3}}
+    return motions_of(poses, obs), starts
+
+
+def test_starts_in_one_basin_are_refined_on_all_points_once():
+    """Two starts 6 px apart end in one basin on a quarter of the points: only the first
+    is refined on every point, and the result meets the truth."""
+    from rigctl.calib import active_pipeline
+
+    motions, starts = _basin_case()
     timings: dict[str, float] = {}
     best, report = active_pipeline._refine_from_starts(motions, starts, {}, timings)
-    refined = [name for name in starts if "refined_to" in report[name]]
-    assert len(refined) == 1 and report[refined[0]].get("chosen")
-    other = next(name for name in starts if name not in refined)
-    assert report[other]["basin_of"] == refined[0]
+    assert "refined_to" in report["near"] and report["near"].get("chosen")
+    assert report["far"]["basin_of"] == "near" and "refined_to" not in report["far"]
+    assert sorted(k for k in timings if ":" not in k) == [
+        "coarse refinement from far", "coarse refinement from near",
+        "final refinement from near"]
     assert abs(best.cx - CX) < 0.5 and abs(best.cy - CY) < 0.5
     assert best.fx == pytest.approx(FX, rel=2e-3)
 
+
+def test_distinct_basins_are_each_refined_and_the_cheapest_wins(monkeypatch):
+    from rigctl.calib import active_pipeline
+
+    monkeypatch.setattr(active_pipeline, "SAME_END_PX", -1.0)  # no two ends share a basin
+    motions, starts = _basin_case()
+    best, report = active_pipeline._refine_from_starts(motions, starts, {})
+    assert all("refined_to" in report[name] for name in starts)
+    chosen = next(name for name in starts if report[name].get("chosen"))
+    assert report[chosen]["robust_cost"] == min(r["robust_cost"] for r in report.values())
+    assert best.cx == report[chosen]["refined_to"][0]
+
+
+def test_starts_the_coarse_stage_cannot_refine_are_refined_on_all_points(monkeypatch):
+    """With too few points for a quarter, each start is refined on all points from where
+    it was; and when every refinement on all points fails, every start is refined again
+    from where it was (the fallback), the failures reported by stage."""
+    from rigctl.calib import active_pipeline
+
+    motions, starts = _basin_case()
     monkeypatch.setattr(active_pipeline, "COARSE_FACTOR", 10 ** 6)  # a point per motion
-    timings = {}
-    again, report = active_pipeline._refine_from_starts(motions, starts, {}, timings)
-    assert all("too few contour points" in report[name]["error"] for name in starts)
-    assert sorted(k for k in timings if k.startswith("fallback")) == \
-        ["fallback refinement from far", "fallback refinement from near"]
-    assert abs(again.cx - CX) < 0.5 and abs(again.cy - CY) < 0.5
+    best, report = active_pipeline._refine_from_starts(motions, starts, {})
+    assert all("too few contour points" in report[name]["coarse_error"] for name in starts)
+    assert all("refined_to" in report[name] and "fallback" not in report[name]
+               for name in starts)
+    assert abs(best.cx - CX) < 0.5 and abs(best.cy - CY) < 0.5
+
+    monkeypatch.undo()
+    plain = active_pipeline.refine
+
+    def warm_starts_fail(motions, start, **kwargs):
+        if "x_all" in start:
+            raise SolveError("refinement diverged: injected")
+        return plain(motions, start, **kwargs)
+
+    monkeypatch.setattr(active_pipeline, "refine", warm_starts_fail)
+    timings: dict[str, float] = {}
+    best, report = active_pipeline._refine_from_starts(motions, starts, {}, timings)
+    assert report["near"]["error"] == "refinement diverged: injected"
+    assert all(report[name].get("fallback") for name in starts)
+    assert {"fallback refinement from near", "fallback refinement from far"} <= set(timings)
+    assert abs(best.cx - CX) < 0.5 and abs(best.cy - CY) < 0.5

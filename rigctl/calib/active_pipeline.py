@@ -63,7 +63,7 @@ DISTINCT_START_PX = 3.0  # the final refinement also starts from centres this fa
 # COARSE_FACTOR-th point (``_refine_from_starts``)
 FINAL_THREADS = 2
 COARSE_FACTOR = 4
-SAME_END_PX = 1.0  # coarse refinements whose centres end this close share a basin
+SAME_END_PX = 1.0  # a coarse refinement ending this close to a basin's first is in it
 # A roll predicted about a centre e px off is off by (I - R) e, one shift for the whole
 # image (2 e at 180 degrees): searched for all contours at once within this many px
 # before each is searched in TIER_WINDOW_PX. The pans' centre of a narrow or strongly
@@ -229,61 +229,78 @@ def _coarse(motions: list[Motion], factor: int) -> list[Motion]:
 def _refine_from_starts(motions, starts: dict[str, dict], kwargs: dict,
                         timings: dict[str, float] | None = None) -> tuple[RefineResult, dict]:
     """The refinement from the best of ``starts``. Each start is first refined on every
-    ``COARSE_FACTOR``-th point (``_coarse``, no covariance). Starts that end within
-    ``SAME_END_PX`` of a cheaper one's centre are in its basin; from where each basin's
-    cheapest start ended, the refinement runs again on all points, and the one of least
-    ``robust_cost`` (comparable across starts: every point counts, whatever each run
-    rejected) is the result. A start whose refinement fails is reported and skipped; if
-    all fail, the first's error is raised. Each stage's seconds, and those of the full
-    refinements' parts, go into ``timings``.
+    ``COARSE_FACTOR``-th point (``_coarse``, no covariance). Taken in their given order,
+    a start that ends within ``SAME_END_PX`` of a basin's first start's centre is in that
+    basin (``basin_of``); each basin is refined again on all points from where its first
+    start ended, and a start whose coarse refinement failed from where it was. Of those,
+    the one of least ``robust_cost`` (comparable across starts: every point counts,
+    whatever each run rejected) is the result. Each stage's seconds, and the parts of the
+    refinements on all points, go into ``timings``; each stage's error into the report
+    (``coarse_error``, ``error``, ``fallback_error``).
 
     Most worlds' starts end in one basin, refined on all points once: refining every
-    start on all points cost three times as long. Where they part (a start near the roll
+    start on all points took 2-3 times as long. Where they part (a start near the roll
     centre can stop in a local minimum, ``_starts``; a scene of many mistracked contours,
     random world 43004), every basin is refined on all points, as the coarse costs do not
-    rank them reliably. Should no start refine on a quarter of the points, or no basin on
-    all of them, every start is refined on all points from where it was. The refinements
-    of each stage run side by side in ``FINAL_THREADS`` threads (each is independent and
-    spends its time in numpy, which releases the interpreter)."""
+    rank them reliably. Should no refinement on all points succeed, every start is
+    refined on all points from where it was (``fallback``), as before the coarse stage;
+    if that fails too, its first error is raised. The refinements of each stage run side
+    by side in ``FINAL_THREADS`` threads (each is independent and spends its time in
+    numpy, which releases the interpreter)."""
     timings = {} if timings is None else timings
-    coarse_motions = _coarse(motions, COARSE_FACTOR)
     report: dict[str, dict] = {name: {"centre": [start["cx"], start["cy"]]}
                                for name, start in starts.items()}
-    coarse, first_error = _refine_each(coarse_motions, starts, {**kwargs, "uncertainty": False},
-                                       "coarse refinement from", timings, report)
+    coarse, errors = _refine_each(_coarse(motions, COARSE_FACTOR), starts,
+                                  {**kwargs, "uncertainty": False}, "coarse refinement from",
+                                  timings)
     basins: dict[str, dict] = {}
-    for name in sorted(coarse, key=lambda n: coarse[n].robust_cost):
+    for name, start in starts.items():  # in their order: the same basins on a re-solve
+        if name not in coarse:
+            report[name]["coarse_error"] = str(errors[name])
+            basins[name] = start
+            continue
         r = coarse[name]
         report[name].update(ended_at=[r.cx, r.cy], coarse_robust_cost=r.robust_cost)
-        same = next((b for b in basins if math.dist((r.cx, r.cy), (coarse[b].cx, coarse[b].cy))
-                     <= SAME_END_PX), None)
+        same = next((b for b in basins if b in coarse and
+                     math.dist((r.cx, r.cy), (coarse[b].cx, coarse[b].cy)) <= SAME_END_PX),
+                    None)
         if same is not None:
             report[name]["basin_of"] = same
-            continue
-        basins[name] = {**_as_start(r), "x_all": r.x_all, "angle_delta": r.angle_delta}
-    full, full_error = _refine_each(motions, basins, kwargs, "final refinement from", timings,
-                                    report)
-    if not full:  # too few points for a quarter, or every basin's refinement failed: as
-        # before the coarse stage, every start refined on all points from where it was
-        full, full_error = _refine_each(motions, starts, kwargs, "fallback refinement from",
-                                        timings, report)
-    if not full:
-        raise full_error or first_error or SolveError("refinement: no start refined")
+        else:
+            basins[name] = {**_where_ended(r), "x_all": r.x_all, "angle_delta": r.angle_delta}
+    full, errors = _refine_each(motions, basins, kwargs, "final refinement from", timings)
+    for name, exc in errors.items():
+        report[name]["error"] = str(exc)
+    if not full:  # as before the coarse stage: every start on all points from where it was
+        full, errors = _refine_each(motions, starts, kwargs, "fallback refinement from",
+                                    timings)
+        for name, exc in errors.items():
+            report[name]["fallback_error"] = str(exc)
+        for name in full:
+            report[name]["fallback"] = True
+        if not full:
+            raise next(iter(errors.values()))
     for name, r in full.items():
         report[name].update(refined_to=[r.cx, r.cy], robust_cost=r.robust_cost,
                             rms_px=r.rms_px)
-        timings.update({f"final refinement from {name}: {part}": sec
+        stage = "fallback" if report[name].get("fallback") else "final"
+        timings.update({f"{stage} refinement from {name}: {part}": sec
                         for part, sec in r.timings_s.items()})
     best = min(full, key=lambda name: full[name].robust_cost)
     report[best]["chosen"] = True
     return full[best], report
 
 
+def _where_ended(r: RefineResult) -> dict:
+    return {**_as_start(r), "distortion": [r.k1, r.k2, r.p1, r.p2, r.k3],
+            "mount_rotvec": r.mount_rotvec}
+
+
 def _refine_each(motions, starts: dict[str, dict], kwargs: dict, label: str,
-                 timings: dict[str, float], report: dict[str, dict]
-                 ) -> tuple[dict[str, RefineResult], SolveError | None]:
+                 timings: dict[str, float]
+                 ) -> tuple[dict[str, RefineResult], dict[str, SolveError]]:
     """``refine`` from each start, side by side in ``FINAL_THREADS`` threads: the
-    results by name, and the first error (each failed start's error is reported)."""
+    results and the errors, by name (each start's seconds into ``timings``)."""
     def refine_from(start: dict) -> tuple[RefineResult | SolveError, float]:
         started = time.perf_counter()
         try:
@@ -292,19 +309,18 @@ def _refine_each(motions, starts: dict[str, dict], kwargs: dict, label: str,
             return exc, time.perf_counter() - started
 
     if not starts:
-        return {}, None
+        return {}, {}
     with ThreadPoolExecutor(max_workers=min(FINAL_THREADS, len(starts))) as pool:
         done = dict(zip(starts, pool.map(refine_from, starts.values()), strict=True))
     results: dict[str, RefineResult] = {}
-    first_error: SolveError | None = None
+    errors: dict[str, SolveError] = {}
     for name, (outcome, seconds) in done.items():
         timings[f"{label} {name}"] = seconds
         if isinstance(outcome, SolveError):
-            first_error = first_error or outcome
-            report[name]["error"] = str(outcome)
+            errors[name] = outcome
         else:
             results[name] = outcome
-    return results, first_error
+    return results, errors
 
 
 def _distortion_terms(settings: ActiveSettings, depths: SceneDepths | None) -> int:

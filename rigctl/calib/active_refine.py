@@ -615,10 +615,19 @@ class _Problem:
             self.prior_sigma[rho] = depths.sigma
             self.free[n_cam:n_cam + n_rho] = depths.sigma > 0  # sigma 0: measured, held
         self.n_cam, self.n_rho = n_cam, n_rho
-        if warm is not None and len(warm) == len(self.x):
+        if warm is not None:  # the layout must be this problem's (the same motions)
+            warm = np.asarray(warm, float)
+            if warm.shape != self.x.shape:
+                raise SolveError(f"refinement: a start's x_all has {warm.size} parameters, "
+                                 f"this refinement {self.x.size}")
             self.x[:] = warm
-            if self.angles is not None and initial.get("angle_delta") is not None:
-                self.angles.delta[:] = initial["angle_delta"]
+            delta = initial.get("angle_delta")
+            if self.angles is not None and delta is not None:
+                delta = np.asarray(delta, float)
+                if delta.shape != self.angles.delta.shape:
+                    raise SolveError(f"refinement: a start's angle_delta is {delta.shape}, "
+                                     f"this refinement's {self.angles.delta.shape}")
+                self.angles.delta[:] = delta
         self._elimination: tuple | None = None  # (key, Elimination)
         # whether the captures' own offsets are estimated (eliminated) in the solves; the
         # first solve from a far start leaves them at the readings
