@@ -106,17 +106,22 @@ class CaptureAngles:
         bounds = np.cumsum([0, *counts])
         w = self.scale / self.sigma
         G = np.ascontiguousarray(G)
+        # a trial step of the optimiser that turned the model over (non-finite, or so
+        # large that a capture's normal matrix is singular): non-finite residuals make it
+        # step back (``least_squares`` shrinks its trust region)
+        nan = np.full(len(counts) * 3, np.nan)
+        turned_over = Elimination(np.full(len(r), np.nan), nan, nan.reshape(-1, 3))
         if not (np.all(np.isfinite(G)) and np.all(np.isfinite(r))):
-            # a trial step of the optimiser that turned the model over: non-finite
-            # residuals make it step back (``least_squares`` shrinks its trust region)
-            nan = np.full(len(counts) * 3, np.nan)
-            return Elimination(np.full(len(r), np.nan), nan, nan.reshape(-1, 3))
+            return turned_over
         solve = np.empty((len(counts), 3, 3))
         step = np.empty((len(counts), 3))
         reduced = r.copy()
         for m, (a, b) in enumerate(itertools.pairwise(bounds)):
             Gm = G[a:b]
-            solve[m] = np.linalg.inv(Gm.T @ Gm + np.diag(w ** 2))
+            try:
+                solve[m] = np.linalg.inv(Gm.T @ Gm + np.diag(w ** 2))
+            except np.linalg.LinAlgError:  # random world 43004, a start 220 px off
+                return turned_over
             step[m] = -solve[m] @ (Gm.T @ r[a:b] + self.delta[m] * w ** 2)
             reduced[a:b] += Gm @ step[m]
         out = Elimination(reduced, ((self.delta + step) * w).ravel(), step)
