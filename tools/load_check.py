@@ -42,6 +42,25 @@ def stop(procs: list[subprocess.Popen]) -> None:
         proc.wait(timeout=10)
 
 
+MARKER = "RIGCTL_LOAD_CHECK_RUN"
+
+
+def stop_marked(value: str) -> list[int]:
+    """SIGKILL every process whose environment carries ``MARKER=value``; their PIDs."""
+    needle = f"{MARKER}={value}".encode()
+    stopped = []
+    for entry in Path("/proc").iterdir() if Path("/proc").is_dir() else []:
+        if not entry.name.isdigit() or int(entry.name) == os.getpid():
+            continue
+        try:
+            if needle in (entry / "environ").read_bytes().split(b"\0"):
+                os.kill(int(entry.name), signal.SIGKILL)
+                stopped.append(int(entry.name))
+        except (OSError, ProcessLookupError):
+            continue  # gone meanwhile, or not ours to read
+    return stopped
+
+
 def _interrupt(*_) -> None:
     """SIGTERM ends the check like Ctrl-C: the running pytest and the busy loops are
     stopped on the way out."""
@@ -55,10 +74,13 @@ def run_once(tests: list[str], extra: list[str], log_path: Path
     folder (``--basetemp``) is kept, and returned, only when it failed."""
     t0 = time.monotonic()
     basetemp = Path(tempfile.mkdtemp(prefix="rigctl-load-"))
+    # every process of this run inherits the marker, those in sessions of their own too
+    # (`sim up` starts its stand-ins so): what a killed pytest could not stop is found by it
+    env = {**os.environ, MARKER: basetemp.name}
     with log_path.open("w") as log:
         proc = subprocess.Popen([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
                                  "--basetemp", str(basetemp), *tests, *extra], cwd=ROOT,
-                                stdout=log, stderr=subprocess.STDOUT,
+                                stdout=log, stderr=subprocess.STDOUT, env=env,
                                 start_new_session=True)  # its workers and stand-ins: one group
         try:
             code = proc.wait()
@@ -69,6 +91,9 @@ def run_once(tests: list[str], extra: list[str], log_path: Path
             except subprocess.TimeoutExpired:
                 os.killpg(proc.pid, signal.SIGKILL)
                 proc.wait(timeout=10)
+            left = stop_marked(basetemp.name)
+            if left:
+                print(f"stopped {len(left)} processes the run left: {left}", file=sys.stderr)
             raise
     seconds = time.monotonic() - t0
     if code == 0:
