@@ -162,8 +162,7 @@ def _final_start(K1: dict | RefineResult, strategies: dict, K0: dict) -> dict:
     closed = next((strategies[s] for s in ("D", "C") if "error" not in strategies[s]), None)
     if not isinstance(K1, RefineResult):
         return closed or K0
-    start = {**_as_start(K1), "distortion": [K1.k1, K1.k2, K1.p1, K1.p2, K1.k3],
-             "mount_rotvec": K1.mount_rotvec}
+    start = _where_ended(K1)
     if closed is not None:
         start.update(cx=closed["cx"], cy=closed["cy"])
     return start
@@ -292,6 +291,7 @@ def _refine_from_starts(motions, starts: dict[str, dict], kwargs: dict,
 
 
 def _where_ended(r: RefineResult) -> dict:
+    """A start where ``r`` ended: its intrinsics, distortion and mounting."""
     return {**_as_start(r), "distortion": [r.k1, r.k2, r.p1, r.p2, r.k3],
             "mount_rotvec": r.mount_rotvec}
 
