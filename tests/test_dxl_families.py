@@ -25,7 +25,7 @@ import yaml
 
 from rigctl.config import load_rig, parse_rig
 from rigctl.doctor import servo_warnings
-from rigctl.drivers.dynamixel import DynamixelHead
+from rigctl.drivers.dynamixel import DynamixelHead, TimedPortHandler
 from rigctl.errors import ConfigError
 from rigctl.mocks.dxl_models import SPEC_BY_NAME
 from rigctl.mocks.random_world import random_world
@@ -82,7 +82,9 @@ def cli(*args: str, cwd=None) -> subprocess.CompletedProcess:
 
 def test_each_family_plays_its_emanual_table_to_the_real_sdk(start_bus):
     bus = start_bus("--model", *MIXED)
-    port = sdk.PortHandler(bus.ready["link"])
+    # the SDK's ~34 ms timeout is for servos; a stand-in on a busy host may answer later
+    # (a ping timed out under the load check's companion load)
+    port = TimedPortHandler(bus.ready["link"], 500.0)
     assert port.openPort() and port.setBaudRate(1_000_000)
     ph = sdk.PacketHandler(2.0)
     try:
