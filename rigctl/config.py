@@ -268,6 +268,12 @@ class ArmConfig(_Strict):
                             "seconds")
     connect_retries: int = Field(3, ge=1, le=20, description="attempts to connect the RTDE "
                                  "interfaces")
+    # A calibration reads the arm at rest and watches its moves for faults: 125 Hz (every
+    # controller's rate; e-Series and UR-Series offer up to 500) costs the host and the
+    # controller's RTDE link a fraction of 500 Hz's.
+    rtde_frequency_hz: float = Field(125.0, gt=0, le=500, description="rate of the RTDE state "
+                                     "stream, Hz: at most 125 on CB3, 500 on e-Series and "
+                                     "UR-Series")
     # The RTDE stream (500 Hz on a real controller) silent this long: connection lost.
     stream_timeout_s: float = Field(1.0, gt=0, le=30, description="the RTDE stream silent this "
                                     "long means the connection is lost, seconds")
@@ -320,6 +326,10 @@ class ArmConfig(_Strict):
                 raise ValueError(f"joint_limits_deg: joint {i + 1} [{pair[0]:g}, {pair[1]:g}] "
                                  f"deg exceeds the {self.model}'s limits [{limit[0]:g}, "
                                  f"{limit[1]:g}] deg")
+        top = MODELS[self.model].rtde_max_hz
+        if self.rtde_frequency_hz > top:
+            raise ValueError(f"rtde_frequency_hz: {self.rtde_frequency_hz:g} Hz exceeds the "
+                             f"{self.model}'s RTDE stream, at most {top:g} Hz")
         return self
 
     def joint_limits_rad(self) -> list[tuple[float, float]]:

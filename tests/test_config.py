@@ -56,6 +56,9 @@ def test_servo_range_error_names_file_key_and_reason():
      "rig.yaml: devices.camera.controls: unknown camera control(s) ['exposur']"),
     ("service:\n  schedules: [{procedure: x}]\n",
      "rig.yaml: service.schedules.0: give exactly one of cron or interval_s"),
+    ("devices:\n  arm: {model: ur10, rtde_frequency_hz: 500}\n",
+     "rig.yaml: devices.arm: rtde_frequency_hz: 500 Hz exceeds the ur10's RTDE stream, at "
+     "most 125 Hz"),
     ("devices: [1, 2\n", "rig.yaml:2:1: not valid YAML"),
     ("- 1\n", "rig.yaml: top level must be a mapping, got list"),
 ])

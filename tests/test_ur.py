@@ -176,6 +176,21 @@ def test_driver_move_joint_and_soft_limits(arm_proc):
     assert arm.teardown_s is not None  # measured (bounded by teardown_timeout_s)
 
 
+@pytest.mark.parametrize("extra, asked", [({}, 125.0), ({"rtde_frequency_hz": 500}, 500.0)])
+def test_the_driver_streams_at_the_configured_rate(arm_proc, extra, asked):
+    """Both RTDE interfaces ask the rig file's rate (125 Hz unless set), and the stream
+    never comes faster: the packages' controller timestamps, read on the client, are at
+    least a period apart on average (a busy host only spaces them more)."""
+    with URArm(arm_config(arm_proc.ready["host"], **extra)) as arm:
+        seen = control(arm_proc.ready["control"], {"cmd": "dump"})["seen"]["rtde_frequencies"]
+        assert seen == [asked, asked]  # receive, then control
+        stamps = {arm.receive.getTimestamp()}
+        wait_until(lambda: stamps.add(arm.receive.getTimestamp()) or len(stamps) > 40,
+                   timeout=30, what="40 RTDE packages", poll=0.0005)
+        ticks = sorted(stamps)
+        assert (ticks[-1] - ticks[0]) / (len(ticks) - 1) > 0.95 / asked
+
+
 def test_protective_stop_mid_move_aborts_recorded_run(arm_proc, tmp_path):
     """With pausing off (``max_pause_s: 0``) a protective stop aborts the run."""
     rig = tmp_path / "rig.yaml"

@@ -93,8 +93,9 @@ def _read_arm(cfg, out: dict[str, Any]) -> None:
     from rigctl.drivers.ur import bounded_call
 
     try:
-        receive = bounded_call(lambda: rtde_receive.RTDEReceiveInterface(cfg.host),
-                               ARM_TIMEOUT_S, "RTDE receive interface")
+        receive = bounded_call(
+            lambda: rtde_receive.RTDEReceiveInterface(cfg.host, cfg.rtde_frequency_hz),
+            ARM_TIMEOUT_S, "RTDE receive interface")
     except (RuntimeError, RigError) as exc:
         out["errors"]["arm"] = f"{cfg.host}: RTDE receive interface: {exc}"
         return

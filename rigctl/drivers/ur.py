@@ -100,10 +100,11 @@ class URArm(Arm):
         if self.identity is not None:
             check_model(self.cfg.model, self.identity, self.cfg.host)
             self.serial, self.polyscope = self.identity.serial, self.identity.version
+        hz = self.cfg.rtde_frequency_hz
         self.receive = self._with_retries(
-            "receive", lambda: rtde_receive.RTDEReceiveInterface(self.cfg.host))
+            "receive", lambda: rtde_receive.RTDEReceiveInterface(self.cfg.host, hz))
         self.control = self._with_retries(
-            "control", lambda: rtde_control.RTDEControlInterface(self.cfg.host))
+            "control", lambda: rtde_control.RTDEControlInterface(self.cfg.host, hz))
         self._last_ts = (self.receive.getTimestamp(), time.monotonic())
         self._lost = None
         self._monitor_stop = threading.Event()

@@ -86,6 +86,13 @@ class URModel:
     def controller_major(self) -> int:
         return 3 if self.generation == "CB3" else 5
 
+    @property
+    def rtde_max_hz(self) -> float:
+        """The fastest RTDE output stream the controller offers: 125 Hz on CB3, 500 Hz on
+        e-Series and UR-Series (UR's RTDE guide, "Real-Time Data Exchange (RTDE) Guide";
+        ur_rtde takes the same as its default frequency per generation)."""
+        return 125.0 if self.generation == "CB3" else 500.0
+
     def limits_rad(self) -> list[tuple[float, float] | None]:
         """Position limits per joint in radians (None: the joint turns without limit)."""
         return [None if lim is None else (math.radians(lim[0]), math.radians(lim[1]))

@@ -55,6 +55,7 @@ from rigctl.mocks.ur_teach import end_teach, freedrive, refuse_in_teach, start_t
 log = logging.getLogger("mock.ur")
 
 PERIOD = 0.002
+STREAM_RESYNC_S = 0.05  # a stream this late drops the packages it missed
 JOINT_ACCEL_MAX = 40.0  # rad/s^2
 # RTDE outputs a CB3 (3.x) does not offer (RTDE guide: added with PolyScope 5.x)
 E_SERIES_ONLY_OUTPUTS = frozenset({"ft_raw_wrench", "actual_current_as_torque"})
@@ -738,18 +739,27 @@ class RTDEConnection:
 
     def stream(self) -> None:
         ctrl = self.ctrl
-        every = max(1, round(500.0 / max(self.frequency, 1.0)))
+        # one package per period of the asked frequency, of the newest tick's state; the
+        # thread sleeps between packages (woken on every 2 ms tick, a 125 Hz stream cost
+        # four wake-ups per package)
+        period = max(1, round(500.0 / max(self.frequency, 1.0))) * PERIOD
         last_tick = -1
+        next_t = time.monotonic()
         # each field's flattened value, kept while the snapshot holds the same value (at
         # rest most fields do): 500 packings a second cost a tenth of a core otherwise
         flat: dict[str, tuple] = {}
         try:
             while self.streaming:
-                with ctrl.tick_cond:
+                next_t += period
+                delay = next_t - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+                elif delay < -STREAM_RESYNC_S:  # fell far behind: resynchronise
+                    next_t = time.monotonic()
+                with ctrl.tick_cond:  # never the same tick twice
                     ctrl.tick_cond.wait_for(lambda t=last_tick: ctrl.tick != t, timeout=0.1)
                     tick, snap = ctrl.tick, ctrl.snapshot
-                if tick == last_tick or tick % every:
-                    last_tick = tick
+                if tick == last_tick:
                     continue
                 last_tick = tick
                 if time.monotonic() < ctrl.stall_until:
