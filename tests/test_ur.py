@@ -191,6 +191,21 @@ def test_the_driver_streams_at_the_configured_rate(arm_proc, extra, asked):
         assert (ticks[-1] - ticks[0]) / (len(ticks) - 1) > 0.95 / asked
 
 
+def test_a_restarted_control_script_is_waited_for_before_the_next_move(arm_proc):
+    """``recover`` (after an unlock) uploads the control script again; a controller that
+    takes 0.3 s to start it still gets the next move (ur_rtde's ``reuploadScript`` does
+    not wait, and a move sent before the program runs is refused)."""
+    with URArm(arm_config(arm_proc.ready["host"])) as arm:
+        assert control(arm_proc.ready["control"],
+                       {"cmd": "script_start_delay", "seconds": 0.3})["ok"]
+        arm.recover()
+        assert arm.control.isProgramRunning()
+        arm.move_joint(5, math.radians(10)).wait(10)
+        assert abs(arm.read_state().q[5] - math.radians(10)) < 1e-4
+    messages = control(arm_proc.ready["control"], {"cmd": "dump"})["messages"]
+    assert sum("program rtde_control started" in m for m in messages) == 2
+
+
 def test_protective_stop_mid_move_aborts_recorded_run(arm_proc, tmp_path):
     """With pausing off (``max_pause_s: 0``) a protective stop aborts the run."""
     rig = tmp_path / "rig.yaml"

@@ -55,6 +55,10 @@ def bounded_call(fn, timeout: float, what: str):
     return box.get("value")
 
 
+# ur_rtde waits as long for its first upload to run (``waitForProgramRunning``)
+SCRIPT_START_TIMEOUT_S = 5.0
+
+
 class URArm(Arm):
     teaching = False  # free drive on (``teach_mode``)
 
@@ -350,9 +354,24 @@ class URArm(Arm):
         """After a protective stop was unlocked (by the operator, ``rigctl arm unlock``):
         restart the control script, which the stop ended, so moves are accepted again."""
         self.check_safety()
-        if self.control is not None:
-            self.control.reuploadScript()
+        self._restart_script()
         self._stop_event.clear()
+
+    def _restart_script(self) -> None:
+        """Upload the control script again and wait until the controller runs it.
+        ur_rtde's ``reuploadScript`` only sends it: a move sent before the controller
+        reports the program running is refused ("RTDE control script is not running!"),
+        and the next state package can be a whole stream period away."""
+        if self.control is None:
+            return
+        if not self.control.reuploadScript():
+            raise DeviceError(f"arm {self.cfg.host}: the control script could not be sent")
+        deadline = time.monotonic() + SCRIPT_START_TIMEOUT_S
+        while not self.control.isProgramRunning():
+            if time.monotonic() > deadline:
+                raise DeviceError(f"arm {self.cfg.host}: the control script did not start "
+                                  f"within {SCRIPT_START_TIMEOUT_S:g} s of its upload")
+            time.sleep(0.01)
 
     # -- teach mode (free drive) -------------------------------------------------------
 
@@ -402,8 +421,7 @@ class URArm(Arm):
         if "PROTECTIVE_STOP" in status:
             raise SafetyError(f"arm {self.cfg.host}: still in a protective stop after the "
                               f"unlock ({status}); the controller allows it 5 s after the stop")
-        if self.control is not None:
-            self.control.reuploadScript()
+        self._restart_script()
         return f"protective stop unlocked ({status})"
 
 

@@ -258,6 +258,7 @@ class Controller:
         self.watchdog_hz = 0.0
         self.last_input = time.monotonic()
         self.stall_until = 0.0
+        self.script_start_s = 0.0  # from an uploaded script to its program running
         # a held move (a test's latched fault, ``freeze``): armed at a fraction of the
         # next (or current) move's time; ``held`` is the move standing still
         self.freeze_at: float | None = None
@@ -312,6 +313,12 @@ class Controller:
                 except (ValueError, IndexError):
                     offset = 0
                 break
+        if self.script_start_s > 0:  # a controller compiling the program before it runs
+            threading.Timer(self.script_start_s, self._start_program, (offset,)).start()
+        else:
+            self._start_program(offset)
+
+    def _start_program(self, offset: int) -> None:
         with self.lock:
             self.reg_offset = offset
             self.executing = False
@@ -966,11 +973,8 @@ class Server:
                     sock.shutdown(socket.SHUT_RDWR)
                 except OSError:
                     pass
-        elif cmd == "stall_stream":
-            seconds = request.get("seconds")
-            ctrl.stall_until = math.inf if seconds is None else time.monotonic() + float(seconds)
-        elif cmd == "resume_stream":
-            ctrl.stall_until = 0.0
+        elif cmd in ("stall_stream", "resume_stream", "script_start_delay"):
+            self._timing(cmd, request.get("seconds"))
         elif cmd == "freeze":
             ctrl.freeze(float(request.get("at_fraction", 0.5)))
         elif cmd == "thaw":
@@ -980,6 +984,17 @@ class Server:
         else:
             return {"ok": False, "error": f"unknown cmd {cmd!r}"}
         return {"ok": True}
+
+    def _timing(self, cmd: str, seconds) -> None:
+        """Injected delays: the RTDE stream stalled (``seconds``, None: until resumed) or
+        resumed, and a program started ``seconds`` after its script arrives."""
+        ctrl = self.ctrl
+        if cmd == "stall_stream":
+            ctrl.stall_until = math.inf if seconds is None else time.monotonic() + float(seconds)
+        elif cmd == "resume_stream":
+            ctrl.stall_until = 0.0
+        else:
+            ctrl.script_start_s = float(seconds or 0.0)
 
     def close(self) -> None:
         self.stop_event.set()
