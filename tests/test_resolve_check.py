@@ -15,6 +15,7 @@ RESULT = {
     "T_flange_cam": [[1.0, 0.0, 0.0, 0.0123], [0.0, 1.0, 0.0, -0.0457],
                      [0.0, 0.0, 1.0, 0.0612], [0.0, 0.0, 0.0, 1.0]],
     "views": 8,
+    "head_angles": {"offsets_deg": {"tilt+20": [-1.7770e-6, 3.9e-4, -1.3e-3]}},
 }
 
 
@@ -34,6 +35,8 @@ def test_rounding_below_1e4_of_each_quantity_is_equal():
     again["roll_axis_in_cam"][0] += 1e-6  # the axis is a unit vector: 1e-4 of 1
     again["covariance"]["matrix"][2][2] *= 1 + 5e-5
     again["T_flange_cam"][0][3] += 1e-6  # under 1e-4 of the 77 mm translation
+    # a head-angle offset zero up to rounding, beside the capture's others (measured)
+    again["head_angles"]["offsets_deg"]["tilt+20"][0] = -1.7774e-6
     assert list(_differences(RESULT, again)) == []
 
 
@@ -43,6 +46,7 @@ def test_changes_in_small_quantities_are_differences():
         ("distortion", 2): 3.443e-4 * 1.01,  # p1 by 1 %
         ("distortion", 4): 1e-9,  # k3 off its zero
         ("T_flange_cam", 1, 3): -0.0457 + 9e-6,  # 9 um in metres
+        ("head_angles", "offsets_deg", "tilt+20", 0): 5e-7,  # 2e-3 of the capture's offsets
     }
     for path, value in cases.items():
         doc = copy.deepcopy(RESULT)

@@ -174,7 +174,9 @@ def test_a_run_killed_half_way_is_resumed_to_the_same_accuracy(sim, procs, tmp_p
 
     # a rig file changed meanwhile refuses the resume, and nothing moves
     text = rig.read_text()
-    before = control(sim.ready["arm"]["control"], {"cmd": "dump"})["q"]
+    # the killed run's last move may still be running on the controller: wait for rest
+    before = wait_until(lambda: (d := control(sim.ready["arm"]["control"], {"cmd": "dump"}))
+                        and not any(d["qd"]) and d, timeout=60, what="the arm at rest")["q"]
     rig.write_text(text + "\n# changed\n")
     try:
         refused = rigctl("run", "--resume", row["run_id"], "--rig", str(rig), "--json")
