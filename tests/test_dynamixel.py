@@ -226,7 +226,9 @@ def test_driver_moves_and_reads_angles(bus):
 
 
 def test_corrupted_and_dropped_replies_are_retried(bus):
-    head = DynamixelHead(head_config(bus.ready["link"]))
+    # a second's wait for each reply: a stand-in descheduled past the sim's 100 ms would
+    # time out a try of its own and leave the injected faults to other tries (seen once)
+    head = DynamixelHead(head_config(bus.ready["link"], packet_timeout_ms=1000, retries=3))
     with head:
         control(bus.ready["control"], {"cmd": "corrupt_next"})
         control(bus.ready["control"], {"cmd": "drop_next"})
