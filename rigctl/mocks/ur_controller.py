@@ -259,6 +259,7 @@ class Controller:
         self.last_input = time.monotonic()
         self.stall_until = 0.0
         self.script_start_s = 0.0  # from an uploaded script to its program running
+        self.uploads = 0  # scripts uploaded and programs stopped, counted together
         # a held move (a test's latched fault, ``freeze``): armed at a fraction of the
         # next (or current) move's time; ``held`` is the move standing still
         self.freeze_at: float | None = None
@@ -313,13 +314,18 @@ class Controller:
                 except (ValueError, IndexError):
                     offset = 0
                 break
-        if self.script_start_s > 0:  # a controller compiling the program before it runs
-            threading.Timer(self.script_start_s, self._start_program, (offset,)).start()
-        else:
-            self._start_program(offset)
-
-    def _start_program(self, offset: int) -> None:
         with self.lock:
+            self.uploads += 1
+            upload = self.uploads
+        if self.script_start_s > 0:  # a controller compiling the program before it runs
+            threading.Timer(self.script_start_s, self._start_program, (offset, upload)).start()
+        else:
+            self._start_program(offset, upload)
+
+    def _start_program(self, offset: int, upload: int) -> None:
+        with self.lock:
+            if upload != self.uploads:  # stopped, or another script came, meanwhile
+                return
             self.reg_offset = offset
             self.executing = False
             self.pending_done = False
@@ -331,6 +337,7 @@ class Controller:
 
     def stop_program(self, reason: str) -> None:
         with self.lock:
+            self.uploads += 1  # a program still starting never runs
             if self.runtime_state != RUNTIME_STOPPED:
                 self.messages.append(f"program stopped: {reason}")
             self.runtime_state = RUNTIME_STOPPED
