@@ -589,7 +589,8 @@ app.add_typer(arm_app, name="arm")
 
 @arm_app.command("unlock")
 def arm_unlock(rig: Path = typer.Option(..., "--rig")) -> None:
-    """Unlock a protective stop (after inspecting its cause) and restart the control script."""
+    """Unlock a protective stop (after inspecting its cause); a paused run then restarts its
+    control script and continues."""
     from rigctl.drivers.ur import URArm
 
     try:

@@ -271,10 +271,10 @@ class ArmConfig(_Strict):
     # A calibration reads the arm at rest and watches its moves for faults: 125 Hz (every
     # controller's rate; e-Series and UR-Series offer up to 500) costs the host and the
     # controller's RTDE link a fraction of 500 Hz's.
-    rtde_frequency_hz: float = Field(125.0, gt=0, le=500, description="rate of the RTDE state "
-                                     "stream, Hz: at most 125 on CB3, 500 on e-Series and "
-                                     "UR-Series")
-    # The RTDE stream (500 Hz on a real controller) silent this long: connection lost.
+    rtde_frequency_hz: float = Field(125.0, ge=10, le=500, description="rate of the RTDE "
+                                     "state stream, Hz: 10 to 125 on CB3, to 500 on e-Series "
+                                     "and UR-Series")
+    # The RTDE stream (rtde_frequency_hz) silent this long: connection lost.
     stream_timeout_s: float = Field(1.0, gt=0, le=30, description="the RTDE stream silent this "
                                     "long means the connection is lost, seconds")
     # Bound on each teardown call (stopScript, stopJ) into ur_rtde.

@@ -180,15 +180,14 @@ def test_driver_move_joint_and_soft_limits(arm_proc):
 def test_the_driver_streams_at_the_configured_rate(arm_proc, extra, asked):
     """Both RTDE interfaces ask the rig file's rate (125 Hz unless set), and the stream
     never comes faster: the packages' controller timestamps, read on the client, are at
-    least a period apart on average (a busy host only spaces them more)."""
+    least a period apart (a busy host only spaces them more)."""
     with URArm(arm_config(arm_proc.ready["host"], **extra)) as arm:
         seen = control(arm_proc.ready["control"], {"cmd": "dump"})["seen"]["rtde_frequencies"]
         assert seen == [asked, asked]  # receive, then control
         stamps = {arm.receive.getTimestamp()}
         wait_until(lambda: stamps.add(arm.receive.getTimestamp()) or len(stamps) > 40,
                    timeout=30, what="40 RTDE packages", poll=0.0005)
-        ticks = sorted(stamps)
-        assert (ticks[-1] - ticks[0]) / (len(ticks) - 1) > 0.95 / asked
+        assert min(np.diff(sorted(stamps))) > 0.999 / asked
 
 
 def test_a_restarted_control_script_is_waited_for_before_the_next_move(arm_proc):
@@ -204,6 +203,25 @@ def test_a_restarted_control_script_is_waited_for_before_the_next_move(arm_proc)
         assert abs(arm.read_state().q[5] - math.radians(10)) < 1e-4
     messages = control(arm_proc.ready["control"], {"cmd": "dump"})["messages"]
     assert sum("program rtde_control started" in m for m in messages) == 2
+
+
+def test_after_an_unlock_from_another_process_the_run_moves_again(arm_proc):
+    """A paused run's driver (``recover``) after the operator's ``rigctl arm unlock`` (a
+    driver that never opened the arm): the stop ended the program, the controller takes
+    0.3 s to start the new one, and the next move is still accepted."""
+    cfg = arm_config(arm_proc.ready["host"])
+    sock = arm_proc.ready["control"]
+    with URArm(cfg) as arm:
+        assert control(sock, {"cmd": "script_start_delay", "seconds": 0.3})["ok"]
+        control(sock, {"cmd": "protective_stop"})
+        wait_until(arm.receive.isProtectiveStopped, timeout=30, what="the protective stop")
+        assert "protective stop unlocked" in URArm(cfg).unlock_protective_stop()
+        # as a paused run's suspender does: wait for the stop's end on the run's stream
+        wait_until(lambda: not arm.receive.isProtectiveStopped(), timeout=30,
+                   what="the stop's end")
+        arm.recover()
+        arm.move_joint(5, math.radians(-10)).wait(10)
+        assert abs(arm.read_state().q[5] - math.radians(-10)) < 1e-4
 
 
 def test_protective_stop_mid_move_aborts_recorded_run(arm_proc, tmp_path):

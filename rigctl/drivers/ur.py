@@ -368,9 +368,12 @@ class URArm(Arm):
             raise DeviceError(f"arm {self.cfg.host}: the control script could not be sent")
         deadline = time.monotonic() + SCRIPT_START_TIMEOUT_S
         while not self.control.isProgramRunning():
+            self.check_safety()  # a stop meanwhile: the program will not start
             if time.monotonic() > deadline:
                 raise DeviceError(f"arm {self.cfg.host}: the control script did not start "
-                                  f"within {SCRIPT_START_TIMEOUT_S:g} s of its upload")
+                                  f"within {SCRIPT_START_TIMEOUT_S:g} s of its upload (an "
+                                  "e-Series controller in Local mode ignores scripts; see the "
+                                  "pendant)")
             time.sleep(0.01)
 
     # -- teach mode (free drive) -------------------------------------------------------
@@ -406,7 +409,9 @@ class URArm(Arm):
         return done
 
     def unlock_protective_stop(self) -> str:
-        """Operator action: unlock a protective stop and restart the control script."""
+        """Operator action: unlock a protective stop, and restart the control script when
+        this driver holds the arm. From another process (``rigctl arm unlock`` beside a
+        paused run) the paused run restarts its own (``recover``)."""
         import dashboard_client
 
         dash = dashboard_client.DashboardClient(self.cfg.host)

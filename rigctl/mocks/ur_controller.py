@@ -23,7 +23,9 @@ latched fault), ``resume_stream``, ``freedrive`` (the operator's hand: ``q_deg``
 joint angles the arm is pushed to, answered once it is there; refused unless the control
 script's ``teach_mode()`` is on, see ``ur_teach``), ``freeze`` (``at_fraction``: the
 move under way or the next one holds once it has run that fraction of its time, latched
-until ``thaw`` or until a new motion command ends it), ``thaw``, ``dump``.
+until ``thaw`` or until a new motion command ends it), ``thaw``, ``script_start_delay``
+(``seconds`` from an uploaded script to its program running; the running program ends at
+once, and a stop meanwhile cancels the start), ``dump``.
 """
 
 from __future__ import annotations
@@ -317,14 +319,21 @@ class Controller:
         with self.lock:
             self.uploads += 1
             upload = self.uploads
-        if self.script_start_s > 0:  # a controller compiling the program before it runs
-            threading.Timer(self.script_start_s, self._start_program, (offset, upload)).start()
+            delayed = self.script_start_s > 0
+            if delayed:  # a controller compiling the new program: the old one has ended
+                self.runtime_state = RUNTIME_STOPPED
+        if delayed:
+            threading.Timer(self.script_start_s, self._start_program,
+                            (offset, upload, True)).start()
         else:
             self._start_program(offset, upload)
 
-    def _start_program(self, offset: int, upload: int) -> None:
+    def _start_program(self, offset: int, upload: int, delayed: bool = False) -> None:
         with self.lock:
             if upload != self.uploads:  # stopped, or another script came, meanwhile
+                return
+            if delayed and self.safety_mode != SAFETY_NORMAL:  # a stop meanwhile
+                self.messages.append("program rtde_control not started: safety stop")
                 return
             self.reg_offset = offset
             self.executing = False
@@ -354,6 +363,7 @@ class Controller:
 
     def protective_stop(self, reason: str) -> None:
         with self.lock:
+            self.uploads += 1  # a program still starting never runs
             self.safety_mode = SAFETY_PROTECTIVE
             self.messages.append(f"protective stop: {reason}")
             self._stop_motion(20.0)
@@ -363,6 +373,7 @@ class Controller:
 
     def emergency_stop(self) -> None:
         with self.lock:
+            self.uploads += 1  # a program still starting never runs
             self.estop = True
             self.safety_mode = SAFETY_ROBOT_ESTOP
             self.robot_mode = ROBOT_POWER_OFF
@@ -756,8 +767,10 @@ class RTDEConnection:
         # one package per period of the asked frequency, of the newest tick's state; the
         # thread sleeps between packages (woken on every 2 ms tick, a 125 Hz stream cost
         # four wake-ups per package)
-        period = max(1, round(500.0 / max(self.frequency, 1.0))) * PERIOD
-        last_tick = -1
+        # whole ticks between packages, never fewer than the asked rate allows
+        every = max(1, math.ceil(500.0 / max(self.frequency, 1.0) - 1e-9))
+        period = every * PERIOD
+        last_tick = -every
         next_t = time.monotonic()
         # each field's flattened value, kept while the snapshot holds the same value (at
         # rest most fields do): 500 packings a second cost a tenth of a core otherwise
@@ -770,10 +783,11 @@ class RTDEConnection:
                     time.sleep(delay)
                 elif delay < -STREAM_RESYNC_S:  # fell far behind: resynchronise
                     next_t = time.monotonic()
-                with ctrl.tick_cond:  # never the same tick twice
-                    ctrl.tick_cond.wait_for(lambda t=last_tick: ctrl.tick != t, timeout=0.1)
+                with ctrl.tick_cond:  # a whole period of controller time after the last
+                    ctrl.tick_cond.wait_for(lambda t=last_tick: ctrl.tick >= t + every,
+                                            timeout=0.1)
                     tick, snap = ctrl.tick, ctrl.snapshot
-                if tick == last_tick:
+                if tick < last_tick + every:
                     continue
                 last_tick = tick
                 if time.monotonic() < ctrl.stall_until:
