@@ -328,6 +328,10 @@ class Controller:
         else:
             self._start_program(offset, upload)
 
+    def _cancel_start(self) -> None:
+        """A program still starting (``script_start_delay``) never runs. Under the lock."""
+        self.uploads += 1
+
     def _start_program(self, offset: int, upload: int, delayed: bool = False) -> None:
         with self.lock:
             if upload != self.uploads:  # stopped, or another script came, meanwhile
@@ -346,7 +350,7 @@ class Controller:
 
     def stop_program(self, reason: str) -> None:
         with self.lock:
-            self.uploads += 1  # a program still starting never runs
+            self._cancel_start()
             if self.runtime_state != RUNTIME_STOPPED:
                 self.messages.append(f"program stopped: {reason}")
             self.runtime_state = RUNTIME_STOPPED
@@ -363,7 +367,7 @@ class Controller:
 
     def protective_stop(self, reason: str) -> None:
         with self.lock:
-            self.uploads += 1  # a program still starting never runs
+            self._cancel_start()
             self.safety_mode = SAFETY_PROTECTIVE
             self.messages.append(f"protective stop: {reason}")
             self._stop_motion(20.0)
@@ -373,7 +377,7 @@ class Controller:
 
     def emergency_stop(self) -> None:
         with self.lock:
-            self.uploads += 1  # a program still starting never runs
+            self._cancel_start()
             self.estop = True
             self.safety_mode = SAFETY_ROBOT_ESTOP
             self.robot_mode = ROBOT_POWER_OFF
@@ -764,10 +768,9 @@ class RTDEConnection:
 
     def stream(self) -> None:
         ctrl = self.ctrl
-        # one package per period of the asked frequency, of the newest tick's state; the
-        # thread sleeps between packages (woken on every 2 ms tick, a 125 Hz stream cost
-        # four wake-ups per package)
-        # whole ticks between packages, never fewer than the asked rate allows
+        # one package of the newest tick's state per period of the asked rate (whole
+        # ticks, never faster); the thread sleeps between packages instead of waking on
+        # every 2 ms tick
         every = max(1, math.ceil(500.0 / max(self.frequency, 1.0) - 1e-9))
         period = every * PERIOD
         last_tick = -every
