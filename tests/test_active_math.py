@@ -452,8 +452,9 @@ def _basin_case():
 
 
 def test_starts_in_one_basin_are_refined_on_all_points_once():
-    """Two starts 6 px apart end in one basin on a quarter of the points: only the first
-    is refined on every point, and the result meets the truth."""
+    """Two starts 6 px apart end in one basin: the second's scout (on every 16th point)
+    ends within 1 px of the first's coarse end, so only the first is refined on every
+    point, and the result meets the truth."""
     from rigctl.calib import active_pipeline
 
     motions, starts = _basin_case()
@@ -461,6 +462,7 @@ def test_starts_in_one_basin_are_refined_on_all_points_once():
     best, report = active_pipeline._refine_from_starts(motions, starts, {}, timings)
     assert "refined_to" in report["near"] and report["near"].get("chosen")
     assert report["far"]["basin_of"] == "near" and "refined_to" not in report["far"]
+    assert "scouted_to" in report["far"] and "ended_at" not in report["far"]
     assert sorted(k for k in timings if ":" not in k) == [
         "coarse refinement from far", "coarse refinement from near",
         "final refinement from near"]
@@ -473,8 +475,12 @@ def test_distinct_basins_are_each_refined_and_the_cheapest_wins(monkeypatch):
 
     monkeypatch.setattr(active_pipeline, "SAME_END_PX", -1.0)  # no two ends share a basin
     motions, starts = _basin_case()
-    best, report = active_pipeline._refine_from_starts(motions, starts, {})
+    timings: dict[str, float] = {}
+    best, report = active_pipeline._refine_from_starts(motions, starts, {}, timings)
     assert all("refined_to" in report[name] for name in starts)
+    # the scout ended elsewhere: refined on the coarse points from there before the basins
+    assert "scouted_to" in report["far"] and "ended_at" in report["far"]
+    assert "coarse refinement (after scouting) from far" in timings
     chosen = next(name for name in starts if report[name].get("chosen"))
     assert report[chosen]["robust_cost"] == min(r["robust_cost"] for r in report.values())
     assert best.cx == report[chosen]["refined_to"][0]
