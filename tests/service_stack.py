@@ -13,12 +13,17 @@ import time
 import httpx
 import yaml
 
+from rigctl.demo import QUICK_CAMERA
 from rigctl.loopback import free_port
 from rigctl.simrig import SimulatedRig
 from tests.mockproc import ROOT
 from tests.waiting import wait_until
 
 TOKEN = "s3cret"
+# The service's and the console's active-camera runs: pan and tilt 5 deg, then `rigctl demo
+# --quick`'s plan (17 captures instead of the default 33). These tests check the service
+# and its pages; the default plan's accuracy is tests/test_e2e_default_world.py's.
+CAMERA_PARAMS = {"pan_deg": 5, "tilt_deg": 5, **QUICK_CAMERA}
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 
 

@@ -20,7 +20,7 @@ from rigctl.mocks.world import WORLDS, load_world
 from rigctl.procedures.planning import visible_views
 from tests.mockproc import ROOT, control
 from tests.needs import missing
-from tests.service_stack import TOKEN, Stack, get, post, wait_for
+from tests.service_stack import CAMERA_PARAMS, TOKEN, Stack, get, post, wait_for
 from tests.waiting import wait_until
 
 # one worker runs the module, so its service stack and browser are started once
@@ -90,6 +90,11 @@ def page(browser, stack):
 
 def _fits_width(page) -> bool:
     return page.evaluate("document.documentElement.scrollWidth <= window.innerWidth + 1")
+
+
+# the console's active-camera runs, filled in on the start form (CAMERA_PARAMS as text)
+CAMERA_FORM = {name: ", ".join(f"{v:g}" for v in value) if isinstance(value, list)
+               else f"{value:g}" for name, value in CAMERA_PARAMS.items()}
 
 
 def _start(page, stack, procedure: str, values: dict[str, str]) -> None:
@@ -195,7 +200,7 @@ def test_console_end_to_end(page, stack, artifacts):
 
     # 5. a calibration from the form, followed live on the rig page; a second run queued
     # behind it is aborted from the rig page's queue
-    _start(page, stack, "active-camera", {"pan_deg": "5", "tilt_deg": "5"})
+    _start(page, stack, "active-camera", CAMERA_FORM)
     page.wait_for_selector("#started:not([hidden])")
     camera_run = page.inner_text("#started-link").strip()
     queued = post(stack, "/runs", {"procedure": "capture-survey",
@@ -256,7 +261,7 @@ def _compare_with_the_accepted_calibration(page, stack, artifacts, accepted: str
     base = stack.base
     # the same noise-free, seeded world and parameters: the same camera again; the
     # comparison is there, and the difference is nothing against its sigma
-    _start(page, stack, "active-camera", {"pan_deg": "5", "tilt_deg": "5"})
+    _start(page, stack, "active-camera", CAMERA_FORM)
     page.wait_for_selector("#started:not([hidden])")
     same = page.inner_text("#started-link").strip()
     _open_following(page, stack, same)  # opened while queued or running
@@ -290,7 +295,7 @@ def _compare_with_the_accepted_calibration(page, stack, artifacts, accepted: str
     # difference (each calibration's own sigma, at the pixel where the change peaks)
     stack.restart_sim("drift")
     try:
-        _start(page, stack, "active-camera", {"pan_deg": "5", "tilt_deg": "5"})
+        _start(page, stack, "active-camera", CAMERA_FORM)
         page.wait_for_selector("#started:not([hidden])")
         drifted = page.inner_text("#started-link").strip()
         _open_following(page, stack, drifted)
@@ -430,7 +435,7 @@ def test_console_compares_arm_models(page, stack, artifacts, tmp_path):
     base = stack.base
     if get(base + "/calibrations/latest?procedure=active-camera").status_code == 404:
         camera = post(stack, "/runs", {"procedure": "active-camera",
-                                       "params": {"pan_deg": 5, "tilt_deg": 5}}).json()
+                                       "params": CAMERA_PARAMS}).json()
         assert wait_for(stack, camera["run_id"], timeout=WAIT_MS // 1000)["status"] \
             == "succeeded"
         _decided(stack, camera["run_id"])

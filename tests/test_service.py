@@ -12,6 +12,7 @@ import pytest
 
 from tests.mockproc import ROOT, control
 from tests.service_stack import (
+    CAMERA_PARAMS,
     REQUEST_TIMEOUT_S,
     LockHolder,
     Stack,
@@ -40,7 +41,7 @@ def accepted_camera(stack):
     if "active-camera" in latest:
         return latest["active-camera"]["run_id"]
     run_id = post(stack, "/runs", {"procedure": "active-camera",
-                                   "params": {"pan_deg": 5, "tilt_deg": 5}}).json()["run_id"]
+                                   "params": CAMERA_PARAMS}).json()["run_id"]
     assert wait_for(stack, run_id, timeout=400)["status"] == "succeeded"
     wait_until(lambda: get(f"{stack.base}/runs/{run_id}").json()["decision"],
                what="the decision on the calibration")
@@ -72,7 +73,7 @@ def test_active_camera_with_progress_events_then_accept(stack):
     events, run_id = [], None
     with httpx.stream("GET", stack.base + "/events", timeout=180) as stream:
         r = post(stack, "/runs", {"procedure": "active-camera",
-                                  "params": {"pan_deg": 5, "tilt_deg": 5}})
+                                  "params": CAMERA_PARAMS})
         assert r.status_code == 202
         run_id = r.json()["run_id"]
         for line in stream.iter_lines():
@@ -226,7 +227,7 @@ def test_drifted_intrinsics_are_flagged_and_wait(stack, accepted_camera):
     stack.restart_sim("drift")  # same devices, refocused lens
     try:
         run_id = post(stack, "/runs", {"procedure": "active-camera",
-                                       "params": {"pan_deg": 5, "tilt_deg": 5}}).json()["run_id"]
+                                       "params": CAMERA_PARAMS}).json()["run_id"]
         run = wait_for(stack, run_id, timeout=400)
     finally:
         stack.restart_sim("ideal")  # the next test finds the rig as it was
