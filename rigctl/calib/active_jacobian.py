@@ -54,7 +54,7 @@ def _inverse_2x2(J: np.ndarray) -> np.ndarray:
 
 def residual_jacobian(x: np.ndarray, n_dist: int, dist_slots: tuple, und_unique: np.ndarray,
                       point: np.ndarray, normals: np.ndarray, rotations: list[np.ndarray],
-                      d_rotations: list[np.ndarray], counts: list[int], s: np.ndarray,
+                      d_rotations: np.ndarray, counts: list[int], s: np.ndarray,
                       rho: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
     """d residual / d x over the camera parameters (rows, N_BASE + n_dist), with depths
     d residual / d rho of each row's own inverse depth (rows,), and each row's predicted
@@ -101,7 +101,7 @@ def residual_jacobian(x: np.ndarray, n_dist: int, dist_slots: tuple, und_unique:
     # [ray_j dr_dm_c for j, c] (9 columns) then dr_dm (3): per motion one product gives
     # d / d q for the rotation's parameters q (sum over j, c of ray_j dr_dm_c dR_q[j, c]),
     # d / d und (R's first two rows) and d / d s (R - I)
-    n_rot = d_rotations[0].shape[0] if d_rotations else 5  # 11: with the head angles
+    n_rot = d_rotations[0].shape[0] if len(d_rotations) else 5  # 11: with the head angles
     terms = np.empty((n, 12))
     dr_dm = terms[:, 9:]
     dr_dm[:, 0] = g[:, 0] * inv_z

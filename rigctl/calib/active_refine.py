@@ -32,7 +32,6 @@ image (images): then the residual is the point-to-curve distance along the norma
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 
@@ -42,13 +41,18 @@ from scipy.spatial import cKDTree
 
 from rigctl.calib.active_angles import CaptureAngles
 from rigctl.calib.active_jacobian import N_BASE, distort, residual_jacobian
+from rigctl.calib.active_rotations import (
+    motion_rotations,
+    mounting,
+    roll_axis,
+    rotation_derivatives,
+)
 from rigctl.calib.covariance import (
     cluster_meat,
     jackknife_changes,
     jackknife_spread,
     larger_variances,
 )
-from rigctl.calib.synthetic import rot_axis, rot_x, rot_y
 from rigctl.errors import SolveError
 
 PARAM_NAMES = ["fx", "fy", "cx", "cy", "n_x", "n_y", "n_z", "a_x", "a_y", "s_x", "s_y", "s_z",
@@ -98,15 +102,10 @@ class Motion:
         return self._tree
 
 
-def camera_orientation(angles, N: np.ndarray, a: np.ndarray) -> np.ndarray:
-    p, t, r = angles
-    return rot_y(p) @ rot_x(t) @ N @ rot_axis(a, r)
-
-
 def _unpack(x: np.ndarray, n_dist: int):
     fx, fy, cx, cy = x[:4]
-    N = _mounting(x[4:7])
-    a = _roll_axis(x[7:9])
+    N = mounting(x[4:7])
+    a = roll_axis(x[7:9])
     k = np.zeros(5)  # k1, k2, p1, p2, k3 (OpenCV's convention)
     k[list(DIST_SLOTS[n_dist])] = x[N_BASE:N_BASE + n_dist]
     return fx, fy, cx, cy, N, a, x[9:12], k
@@ -188,99 +187,11 @@ class PredictionCache:
         return self._lookup(self._rotations, key, lambda: _rotations(motions, N, a, offsets))
 
 
-def capture_angles(motions: list[Motion], offsets: np.ndarray | None = None
-                   ) -> list[tuple[tuple, tuple]]:
-    """Each motion's head angles (rad) of its two captures, as recorded plus ``offsets``
-    (motions x 6: the first capture's pan, tilt, roll, then the second's; None: none)."""
-    if offsets is None:
-        return [(tuple(m.angles0), tuple(m.angles1)) for m in motions]
-    return [(tuple(np.add(m.angles0, o[:3])), tuple(np.add(m.angles1, o[3:])))
-            for m, o in zip(motions, offsets, strict=True)]
-
-
 def _rotations(motions: list[Motion], N: np.ndarray, a: np.ndarray,
-               offsets: np.ndarray | None = None) -> list[np.ndarray]:
-    """Each motion's rotation of the camera rays, from its first to its second pose."""
-    return [camera_orientation(a0, N, a).T @ camera_orientation(a1, N, a)
-            for a0, a1 in capture_angles(motions, offsets)]
-
-
-def _mounting(rotvec: np.ndarray) -> np.ndarray:
-    angle = np.linalg.norm(rotvec)
-    return rot_axis(rotvec, angle) if angle > 0 else np.eye(3)
-
-
-def _roll_axis(tilts: np.ndarray) -> np.ndarray:
-    return rot_x(tilts[0]) @ rot_y(tilts[1]) @ np.array([0.0, 0.0, 1.0])
-
-
-def rotation_derivatives(motions: list[Motion], x: np.ndarray, step: float = 1e-6,
-                         offsets: np.ndarray | None = None, angles: bool = False
-                         ) -> list[np.ndarray]:
-    """d R / d x[4:9] (the mounting's rotation vector and the roll axis's two tilts) of
-    each motion's rotation ``R = C0^T C1`` (a list of (5, 3, 3)), with
-    ``C = Ry(p) Rx(t) N R_a(r)``: the mounting ``N`` and each capture's roll ``R_a(r)``
-    by central differences (a few 3x3 matrices), the rest by the product rule. The
-    captures' angles are the recorded ones plus ``offsets`` (``capture_angles``). With
-    ``angles``, (11, 3, 3) each: then d R / d (pan, tilt, roll) of the first capture and
-    of the second, in closed form (``dRy(p)/dp = Ry(p) [e_y]x``, ``dRx(t)/dt = Rx(t)
-    [e_x]x``, ``dR_a(r)/dr = R_a(r) [a]x``)."""
-    N = _mounting(x[4:7])
-    a = _roll_axis(x[7:9])
-    dN = []
-    for i in range(3):
-        e = np.zeros(3)
-        e[i] = step
-        dN.append((_mounting(x[4:7] + e) - _mounting(x[4:7] - e)) / (2 * step))
-    # the roll axis a = Rx(t0) Ry(t1) e_z is a unit vector whose derivatives are
-    # perpendicular to it, so d R_a(r) = sin r dK + (1 - cos r) (dK K + K dK) with
-    # K = [a]x, dK = [da]x (Rodrigues' formula differentiated)
-    Rx0, Ry1 = rot_x(x[7]), rot_y(x[8])
-    K = _skew(a)
-    dK = [_skew(Rx0 @ _SKEW_X @ Ry1 @ _E_Z), _skew(Rx0 @ Ry1 @ _SKEW_Y @ _E_Z)]
-    dK2 = [d @ K + K @ d for d in dK]
-    cache: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
-
-    def capture(angles) -> tuple[np.ndarray, np.ndarray]:
-        """C and dC (5, 3, 3) at one capture's head angles."""
-        key = tuple(angles)
-        if key not in cache:
-            p, t, r = angles
-            H = rot_y(p) @ rot_x(t)
-            sin_r, versin_r = math.sin(r), 1.0 - math.cos(r)
-            Ra = np.eye(3) + sin_r * K + versin_r * (K @ K)
-            HN = H @ N
-            dC = np.empty((5, 3, 3))
-            for i in range(3):
-                dC[i] = H @ dN[i] @ Ra
-            for j in range(2):
-                dC[3 + j] = HN @ (sin_r * dK[j] + versin_r * dK2[j])
-            C = HN @ Ra
-            if angles:
-                Ry, Rx = rot_y(p), rot_x(t)
-                dA = np.stack([Ry @ _SKEW_Y @ Rx @ N @ Ra, Ry @ Rx @ _SKEW_X @ N @ Ra,
-                               C @ _skew(a)])
-                dC = np.concatenate([dC, dA])
-            cache[key] = (C, dC)
-        return cache[key]
-
-    out = []
-    for a0, a1 in capture_angles(motions, offsets):
-        C0, dC0 = capture(a0)
-        C1, dC1 = capture(a1)
-        dR = np.transpose(dC0[:5], (0, 2, 1)) @ C1 + C0.T @ dC1[:5]
-        if angles:
-            dR = np.concatenate([dR, np.transpose(dC0[5:], (0, 2, 1)) @ C1, C0.T @ dC1[5:]])
-        out.append(dR)
-    return out
-
-
-def _skew(v) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
-_SKEW_X, _SKEW_Y = _skew((1.0, 0.0, 0.0)), _skew((0.0, 1.0, 0.0))
-_E_Z = np.array([0.0, 0.0, 1.0])
+               offsets: np.ndarray | None = None) -> np.ndarray:
+    """Each motion's rotation of the camera rays, from its first to its second pose
+    (``active_rotations.motion_rotations``)."""
+    return motion_rotations(motions, N, a, offsets)
 
 
 def predict(motion: Motion, x: np.ndarray, n_dist: int) -> np.ndarray:
@@ -300,7 +211,7 @@ def predict_many(motions: list[Motion], x: np.ndarray, n_dist: int,
     point's inverse depth, 1/m) the parallax parameters are the centre of projection's
     offset ``o`` (m) and each point moves by its own ``s = rho o``. ``cache`` (with
     ``refs``, and always the same ``motions``): reuse undistortions and rotations;
-    ``offsets``: added to the captures' head angles (``capture_angles``)."""
+    ``offsets``: added to the captures' head angles (``active_rotations.capture_angle_arrays``)."""
     pixels = _predict_all(motions, x, n_dist, refs, rho, cache, offsets)
     return np.split(pixels, np.cumsum([len(m.ref_points) for m in motions])[:-1])
 
