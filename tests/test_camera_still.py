@@ -8,7 +8,8 @@ import cv2
 import numpy as np
 
 from rigctl.config import CameraConfig
-from rigctl.drivers.camera import mean_change
+from rigctl.drivers.camera import changed_share, mean_change
+from rigctl.runner import STALE_CHANGED_SHARE
 
 
 def scene(rng, shift: float = 0.0) -> np.ndarray:
@@ -30,3 +31,24 @@ def test_noise_is_still_and_a_pixel_of_motion_is_not():
     assert mean_change(scene(rng), scene(rng, shift=1.5)) > threshold
     colour = cv2.cvtColor(scene(rng), cv2.COLOR_GRAY2BGR)
     assert mean_change(colour, scene(rng)) < 0.3 * threshold
+
+
+def sparse_scene(rng, shift: int = 0) -> np.ndarray:
+    """A few thin outlines on a plain background, as the simulated worlds' contours."""
+    img = np.full((720, 1280), 118, np.uint8)
+    for k in range(5):
+        x, y = 150 + 200 * k + shift, 200 + (k * 53) % 300
+        cv2.ellipse(img, (x, y), (50, 35), 0, 0, 360, 20 if k % 2 else 235, 2, cv2.LINE_AA)
+    return np.clip(img + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8)
+
+
+def test_a_small_move_of_a_sparse_scene_changes_few_cells_clearly():
+    """The arm's 10 mm SHIFT before the depth capture moves a sparse view by a few
+    pixels: its mean change is under the default threshold, yet some cells change by
+    far more than noise does, which tells it from a stale frame (``runner._same_view``)."""
+    rng = np.random.default_rng(5)
+    threshold = CameraConfig(device=0).still_threshold
+    before, moved = sparse_scene(rng), sparse_scene(rng, shift=8)
+    assert mean_change(before, moved) < threshold
+    assert changed_share(before, moved) > 2 * STALE_CHANGED_SHARE
+    assert changed_share(before, sparse_scene(rng)) == 0.0  # noise only

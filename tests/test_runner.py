@@ -11,6 +11,7 @@ import sys
 import threading
 import time
 
+import numpy as np
 import pytest
 
 from rigctl.config import load_rig
@@ -282,3 +283,21 @@ def test_a_stale_view_after_a_motion_is_captured_again(rig_file, caplog):
     assert "stale frame" in caplog.text
     camera.calls = 0  # not moved since: the same view is what it should be
     assert runner._fresh_frame(camera, state).image is new and camera.calls == 1
+
+
+def test_a_small_move_of_a_sparse_view_is_not_taken_for_a_stale_frame(rig_file, caplog):
+    """The arm's small SHIFT moves thin contours by a few pixels: a mean change under
+    ``still_threshold`` but clear changes in some cells; captured once, no retry."""
+    from tests.test_camera_still import sparse_scene
+
+    config = load_rig(rig_file(camera=True))
+    runner, _ = make_runner(config)
+    rng = np.random.default_rng(1)
+    before, shifted = sparse_scene(rng), sparse_scene(rng, shift=8)
+    camera = ReplayCamera(config.devices.camera, [before, shifted])
+    state = {"last_motion_end": time.time(), "head_commanded": {"pan": 0.0},
+             "arm_commanded": None}
+    assert runner._fresh_frame(camera, state).image is before
+    state["arm_commanded"] = {"kind": "MoveArmLinear"}  # the SHIFT
+    assert runner._fresh_frame(camera, state).image is shifted and camera.calls == 2
+    assert "stale frame" not in caplog.text

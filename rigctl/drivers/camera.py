@@ -24,6 +24,7 @@ import time
 from typing import Any
 
 import cv2
+import numpy as np
 
 from rigctl.drivers.base import Camera, DeviceError, Frame, load_note
 from rigctl.drivers.v4l2_controls import V4L2Controls, device_path
@@ -36,14 +37,25 @@ FRESH_MARGIN_S = 0.02
 LIVE_GAP = 0.3
 
 
+def _cells(img) -> np.ndarray:
+    """The frame in grey, 8x downsampled (area): 8 x 8 pixel cells."""
+    grey = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if img.ndim == 3 else img
+    return cv2.resize(grey.astype("float32"), (grey.shape[1] // 8, grey.shape[0] // 8),
+                      interpolation=cv2.INTER_AREA)
+
+
 def mean_change(a, b) -> float:
     """Mean absolute grey-level change between two frames, 8x downsampled (area), so
     that sensor noise averages out (a noise of 2 grey levels leaves ~0.3)."""
-    def small(img):
-        grey = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if img.ndim == 3 else img
-        return cv2.resize(grey.astype("float32"), (grey.shape[1] // 8, grey.shape[0] // 8),
-                          interpolation=cv2.INTER_AREA)
-    return float(cv2.absdiff(small(a), small(b)).mean())
+    return float(cv2.absdiff(_cells(a), _cells(b)).mean())
+
+
+def changed_share(a, b, level: float = 8.0) -> float:
+    """The share of 8 x 8 pixel cells whose mean grey level changed by more than
+    ``level`` between two frames. Sensor noise of 2 grey levels moves a cell by about
+    0.25, so a still scene leaves none; a small move of a sparse scene (thin contours on
+    a plain background) changes few cells, but by far more than ``level``."""
+    return float(np.mean(cv2.absdiff(_cells(a), _cells(b)) > level))
 CONTROL_PROPS = {
     "exposure": cv2.CAP_PROP_EXPOSURE, "gain": cv2.CAP_PROP_GAIN,
     "focus": cv2.CAP_PROP_FOCUS, "white_balance": cv2.CAP_PROP_WB_TEMPERATURE,
