@@ -250,9 +250,12 @@ class RigService:
                     self.cond.wait(0.5)
                 if self.stopping:
                     return
-                job = self.queue.popleft()
+                # the job is the current one before it leaves the queue: the API, which
+                # reads both without the lock, finds its id in one or the other, never
+                # in neither (a 404 right after the 202 that gave the id)
+                job = self.current = self.queue[0]
+                self.queue.popleft()
                 save_queue(self)
-                self.current = job
                 self.runner = Runner(self.config, factories=self.factories,
                                      show_progress=False, operator=job.operator,
                                      on_event=lambda e, j=job: self._on_event(j, e))
@@ -555,7 +558,7 @@ def _run_listing(service: RigService, limit: int, procedure: str | None) -> list
     current = service.current
     rows = [_row(r) for r in service.runs(limit, procedure)]
     if current is not None and procedure in (None, current.procedure) and \
-            current.run_id not in {r["run_id"] for r in rows}:
+            current.run_id not in {r["run_id"] for r in rows + queued}:
         queued.append(_starting(current))
     return queued + rows
 

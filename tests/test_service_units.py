@@ -241,6 +241,45 @@ def test_a_run_aborted_in_the_queue_is_recorded_as_aborted_by_its_caller(tmp_pat
                         headers=auth).status_code == 422
 
 
+def test_a_run_taken_off_the_queue_answers_starting_not_404(tmp_path, monkeypatch):
+    """The worker saves the queue after taking a job off it, before the runner records the
+    run: a client polling the id its 202 gave gets "starting" meanwhile, never a 404
+    (seen as a failed suite run: the job was in neither the queue nor ``current``)."""
+    import threading
+
+    from rigctl import service as service_module
+
+    service, auth = _head_service(tmp_path)
+    lock = rig_lock(service.config)
+    lock.acquire("held-by-test")
+    saving, release = threading.Event(), threading.Event()
+    real_save = service_module.save_queue
+
+    def held_save(svc):
+        if not svc.queue and not saving.is_set():  # the worker, the job just taken
+            saving.set()
+            release.wait(30)
+        real_save(svc)
+
+    monkeypatch.setattr(service_module, "save_queue", held_save)
+    try:
+        service.start()
+        with TestClient(create_app(service)) as api:
+            run_id = api.post("/runs", json=SWEEP, headers=auth).json()["run_id"]
+            assert saving.wait(30), "the worker never took the job"
+            r = api.get(f"/runs/{run_id}")
+            listed = {row["run_id"]: row["status"] for row in api.get("/runs").json()}
+            release.set()
+            assert r.status_code == 200 and r.json()["status"] == "starting", r.text
+            assert listed[run_id] == "starting"
+            wait_until(lambda: api.get(f"/runs/{run_id}").json().get("status") == "failed",
+                       what="the refused run's record")
+    finally:
+        release.set()
+        service.stop()
+        lock.release()
+
+
 def test_a_queued_run_refused_when_it_starts_keeps_the_operator_who_asked(tmp_path):
     """A run the worker cannot start (the rig held elsewhere) is recorded as failed with
     the operator who queued it, not the scheduler's name."""
