@@ -184,14 +184,7 @@ class PredictionCache:
             self._rotations.clear()
             self._motions = motions
         key = (N.tobytes(), a.tobytes(), None if offsets is None else offsets.tobytes())
-        return self._lookup(self._rotations, key, lambda: _rotations(motions, N, a, offsets))
-
-
-def _rotations(motions: list[Motion], N: np.ndarray, a: np.ndarray,
-               offsets: np.ndarray | None = None) -> np.ndarray:
-    """Each motion's rotation of the camera rays, from its first to its second pose
-    (``active_rotations.motion_rotations``)."""
-    return motion_rotations(motions, N, a, offsets)
+        return self._lookup(self._rotations, key, lambda: motion_rotations(motions, N, a, offsets))
 
 
 def predict(motion: Motion, x: np.ndarray, n_dist: int) -> np.ndarray:
@@ -229,7 +222,7 @@ def _predict_all(motions, x, n_dist, refs=None, rho=None, cache=None, offsets=No
     rays = np.column_stack([und, np.ones(len(refs))]) + s
     moved, start = np.empty_like(rays), 0
     rotations = cache.rotations(motions, N, a, offsets) if cache is not None else \
-        _rotations(motions, N, a, offsets)
+        motion_rotations(motions, N, a, offsets)
     for motion, R in zip(motions, rotations, strict=True):
         end = start + len(motion.ref_points)
         moved[start:end] = rays[start:end] @ R - (s[start:end] if s.ndim == 2 else s)

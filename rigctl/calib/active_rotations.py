@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from rigctl.calib.synthetic import rot_axis, rot_x, rot_y
+
 _E_Z = np.array([0.0, 0.0, 1.0])
 
 
@@ -29,16 +31,12 @@ SKEW_X, SKEW_Y = skew((1.0, 0.0, 0.0)), skew((0.0, 1.0, 0.0))
 def mounting(rotvec: np.ndarray) -> np.ndarray:
     """``N``, the camera's mounting rotation, from its rotation vector (Rodrigues)."""
     angle = np.linalg.norm(rotvec)
-    if angle == 0:
-        return np.eye(3)
-    K = skew(np.asarray(rotvec, float) / angle)
-    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+    return rot_axis(rotvec, angle) if angle > 0 else np.eye(3)
 
 
 def roll_axis(tilts: np.ndarray) -> np.ndarray:
     """The roll axis in the camera frame, ``Rx(t0) Ry(t1) e_z``."""
-    t0, t1 = tilts[0], tilts[1]
-    return np.array([np.sin(t1), -np.sin(t0) * np.cos(t1), np.cos(t0) * np.cos(t1)])
+    return rot_x(tilts[0]) @ rot_y(tilts[1]) @ _E_Z
 
 
 def _rot_x(t: np.ndarray) -> np.ndarray:
@@ -116,7 +114,7 @@ def rotation_derivatives(motions, x: np.ndarray, step: float = 1e-6,
     # the roll axis a = Rx(t0) Ry(t1) e_z is a unit vector whose derivatives are
     # perpendicular to it, so d R_a(r) = sin r dK + (1 - cos r) (dK K + K dK) with
     # K = [a]x, dK = [da]x
-    Rx0, Ry1 = _rot_x(np.array([x[7]]))[0], _rot_y(np.array([x[8]]))[0]
+    Rx0, Ry1 = rot_x(x[7]), rot_y(x[8])
     K = skew(a)
     dK = np.stack([skew(Rx0 @ SKEW_X @ Ry1 @ _E_Z), skew(Rx0 @ Ry1 @ SKEW_Y @ _E_Z)])
     dK2 = dK @ K + K @ dK
