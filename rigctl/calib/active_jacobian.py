@@ -22,34 +22,29 @@ import numpy as np
 N_BASE = 12
 
 
-def distortion_jacobians(xy: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """At normalised points ``xy`` (N, 2): ``dD/dxy`` (N, 2, 2) and ``dD/dk`` (N, 2, 5) of
-    OpenCV's distortion with ``k`` = k1, k2, p1, p2, k3."""
+def _distortion_terms(xy: np.ndarray, k: np.ndarray, slots) -> tuple:
+    """In one pass over normalised points ``xy`` (N, 2): OpenCV's distortion ``D(xy)``
+    (``distort``; ``k`` = k1, k2, p1, p2, k3), its Jacobian ``dD/dxy`` (the entries J00,
+    J01 = J10 and J11, each (N,)) and ``dD/dk`` of the terms in ``slots`` only (per slot
+    its x and y rows, each (N,))."""
     x, y = xy[:, 0], xy[:, 1]
     k1, k2, p1, p2, k3 = k
-    r2 = x * x + y * y
-    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    d_radial = k1 + r2 * (2 * k2 + 3 * k3 * r2)  # d radial / d r2
-    J = np.empty((len(xy), 2, 2))
-    J[:, 0, 0] = radial + 2 * x * x * d_radial + 2 * p1 * y + 6 * p2 * x
-    J[:, 0, 1] = 2 * x * y * d_radial + 2 * p1 * x + 2 * p2 * y
-    J[:, 1, 0] = J[:, 0, 1]
-    J[:, 1, 1] = radial + 2 * y * y * d_radial + 6 * p1 * y + 2 * p2 * x
-    Jk = np.empty((len(xy), 2, 5))
-    Jk[:, 0, 0], Jk[:, 1, 0] = x * r2, y * r2
-    Jk[:, 0, 1], Jk[:, 1, 1] = x * r2 * r2, y * r2 * r2
-    Jk[:, 0, 2], Jk[:, 1, 2] = 2 * x * y, r2 + 2 * y * y
-    Jk[:, 0, 3], Jk[:, 1, 3] = r2 + 2 * x * x, 2 * x * y
-    Jk[:, 0, 4], Jk[:, 1, 4] = x * r2 ** 3, y * r2 ** 3
-    return J, Jk
-
-
-def _inverse_2x2(J: np.ndarray) -> np.ndarray:
-    det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
-    inv = np.empty_like(J)
-    inv[:, 0, 0], inv[:, 1, 1] = J[:, 1, 1] / det, J[:, 0, 0] / det
-    inv[:, 0, 1], inv[:, 1, 0] = -J[:, 0, 1] / det, -J[:, 1, 0] / det
-    return inv
+    xx, yy, xy_ = x * x, y * y, x * y
+    r2 = xx + yy
+    radial = 1 + r2 * (k[0] + r2 * (k[1] + r2 * k[4]))
+    xd = np.empty((len(xy), 2))
+    xd[:, 0] = x * radial + 2 * k[2] * x * y + k[3] * (r2 + 2 * x * x)
+    xd[:, 1] = y * radial + k[2] * (r2 + 2 * y * y) + 2 * k[3] * x * y
+    d_radial = k1 + r2 * (2 * k2 + 3 * k3 * r2)
+    two_d = 2 * d_radial
+    J00 = radial + two_d * xx + 2 * p1 * y + 6 * p2 * x
+    J01 = two_d * xy_ + 2 * p1 * x + 2 * p2 * y
+    J11 = radial + two_d * yy + 6 * p1 * y + 2 * p2 * x
+    r4 = r2 * r2
+    columns = {0: lambda: (x * r2, y * r2), 1: lambda: (x * r4, y * r4),
+               2: lambda: (2 * xy_, r2 + 2 * yy), 3: lambda: (r2 + 2 * xx, 2 * xy_),
+               4: lambda: (x * (r4 * r2), y * (r4 * r2))}
+    return xd, J00, J01, J11, [columns[slot]() for slot in slots]
 
 
 def residual_jacobian(x: np.ndarray, n_dist: int, dist_slots: tuple, und_unique: np.ndarray,
@@ -93,9 +88,12 @@ def residual_jacobian(x: np.ndarray, n_dist: int, dist_slots: tuple, und_unique:
     # d residual / d xn = n^T F Jd (Jd: the distortion's Jacobian at xn), then through
     # xn = m_xy / m_z
     nf = normals * F
+    nf0, nf1 = nf[:, 0], nf[:, 1]
     if n_dist:
-        Jd, Jk_out = distortion_jacobians(xn, k)
-        g = nf[:, 0, None] * Jd[:, 0, :] + nf[:, 1, None] * Jd[:, 1, :]
+        xd, J00, J01, J11, Jk_out = _distortion_terms(xn, k, dist_slots)
+        g = np.empty((n, 2))
+        g[:, 0] = nf0 * J00 + nf1 * J01
+        g[:, 1] = nf0 * J01 + nf1 * J11
     else:
         g = nf
     # [ray_j dr_dm_c for j, c] (9 columns) then dr_dm (3): per motion one product gives
@@ -126,11 +124,15 @@ def residual_jacobian(x: np.ndarray, n_dist: int, dist_slots: tuple, und_unique:
     # back through the undistortion u = D^-1(u0): du / du0 = Jd(u)^-1, at each distinct
     # reference point once
     if n_dist:
-        Jd_in, Jk_in = distortion_jacobians(und_unique, k)
-        inv = _inverse_2x2(Jd_in)[point]
-        dr_du0 = dr_du[:, 0, None] * inv[:, 0, :] + dr_du[:, 1, None] * inv[:, 1, :]
-        u0 = distort(und_unique, k)[point]
-        xd = distort(xn, k)
+        u0_in, I00, I01, I11, Jk_in = _distortion_terms(und_unique, k, dist_slots)
+        det = I00 * I11 - I01 * I01
+        # the inverse's entries, per distinct point, then per row
+        A00, A01, A11 = (I11 / det)[point], (-I01 / det)[point], (I00 / det)[point]
+        du0, du1 = dr_du[:, 0], dr_du[:, 1]
+        dr_du0 = np.empty((n, 2))
+        dr_du0[:, 0] = du0 * A00 + du1 * A01
+        dr_du0[:, 1] = du0 * A01 + du1 * A11
+        u0 = u0_in[point]
     else:
         dr_du0, u0, xd = dr_du, und, xn
     # intrinsics: the direct term of pixel = f xd + c, and u0 = (p - c) / f before
@@ -142,9 +144,12 @@ def residual_jacobian(x: np.ndarray, n_dist: int, dist_slots: tuple, und_unique:
     out[:, 9:12] = dr_ds * (rho[:, None] if rho is not None else 1.0)
     d_rho = dr_ds @ x[9:12] if rho is not None else None
     # distortion: at the output point, and through the undistortion of the input
-    for j, slot in enumerate(dist_slots):
-        out_t[N_BASE + j] = nf[:, 0] * Jk_out[:, 0, slot] + nf[:, 1] * Jk_out[:, 1, slot] \
-            - dr_du0[:, 0] * Jk_in[point, 0, slot] - dr_du0[:, 1] * Jk_in[point, 1, slot]
+    if n_dist:
+        d0, d1 = dr_du0[:, 0], dr_du0[:, 1]
+    for j, ((kx_out, ky_out), (kx_in, ky_in)) in enumerate(zip(Jk_out if n_dist else [],
+                                                                Jk_in if n_dist else [],
+                                                                strict=True)):
+        out_t[N_BASE + j] = nf0 * kx_out + nf1 * ky_out - d0 * kx_in[point] - d1 * ky_in[point]
     pixels = np.stack([fx * xd[:, 0] + x[2], fy * xd[:, 1] + x[3]], axis=1)
     return out, d_rho, pixels
 
