@@ -36,7 +36,6 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
 from rigctl.calib.active_angles import CaptureAngles
@@ -53,6 +52,7 @@ from rigctl.calib.covariance import (
     jackknife_spread,
     larger_variances,
 )
+from rigctl.calib.normal_lm import levenberg_marquardt
 from rigctl.errors import SolveError
 
 PARAM_NAMES = ["fx", "fy", "cx", "cy", "n_x", "n_y", "n_z", "a_x", "a_y", "s_x", "s_y", "s_z",
@@ -533,6 +533,7 @@ class _Problem:
                                      f"this refinement's {self.angles.delta.shape}")
                 self.angles.delta[:] = delta
         self._elimination: tuple | None = None  # (key, Elimination)
+        self._jacobian: tuple | None = None  # (key, J, residuals)
         # whether the captures' own offsets are estimated (eliminated) in the solves; the
         # first solve from a far start leaves them at the readings
         self.eliminating = self.angles is not None
@@ -581,13 +582,13 @@ class _Problem:
         """Residuals and the priors' rows, over the free parameters; with the head
         angles, the residuals at each capture's best offsets and those offsets' prior
         rows (``active_angles``)."""
-        xv = self.full(xf)
         has = np.isfinite(self.prior_sigma[self.free])
         prior_rows = (xf - self.prior_mean[self.free])[has] / self.prior_sigma[self.free][has]
         if self.eliminating:
             e = self.eliminated(xf, assoc, targets)
             return np.concatenate([e.residuals, e.prior_rows, prior_rows])
-        return np.concatenate([self.residuals(xv, assoc, targets), prior_rows])
+        _, r = self._jacobian_at(xf, assoc, targets, len(prior_rows))
+        return np.concatenate([r, prior_rows])
 
     def eliminated(self, xf: np.ndarray, assoc, targets):
         """The captures' offsets eliminated at ``xf`` (``CaptureAngles.eliminate``, with
@@ -616,9 +617,24 @@ class _Problem:
         if self.eliminating:
             e = self.eliminated(xf, assoc, targets)
             return np.vstack([e.jac_rows, e.jac_prior, prior])
-        J, _, _, _ = self._raw_jacobian(self.full(xf), assoc, targets, len(with_prior))
+        J, _ = self._jacobian_at(xf, assoc, targets, len(with_prior))
+        self._jacobian = None  # the optimiser may scale the array it is given in place
         J[len(J) - len(with_prior):] = prior
         return J
+
+    def _jacobian_at(self, xf: np.ndarray, assoc, targets, extra_rows: int):
+        """The raw Jacobian (``extra_rows`` of zeros after the residual rows) and the
+        residuals at ``xf``, kept for the next call at the same point: one pass of
+        ``residual_jacobian`` gives both, and the optimiser asks for the Jacobian where
+        it has just evaluated the residuals."""
+        key = (xf.tobytes(), id(assoc), id(targets), extra_rows)
+        if self._jacobian is None or self._jacobian[0] != key:
+            xv = self.full(xf)
+            J, _, _, pixels = self._raw_jacobian(xv, assoc, targets, extra_rows)
+            r = targets.row_residuals(pixels) if targets is not None else \
+                self.residuals(xv, assoc, targets)
+            self._jacobian = (key, J, r)
+        return self._jacobian[1], self._jacobian[2]
 
     def _raw_jacobian(self, xv: np.ndarray, assoc, targets, extra_rows: int = 0):
         """d residual / d free parameters (at the captures' current offsets; rows, then
@@ -688,9 +704,9 @@ class _Problem:
     def solve(self, assoc, loss: str, max_nfev: int):
         targets = CurveTargets.build(self.motions, self.masks, assoc)
         try:
-            fit = least_squares(self.fun, self.x[self.free], jac=self.jac,
-                                args=(assoc, targets), loss=loss, f_scale=1.0, x_scale="jac",
-                                max_nfev=max_nfev)
+            fit = levenberg_marquardt(self.fun, self.jac, self.x[self.free],
+                                      args=(assoc, targets), loss=loss, f_scale=1.0,
+                                      max_nfev=max_nfev)
         except (ValueError, np.linalg.LinAlgError) as exc:  # non-finite at its start
             raise SolveError(f"refinement diverged: {exc}") from exc
         self.x = self.full(fit.x)

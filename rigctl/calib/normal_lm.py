@@ -1,0 +1,162 @@
+"""Levenberg-Marquardt on the normal equations, for tall least-squares problems.
+
+The active-camera refinement (``active_refine``) fits some 20 to 60 parameters to 10,000
+to 100,000 residual rows. A dense trust-region solver that takes the SVD of the whole
+Jacobian at every step (scipy's ``least_squares``, method "trf") spends a third of the
+refinement on that SVD (22 ms at 53,000 x 22), against 2 ms to form ``J^T J``. This
+solver works on the normal equations instead, so each step costs one product
+``J^T W J`` and one small Cholesky factorisation:
+
+- the step solves ``(H + lambda D^2) p = -g`` (Levenberg 1944, Marquardt 1963) with
+  ``H = J^T W J`` and ``g = J^T rho' f``; ``D^2`` is the running maximum of ``diag(H)``
+  (More 1978), so the damping is invariant to the parameters' units, as scipy's
+  ``x_scale="jac"``;
+- the damping follows the ratio of actual to predicted reduction (Nielsen 1999): it
+  shrinks after a good step and doubles, then quadruples, after a rejected one;
+- a robust loss (``soft_l1``: ``rho(z) = 2 (sqrt(1 + z) - 1)`` with ``z = (f / f_scale)^2``)
+  enters through its first derivative in the gradient and ``rho' + 2 z rho''`` as each
+  row's weight in ``H`` (Triggs et al. 2000, the same second-order correction scipy
+  applies);
+- the tests that end a solve are scipy's: a relative cost change under ``ftol`` on a
+  step whose ratio exceeds 0.25, a step under ``xtol (xtol + |x|)``, a scaled gradient
+  under ``gtol``, or ``max_nfev`` residual evaluations.
+
+The normal equations square the Jacobian's condition number. With the columns scaled
+to unit norm the refinement's is about 1e3, so ``H``'s 1e6 leaves ten digits; the
+residuals themselves are always evaluated exactly, so a step's rounding only slows
+convergence, never moves its end point.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.linalg import LinAlgError, cho_factor, cho_solve
+
+LOSSES = ("linear", "soft_l1")
+# Nielsen's damping: the first damping relative to the scaled diagonal (1), and the
+# factor a rejected step multiplies it by (doubled again after each further rejection)
+FIRST_DAMPING = 1e-3
+FIRST_GROWTH = 2.0
+
+
+@dataclass
+class LsqFit:
+    """The end of a solve: the parameters, the residuals and the Jacobian there (as
+    ``jac`` returned it, unweighted), the cost (half the sum of ``rho``, times
+    ``f_scale^2``), the evaluations, and why it stopped (0: ``max_nfev``, 1: ``gtol``,
+    2: ``ftol``, 3: ``xtol``)."""
+
+    x: np.ndarray
+    fun: np.ndarray
+    jac: np.ndarray
+    cost: float
+    nfev: int
+    njev: int
+    status: int
+
+    @property
+    def success(self) -> bool:
+        return self.status > 0
+
+
+def _loss_terms(f: np.ndarray, loss: str, f_scale: float
+                ) -> tuple[float, np.ndarray | None, np.ndarray]:
+    """The cost, each row's weight in ``H`` (None: all ones) and ``rho' f``."""
+    if loss == "linear":
+        return 0.5 * float(f @ f), None, f
+    z = (f / f_scale) ** 2
+    root = np.sqrt(1.0 + z)
+    cost = 0.5 * f_scale ** 2 * float(np.sum(2.0 * (root - 1.0)))
+    d1 = 1.0 / root
+    weight = d1 / (1.0 + z)  # rho' + 2 z rho'' = (1 + z)^(-3/2): always positive
+    return cost, weight, d1 * f
+
+
+def _cost(f: np.ndarray, loss: str, f_scale: float) -> float:
+    return _loss_terms(f, loss, f_scale)[0]
+
+
+class _Damping:
+    """Nielsen's damping: shrunk after a step by how well the model predicted it, grown
+    (twice, then four times, ...) after each rejected step in a row."""
+
+    def __init__(self) -> None:
+        self.value, self.growth = FIRST_DAMPING, FIRST_GROWTH
+
+    def accepted(self, ratio: float) -> None:
+        self.value *= max(1.0 / 3.0, 1.0 - (2.0 * ratio - 1.0) ** 3)
+        self.growth = FIRST_GROWTH
+
+    def rejected(self) -> None:
+        self.value *= self.growth
+        self.growth *= 2.0
+
+
+def _step(H: np.ndarray, g: np.ndarray, D: np.ndarray, damping: float) -> np.ndarray | None:
+    """The damped Gauss-Newton step ``(H + damping D^2) p = -g``, or None when the
+    scaled matrix is not positive definite at this damping."""
+    Hs = H / np.outer(D, D)
+    try:
+        factor = cho_factor(Hs + damping * np.eye(len(g)), check_finite=False)
+        return -cho_solve(factor, g / D, check_finite=False) / D
+    except (LinAlgError, ValueError):
+        return None
+
+
+def levenberg_marquardt(fun: Callable[..., np.ndarray], jac: Callable[..., np.ndarray],
+                        x0: np.ndarray, args: tuple = (), loss: str = "linear",
+                        f_scale: float = 1.0, max_nfev: int = 100, ftol: float = 1e-8,
+                        xtol: float = 1e-8, gtol: float = 1e-8) -> LsqFit:
+    """Minimise ``0.5 sum rho(fun(x)^2)`` from ``x0`` (module docstring) with the
+    analytic Jacobian ``jac`` (called only where ``fun`` was just evaluated, at accepted
+    points). Non-finite residuals at a trial point reject the step; at ``x0`` they raise
+    ``ValueError``, as scipy's ``least_squares`` does."""
+    if loss not in LOSSES:
+        raise ValueError(f"levenberg_marquardt: loss must be one of {LOSSES}, got {loss!r}")
+    x = np.array(x0, float)
+    f = np.asarray(fun(x, *args), float)
+    if not np.all(np.isfinite(f)):
+        raise ValueError("Residuals are not finite in the initial point.")
+    J = np.asarray(jac(x, *args), float)
+    nfev = njev = 1
+    cost, weight, rf = _loss_terms(f, loss, f_scale)
+    diag_max = np.zeros(len(x))
+    damping = _Damping()
+    status = None
+    while status is None:
+        H = J.T @ (J if weight is None else J * weight[:, None])
+        g = J.T @ rf
+        diag_max = np.maximum(diag_max, np.diag(H))
+        D = np.sqrt(np.where(diag_max > 0, diag_max, 1.0))
+        if np.max(np.abs(g / D), initial=0.0) < gtol:
+            status = 1
+        while status is None:  # trial steps until one lowers the cost
+            if nfev >= max_nfev:
+                status = 0
+                break
+            step = _step(H, g, D, damping.value)
+            if step is None:
+                damping.rejected()
+                continue
+            f_new = np.asarray(fun(x + step, *args), float)
+            nfev += 1
+            cost_new = _cost(f_new, loss, f_scale) if np.all(np.isfinite(f_new)) else np.inf
+            predicted = -(g @ step + 0.5 * step @ (H @ step))
+            actual = cost - cost_new
+            ratio = actual / predicted if predicted > 0 else 0.0
+            small = np.linalg.norm(step) < xtol * (xtol + np.linalg.norm(x))
+            if not (actual > 0 and ratio > 0):
+                damping.rejected()
+                status = 3 if small else None
+                continue
+            damping.accepted(ratio)
+            status = 2 if actual < ftol * cost and ratio > 0.25 else 3 if small else None
+            x, f = x + step, f_new
+            J = np.asarray(jac(x, *args), float)
+            njev += 1
+            cost, weight, rf = _loss_terms(f, loss, f_scale)
+            break
+    return LsqFit(x, f, J, cost, nfev, njev, status)
