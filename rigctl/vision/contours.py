@@ -52,7 +52,9 @@ def gradient_magnitude(gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
     output landed, which moved sub-pixel points 5e-7 px from one solve of the same
     captures to the next; on a world with two near basins (random world 99321) the
     solve then ended in either."""
-    return np.sqrt(gx * gx + gy * gy)
+    out = gx * gx
+    out += gy * gy
+    return np.sqrt(out, out=out)
 
 
 def subpixel(emap: EdgeMap, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
