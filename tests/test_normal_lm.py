@@ -60,6 +60,10 @@ def test_soft_l1_ignores_gross_outliers_as_scipy_does(seed):
                            max_nfev=200)
     np.testing.assert_allclose(ours.x, theirs.x, rtol=1e-6)
     np.testing.assert_allclose(ours.x, truth, atol=0.01)
+    # the robust cost on scipy's scale: half the sum of 2 (sqrt(1 + f^2) - 1)
+    f = fun(ours.x, 0.01)
+    assert ours.cost == pytest.approx(np.sum(np.sqrt(1 + f ** 2) - 1), rel=1e-12)
+    assert ours.cost == pytest.approx(theirs.cost, rel=1e-9)
     # the linear loss is pulled off by the outliers: the robust one is what works
     plain = levenberg_marquardt(fun, jac, x0, args=(0.01,))
     assert np.max(np.abs(plain.x - truth)) > 5 * np.max(np.abs(ours.x - truth))
@@ -95,3 +99,20 @@ def test_max_nfev_stops_with_status_zero():
 def test_an_unknown_loss_is_refused_by_name():
     with pytest.raises(ValueError, match="cauchy"):
         levenberg_marquardt(lambda x: x, lambda x: np.eye(1), np.zeros(1), loss="cauchy")
+
+
+def test_a_non_finite_jacobian_raises_value_error_naming_its_columns():
+    """As scipy does; the refinement turns it into a SolveError. Left to the steps, NaN
+    normal equations would be rejected step after step, or loop where the Cholesky
+    factorisation refuses NaN."""
+    fun, jac, truth = _decay_problem(0)
+
+    def bad_jac(p, scale):
+        J = jac(p, scale)
+        if p[0] != truth[0] * 1.3:  # finite at the start, not after the first step
+            J[5, 2] = np.nan
+        return J
+
+    with pytest.raises(ValueError, match=r"Jacobian is not finite \(columns \[2\]\)"):
+        levenberg_marquardt(fun, bad_jac, truth * np.array([1.3, 0.7, 1.5, 0.97]),
+                            args=(0.01,))

@@ -533,7 +533,7 @@ class _Problem:
                                      f"this refinement's {self.angles.delta.shape}")
                 self.angles.delta[:] = delta
         self._elimination: tuple | None = None  # (key, Elimination)
-        self._jacobian: tuple | None = None  # (key, J, residuals)
+        self._jacobian: tuple | None = None  # (key, assoc, targets, J, residuals)
         # whether the captures' own offsets are estimated (eliminated) in the solves; the
         # first solve from a far start leaves them at the readings
         self.eliminating = self.angles is not None
@@ -627,14 +627,16 @@ class _Problem:
         residuals at ``xf``, kept for the next call at the same point: one pass of
         ``residual_jacobian`` gives both, and the optimiser asks for the Jacobian where
         it has just evaluated the residuals."""
-        key = (xf.tobytes(), id(assoc), id(targets), extra_rows)
-        if self._jacobian is None or self._jacobian[0] != key:
+        key = (xf.tobytes(), extra_rows)
+        kept = self._jacobian
+        if kept is None or kept[0] != key or kept[1] is not assoc or kept[2] is not targets:
             xv = self.full(xf)
             J, _, _, pixels = self._raw_jacobian(xv, assoc, targets, extra_rows)
             r = targets.row_residuals(pixels) if targets is not None else \
                 self.residuals(xv, assoc, targets)
-            self._jacobian = (key, J, r)
-        return self._jacobian[1], self._jacobian[2]
+            # holding ``assoc`` and ``targets`` themselves: an id could be reused
+            self._jacobian = (key, assoc, targets, J, r)
+        return self._jacobian[3], self._jacobian[4]
 
     def _raw_jacobian(self, xv: np.ndarray, assoc, targets, extra_rows: int = 0):
         """d residual / d free parameters (at the captures' current offsets; rows, then
@@ -703,6 +705,7 @@ class _Problem:
 
     def solve(self, assoc, loss: str, max_nfev: int):
         targets = CurveTargets.build(self.motions, self.masks, assoc)
+        self._jacobian = None  # the masks may have changed since
         try:
             fit = levenberg_marquardt(self.fun, self.jac, self.x[self.free],
                                       args=(assoc, targets), loss=loss, f_scale=1.0,

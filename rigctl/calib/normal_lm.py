@@ -17,9 +17,10 @@ solver works on the normal equations instead, so each step costs one product
   enters through its first derivative in the gradient and ``rho' + 2 z rho''`` as each
   row's weight in ``H`` (Triggs et al. 2000, the same second-order correction scipy
   applies);
-- the tests that end a solve are scipy's: a relative cost change under ``ftol`` on a
-  step whose ratio exceeds 0.25, a step under ``xtol (xtol + |x|)``, a scaled gradient
-  under ``gtol``, or ``max_nfev`` residual evaluations.
+- a solve ends as scipy's does on a relative cost change under ``ftol`` on a step whose
+  ratio exceeds 0.25, or a step under ``xtol (xtol + |x|)``; besides, on a gradient
+  scaled by ``D`` under ``gtol`` (scipy tests the unscaled one), or after ``max_nfev``
+  residual evaluations (or as many steps the damped matrix could not factor).
 
 The normal equations square the Jacobian's condition number. With the columns scaled
 to unit norm the refinement's is about 1e3, so ``H``'s 1e6 leaves ten digits; the
@@ -40,6 +41,9 @@ LOSSES = ("linear", "soft_l1")
 # factor a rejected step multiplies it by (doubled again after each further rejection)
 FIRST_DAMPING = 1e-3
 FIRST_GROWTH = 2.0
+# the least damping: below it a step is Gauss-Newton's to rounding, and a damping that
+# had shrunk to zero could not grow again after a rejected step
+MIN_DAMPING = 1e-15
 
 
 @dataclass
@@ -87,7 +91,8 @@ class _Damping:
         self.value, self.growth = FIRST_DAMPING, FIRST_GROWTH
 
     def accepted(self, ratio: float) -> None:
-        self.value *= max(1.0 / 3.0, 1.0 - (2.0 * ratio - 1.0) ** 3)
+        self.value = max(self.value * max(1.0 / 3.0, 1.0 - (2.0 * ratio - 1.0) ** 3),
+                         MIN_DAMPING)
         self.growth = FIRST_GROWTH
 
     def rejected(self) -> None:
@@ -106,6 +111,15 @@ def _step(H: np.ndarray, g: np.ndarray, D: np.ndarray, damping: float) -> np.nda
         return None
 
 
+def _finite_jacobian(J, x: np.ndarray) -> np.ndarray:
+    J = np.asarray(J, float)
+    if not np.all(np.isfinite(J)):
+        bad = np.flatnonzero(~np.all(np.isfinite(J), axis=0))
+        raise ValueError(f"the Jacobian is not finite (columns {bad.tolist()[:5]}) at "
+                         f"a point whose residuals are: x = {np.round(x[:6], 6).tolist()}...")
+    return J
+
+
 def levenberg_marquardt(fun: Callable[..., np.ndarray], jac: Callable[..., np.ndarray],
                         x0: np.ndarray, args: tuple = (), loss: str = "linear",
                         f_scale: float = 1.0, max_nfev: int = 100, ftol: float = 1e-8,
@@ -113,15 +127,17 @@ def levenberg_marquardt(fun: Callable[..., np.ndarray], jac: Callable[..., np.nd
     """Minimise ``0.5 sum rho(fun(x)^2)`` from ``x0`` (module docstring) with the
     analytic Jacobian ``jac`` (called only where ``fun`` was just evaluated, at accepted
     points). Non-finite residuals at a trial point reject the step; at ``x0`` they raise
-    ``ValueError``, as scipy's ``least_squares`` does."""
+    ``ValueError``, as scipy's ``least_squares`` does, and so does a non-finite Jacobian
+    anywhere."""
     if loss not in LOSSES:
         raise ValueError(f"levenberg_marquardt: loss must be one of {LOSSES}, got {loss!r}")
     x = np.array(x0, float)
     f = np.asarray(fun(x, *args), float)
     if not np.all(np.isfinite(f)):
         raise ValueError("Residuals are not finite in the initial point.")
-    J = np.asarray(jac(x, *args), float)
+    J = _finite_jacobian(jac(x, *args), x)
     nfev = njev = 1
+    unfactored = 0
     cost, weight, rf = _loss_terms(f, loss, f_scale)
     diag_max = np.zeros(len(x))
     damping = _Damping()
@@ -140,6 +156,9 @@ def levenberg_marquardt(fun: Callable[..., np.ndarray], jac: Callable[..., np.nd
             step = _step(H, g, D, damping.value)
             if step is None:
                 damping.rejected()
+                unfactored += 1
+                if unfactored >= max_nfev or not np.isfinite(damping.value):
+                    status = 0
                 continue
             f_new = np.asarray(fun(x + step, *args), float)
             nfev += 1
@@ -155,7 +174,7 @@ def levenberg_marquardt(fun: Callable[..., np.ndarray], jac: Callable[..., np.nd
             damping.accepted(ratio)
             status = 2 if actual < ftol * cost and ratio > 0.25 else 3 if small else None
             x, f = x + step, f_new
-            J = np.asarray(jac(x, *args), float)
+            J = _finite_jacobian(jac(x, *args), x)
             njev += 1
             cost, weight, rf = _loss_terms(f, loss, f_scale)
             break
