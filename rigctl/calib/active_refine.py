@@ -597,11 +597,7 @@ class _Problem:
         key = (xf.tobytes(), id(assoc), id(targets), self.angles.delta.tobytes(),
                self.angles.scale)
         if self._elimination is None or self._elimination[0] != key:
-            xv = self.full(xf)
-            J, G, counts, pixels = self._raw_jacobian(xv, assoc, targets)
-            # the Jacobian's pass predicted the kept points' pixels already
-            r = targets.row_residuals(pixels) if targets is not None else \
-                self.residuals(xv, assoc, targets)
+            J, G, counts, r = self._jacobian_and_residuals(xf, assoc, targets, 0)
             self._elimination = (key, self.angles.eliminate(r, G, counts, J))
         return self._elimination[1]
 
@@ -618,7 +614,7 @@ class _Problem:
             e = self.eliminated(xf, assoc, targets)
             return np.vstack([e.jac_rows, e.jac_prior, prior])
         J, _ = self._jacobian_at(xf, assoc, targets, len(with_prior))
-        self._jacobian = None  # the optimiser may scale the array it is given in place
+        self._jacobian = None  # handed over: its prior rows are written below
         J[len(J) - len(with_prior):] = prior
         return J
 
@@ -630,13 +626,19 @@ class _Problem:
         key = (xf.tobytes(), extra_rows)
         kept = self._jacobian
         if kept is None or kept[0] != key or kept[1] is not assoc or kept[2] is not targets:
-            xv = self.full(xf)
-            J, _, _, pixels = self._raw_jacobian(xv, assoc, targets, extra_rows)
-            r = targets.row_residuals(pixels) if targets is not None else \
-                self.residuals(xv, assoc, targets)
+            J, _, _, r = self._jacobian_and_residuals(xf, assoc, targets, extra_rows)
             # holding ``assoc`` and ``targets`` themselves: an id could be reused
             self._jacobian = (key, assoc, targets, J, r)
         return self._jacobian[3], self._jacobian[4]
+
+    def _jacobian_and_residuals(self, xf: np.ndarray, assoc, targets, extra_rows: int):
+        """``_raw_jacobian`` at ``xf`` and the residuals there: the Jacobian's pass
+        predicted the kept points' pixels already (all motions in curve mode)."""
+        xv = self.full(xf)
+        J, G, counts, pixels = self._raw_jacobian(xv, assoc, targets, extra_rows)
+        r = targets.row_residuals(pixels) if targets is not None else \
+            self.residuals(xv, assoc, targets)
+        return J, G, counts, r
 
     def _raw_jacobian(self, xv: np.ndarray, assoc, targets, extra_rows: int = 0):
         """d residual / d free parameters (at the captures' current offsets; rows, then

@@ -79,10 +79,6 @@ def _loss_terms(f: np.ndarray, loss: str, f_scale: float
     return cost, weight, d1 * f
 
 
-def _cost(f: np.ndarray, loss: str, f_scale: float) -> float:
-    return _loss_terms(f, loss, f_scale)[0]
-
-
 class _Damping:
     """Nielsen's damping: shrunk after a step by how well the model predicted it, grown
     (twice, then four times, ...) after each rejected step in a row."""
@@ -162,9 +158,11 @@ def levenberg_marquardt(fun: Callable[..., np.ndarray], jac: Callable[..., np.nd
                 if unfactored >= max_nfev or not np.isfinite(damping.value):
                     status = 0
                 continue
-            f_new = np.asarray(fun(x + step, *args), float)
+            x_new = x + step
+            f_new = np.asarray(fun(x_new, *args), float)
             nfev += 1
-            cost_new = _cost(f_new, loss, f_scale) if np.all(np.isfinite(f_new)) else np.inf
+            terms = _loss_terms(f_new, loss, f_scale) if np.all(np.isfinite(f_new)) else None
+            cost_new = np.inf if terms is None else terms[0]
             predicted = -(g @ step + 0.5 * step @ (H @ step))
             actual = cost - cost_new
             ratio = actual / predicted if predicted > 0 else 0.0
@@ -175,9 +173,9 @@ def levenberg_marquardt(fun: Callable[..., np.ndarray], jac: Callable[..., np.nd
                 continue
             damping.accepted(ratio)
             status = 2 if actual < ftol * cost and ratio > 0.25 else 3 if small else None
-            x, f = x + step, f_new
+            x, f = x_new, f_new
+            cost, weight, rf = terms
             J = np.asarray(jac(x, *args), float)
             njev += 1
-            cost, weight, rf = _loss_terms(f, loss, f_scale)
             break
     return LsqFit(x, f, J, cost, nfev, njev, status)
