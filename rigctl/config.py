@@ -149,8 +149,9 @@ class HeadConfig(_Strict):
                                   "move (Profile Acceleration), degrees per second squared")
     move_timeout_s: float = Field(15.0, gt=0, description="longest time one head move may take "
                                   "before it fails")
-    settle_s: float = Field(0.2, ge=0, description="wait after a head move before a capture, "
-                            "seconds")
+    settle_s: float | None = Field(None, ge=0, description="wait after a head move before a "
+                                   "capture, seconds: the default of every procedure's "
+                                   "settle_s that moves the head; null: each procedure's own")
     # Bus timing. ``packet_timeout_ms`` None keeps the SDK's own per-packet timeout (a few
     # ms plus twice the USB latency timer), right for servos that answer in microseconds;
     # a stand-in process on a loaded host needs a longer one. A failed transaction is
@@ -264,8 +265,9 @@ class ArmConfig(_Strict):
                                       "moveL, millimetres per second squared")
     move_timeout_s: float = Field(30.0, gt=0, description="longest time one arm move may take "
                                   "before it fails")
-    settle_s: float = Field(0.2, ge=0, description="wait after an arm move before a capture, "
-                            "seconds")
+    settle_s: float | None = Field(None, ge=0, description="wait after an arm move before a "
+                                   "capture, seconds: the default of every procedure's "
+                                   "settle_s that moves the arm; null: each procedure's own")
     connect_retries: int = Field(3, ge=1, le=20, description="attempts to connect the RTDE "
                                  "interfaces")
     # A calibration reads the arm at rest and watches its moves for faults: 125 Hz (every

@@ -245,7 +245,8 @@ def _html_routes(service, results: ResultCache, page, live: LiveReadings) -> API
             raise HTTPException(404, f"no procedure {procedure!r}; one of {', '.join(names)}")
         chosen = procedure or names[0]
         proc = procedures.get_procedure(chosen)
-        configured = service.config.procedures.get(chosen, {})
+        configured = {**proc.device_defaults(service.config),
+                      **service.config.procedures.get(chosen, {})}
         return page(request, "start.html", names=names, chosen=chosen, summary=proc.summary,
                     fields=form_fields(proc.params_model.model_json_schema(), configured,
                                        _model_defaults(proc.params_model)))

@@ -37,6 +37,11 @@ STATE_DIR = Path(tempfile.gettempdir())
 # for a frame, three more tries to open the stream, and 0.15 s for a rendered frame to
 # arrive (a busy host slows the renderer: a frame sampled before a move ended arrived
 # after it, 57 px off, in one loaded run).
+# The wait after a move before a capture (every procedure's settle_s on this rig): the
+# stand-ins do not ring after a move, and the camera driver already waits for a frame
+# exposed after the motion ended and still.
+SIM_SETTLE_S = 0.05
+
 STAND_IN_TIMING = {
     "head": {"packet_timeout_ms": 100, "retries": 5, "retry_backoff_s": 0.02},
     "arm": {"stream_timeout_s": 5.0, "move_timeout_s": 60},
@@ -73,12 +78,12 @@ def rig_text(world_path: Path, host: str, workdir: Path, camera_url: str, record
                      "model": dict(zip(("pan", "tilt", "roll"), world.spec.head.models,
                                        strict=True)),
                      "limits": {"pan": [-45, 45], "tilt": [-30, 30], "roll": [-180, 180]},
-                     "speed_cap_dps": 120, "accel_cap_dps2": 600, "settle_s": 0.1,
+                     "speed_cap_dps": 120, "accel_cap_dps2": 600, "settle_s": SIM_SETTLE_S,
                      **STAND_IN_TIMING["head"], "park": {"policy": "home"},
                      **_head_mount_keys(world)},
             "arm": {"host": host, "model": world.spec.arm.model,
                     "home_deg": list(world.spec.arm.home_deg),
-                    "speed_cap_dps": 170, "accel_cap_dps2": 720, "settle_s": 0.1,
+                    "speed_cap_dps": 170, "accel_cap_dps2": 720, "settle_s": SIM_SETTLE_S,
                     **STAND_IN_TIMING["arm"]},
             "camera": {"device": camera_url, "width": cam.width, "height": cam.height,
                        "fps": cam.fps, **STAND_IN_TIMING["camera"]},

@@ -120,6 +120,7 @@ class ActiveCamera(Procedure):
     params_model = ActiveCameraParams
     devices = ("head", "camera")
     optional_devices = ("arm",)
+    moves = ("head", "arm")  # whose settle_s is the default wait before a capture
 
     def plan(self, params: ActiveCameraParams, config) -> list:
         steps: list = []

@@ -27,6 +27,7 @@ class ArmSweep(Procedure):
     params_model = ArmSweepParams
     devices = ("arm",)
     optional_devices = ("camera",)
+    moves = ("arm",)  # whose settle_s is the default wait before a capture
 
     def plan(self, params: ArmSweepParams, config) -> list:
         home = config.devices.arm.home_rad()

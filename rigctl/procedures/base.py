@@ -181,6 +181,7 @@ class Procedure:
     params_model: ClassVar[type[Params]] = Params
     devices: ClassVar[tuple[str, ...]] = ()  # devices that must be configured
     optional_devices: ClassVar[tuple[str, ...]] = ()
+    moves: ClassVar[tuple[str, ...]] = ()  # devices moved before captures
     # the solve reads the checkerboard in its captures: the runner detects it in each
     # capture while the rig moves on, so that solving waits less after the motion
     detects_board: ClassVar[bool] = False
@@ -190,9 +191,22 @@ class Procedure:
         is planned and recorded in ``inputs.json``; raise ``ConfigError`` if one is missing."""
         return {}
 
+    def device_defaults(self, config: RigConfig) -> dict[str, Any]:
+        """Parameter defaults the devices' own keys set: ``settle_s``, the longest
+        ``devices.<device>.settle_s`` of the devices this procedure moves before its
+        captures (none when none of them states one)."""
+        if "settle_s" not in self.params_model.model_fields:
+            return {}
+        settles = [device.settle_s for name in self.moves
+                   if (device := getattr(config.devices, name, None)) is not None
+                   and device.settle_s is not None]
+        return {"settle_s": max(settles)} if settles else {}
+
     def parse_params(self, config: RigConfig, overrides: dict[str, Any]) -> Params:
-        """Rig-file defaults, then ``overrides``; errors name the parameter."""
-        merged = {**config.procedures.get(self.name, {}), **overrides}
+        """The devices' defaults (``device_defaults``), the rig file's ``procedures``
+        section, then ``overrides``; errors name the parameter."""
+        merged = {**self.device_defaults(config), **config.procedures.get(self.name, {}),
+                  **overrides}
         try:
             return self.params_model.model_validate(merged)
         except ValidationError as exc:

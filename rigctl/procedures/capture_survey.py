@@ -39,6 +39,7 @@ class CaptureSurvey(Procedure):
     params_model = CaptureSurveyParams
     devices = ("head", "camera")
     optional_devices = ("arm",)
+    moves = ("head", "arm")  # whose settle_s is the default wait before a capture
     detects_board = True
 
     def plan(self, params: CaptureSurveyParams, config) -> list:

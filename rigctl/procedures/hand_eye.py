@@ -86,6 +86,7 @@ class HandEye(Procedure):
     params_model = HandEyeParams
     devices = ("arm", "camera")
     optional_devices = ("head",)
+    moves = ("arm",)  # whose settle_s is the default wait before a capture
     detects_board = True
 
     def plan(self, params: HandEyeParams, config) -> list:

@@ -31,6 +31,7 @@ class HeadSweep(Procedure):
     params_model = HeadSweepParams
     devices = ("head",)
     optional_devices = ("camera",)
+    moves = ("head",)  # whose settle_s is the default wait before a capture
 
     def plan(self, params: HeadSweepParams, config) -> list:
         steps: list = []

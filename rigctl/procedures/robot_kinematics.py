@@ -252,6 +252,7 @@ class RobotKinematics(Procedure):
     params_model = RobotKinematicsParams
     devices = ("arm", "camera")
     optional_devices = ("head",)
+    moves = ("arm",)  # whose settle_s is the default wait before a capture
     detects_board = True
 
     def plan(self, params: RobotKinematicsParams, config) -> list:

@@ -59,6 +59,7 @@ class ValidateArm(Procedure):
     params_model = ValidateArmParams
     devices = ("arm", "camera")
     optional_devices = ("head",)
+    moves = ("arm",)  # whose settle_s is the default wait before a capture
     detects_board = True
 
     def plan(self, params: ValidateArmParams, config) -> list:
