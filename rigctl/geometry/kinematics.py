@@ -122,7 +122,8 @@ class KinematicModel:
         lam = 1e-4
         best, best_at = np.inf, 0
         for k in range(iterations):
-            T = self.fk(q)
+            frames = self.frames(q)  # for the pose and the Jacobian alike
+            T = frames[-1] @ self.T_flange_tool
             err = np.concatenate([T_target[:3, 3] - T[:3, 3],
                                   R_to_rotvec(T_target[:3, :3] @ T[:3, :3].T)])
             size = float(np.linalg.norm(err))
@@ -132,7 +133,7 @@ class KinematicModel:
                 best, best_at = size, k
             elif k - best_at > 25:  # stalled: no halving in 25 steps, out of reach
                 break
-            J = self.geometric_jacobian(q)
+            J = self.geometric_jacobian(q, frames)
             step = np.linalg.solve(J.T @ J + lam * np.eye(self.n), J.T @ err)
             norm = np.linalg.norm(step)
             if norm > 0.3:
@@ -143,16 +144,22 @@ class KinematicModel:
             raise SolveError("inverse kinematics did not converge: pose out of reach")
         return q
 
-    def geometric_jacobian(self, q) -> np.ndarray:
-        """6 x n Jacobian of tool position and orientation with respect to the joints."""
-        frames = self.frames(q)
+    def geometric_jacobian(self, q, frames: list[np.ndarray] | None = None) -> np.ndarray:
+        """6 x n Jacobian of tool position and orientation with respect to the joints
+        (``frames``: ``self.frames(q)`` when the caller has them already)."""
+        frames = self.frames(q) if frames is None else frames
         p_tool = (frames[-1] @ self.T_flange_tool)[:3, 3]
-        J = np.zeros((6, self.n))
+        J = np.empty((6, self.n))
         # joint i rotates about z of the frame before link i (after theta offset)
-        Z = np.array([frames[i][:3, 2] for i in range(self.n)])
-        P = np.array([frames[i][:3, 3] for i in range(self.n)])
-        J[:3] = np.cross(Z, p_tool - P).T
-        J[3:] = Z.T
+        stacked = np.stack(frames[:self.n])
+        Z = stacked[:, :3, 2].T  # (3, n)
+        D = p_tool[:, None] - stacked[:, :3, 3].T
+        # Z x D, written out (np.cross's own products and differences, without its
+        # axis bookkeeping, which cost more than the arithmetic at this size)
+        J[0] = Z[1] * D[2] - Z[2] * D[1]
+        J[1] = Z[2] * D[0] - Z[0] * D[2]
+        J[2] = Z[0] * D[1] - Z[1] * D[0]
+        J[3:] = Z
         return J
 
 
