@@ -115,8 +115,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--logs", default="load-check-logs", help="one pytest log per run")
     parser.add_argument("pytest_args", nargs="*", help="passed to pytest (after --)")
     args = parser.parse_args(argv)
-    # the whole suite as `make test` runs it (three workers), the end-to-end files in one
-    tests = E2E if args.e2e else ["-n", "3", "--dist", "loadgroup"]
+    # the whole suite as `make test` runs it (four workers), the end-to-end files in one
+    tests = E2E if args.e2e else ["-n", "4", "--dist", "loadgroup"]
     logs = Path(args.logs)
     logs.mkdir(parents=True, exist_ok=True)
     busy = start_busy_loops(args.busy)
