@@ -20,7 +20,8 @@ from rigctl.locks import BRIEF_HOLDER, rig_lock
 from rigctl.service import RigService, create_app
 from tests.mockproc import control, simulated_rig
 
-pytestmark = pytest.mark.integration
+# one simulated rig for the module, not one per worker
+pytestmark = [pytest.mark.integration, pytest.mark.xdist_group("live-readings")]
 
 
 @pytest.fixture(scope="module")

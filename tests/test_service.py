@@ -22,7 +22,8 @@ from tests.service_stack import (
 )
 from tests.waiting import wait_until
 
-pytestmark = pytest.mark.integration
+# one service stack and its accepted camera for the module, not one per worker
+pytestmark = [pytest.mark.integration, pytest.mark.xdist_group("service")]
 
 
 @pytest.fixture(scope="module")

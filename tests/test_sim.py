@@ -26,7 +26,8 @@ from rigctl.simrig import SimulatedRig
 from tests.mockproc import ROOT, control
 from tests.waiting import wait_until
 
-pytestmark = pytest.mark.integration
+# one simulated rig for the module, not one per worker
+pytestmark = [pytest.mark.integration, pytest.mark.xdist_group("sim")]
 
 
 @pytest.fixture(scope="module")

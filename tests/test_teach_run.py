@@ -30,7 +30,8 @@ from rigctl.procedures.robot_kinematics import RobotKinematicsParams
 from tests.mockproc import ROOT, control, simulated_rig
 from tests.waiting import wait_until
 
-pytestmark = pytest.mark.integration
+# one simulated rig for the module, not one per worker
+pytestmark = [pytest.mark.integration, pytest.mark.xdist_group("teach-run")]
 
 WORLD = "default"
 RUN_TIMEOUT_S = 600  # a hang guard: the waits below are on observed states
