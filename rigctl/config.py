@@ -150,8 +150,9 @@ class HeadConfig(_Strict):
     move_timeout_s: float = Field(15.0, gt=0, description="longest time one head move may take "
                                   "before it fails")
     settle_s: float | None = Field(None, ge=0, description="wait after a head move before a "
-                                   "capture, seconds: the default of every procedure's "
-                                   "settle_s that moves the head; null: each procedure's own")
+                                   "capture, seconds; a procedure that moves the head takes "
+                                   "the longest wait of the devices it moves as its settle_s "
+                                   "default; null: the procedure's own default")
     # Bus timing. ``packet_timeout_ms`` None keeps the SDK's own per-packet timeout (a few
     # ms plus twice the USB latency timer), right for servos that answer in microseconds;
     # a stand-in process on a loaded host needs a longer one. A failed transaction is
@@ -266,8 +267,9 @@ class ArmConfig(_Strict):
     move_timeout_s: float = Field(30.0, gt=0, description="longest time one arm move may take "
                                   "before it fails")
     settle_s: float | None = Field(None, ge=0, description="wait after an arm move before a "
-                                   "capture, seconds: the default of every procedure's "
-                                   "settle_s that moves the arm; null: each procedure's own")
+                                   "capture, seconds; a procedure that moves the arm takes "
+                                   "the longest wait of the devices it moves as its settle_s "
+                                   "default; null: the procedure's own default")
     connect_retries: int = Field(3, ge=1, le=20, description="attempts to connect the RTDE "
                                  "interfaces")
     # A calibration reads the arm at rest and watches its moves for faults: 125 Hz (every

@@ -342,9 +342,11 @@ def procedures_page() -> str:
     """Each procedure: summary, devices, and its parameters (the rig file's
     ``procedures.<name>`` keys and ``--param key=value``)."""
     lines = [GENERATED_NOTE, "# Procedures", "",
-             "A procedure's parameters come from the rig file's `procedures.<name>` "
-             "mapping, then from `--param key=value` (values read as YAML) on the command "
-             "line or `params` in `POST /runs`; unknown parameters are refused. "
+             "A procedure's parameters come from its own defaults (shown here), then the "
+             "devices' `settle_s` keys (the longest wait of the devices it moves, for "
+             "`settle_s`), the rig file's `procedures.<name>` mapping, then from "
+             "`--param key=value` (values read as YAML) on the command line or `params` in "
+             "`POST /runs`; unknown parameters are refused. "
              "`rigctl procedures --json` prints the same schemas. What each one records "
              "is in [Result files](results.md).", ""]
     for proc in procedures():

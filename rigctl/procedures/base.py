@@ -192,15 +192,19 @@ class Procedure:
         return {}
 
     def device_defaults(self, config: RigConfig) -> dict[str, Any]:
-        """Parameter defaults the devices' own keys set: ``settle_s``, the longest
-        ``devices.<device>.settle_s`` of the devices this procedure moves before its
-        captures (none when none of them states one)."""
-        if "settle_s" not in self.params_model.model_fields:
+        """Parameter defaults the devices' own keys set. ``settle_s``: the longest wait
+        any device this procedure moves before its captures asks, each configured device
+        by its ``devices.<device>.settle_s``, or the procedure's own default where that
+        key is null; none when no such device states one (the procedure's own)."""
+        field = self.params_model.model_fields.get("settle_s")
+        if field is None:
             return {}
-        settles = [device.settle_s for name in self.moves
-                   if (device := getattr(config.devices, name, None)) is not None
-                   and device.settle_s is not None]
-        return {"settle_s": max(settles)} if settles else {}
+        devices = [device for name in self.moves
+                   if (device := getattr(config.devices, name, None)) is not None]
+        if all(device.settle_s is None for device in devices):
+            return {}
+        return {"settle_s": max(field.default if device.settle_s is None else device.settle_s
+                                for device in devices)}
 
     def parse_params(self, config: RigConfig, overrides: dict[str, Any]) -> Params:
         """The devices' defaults (``device_defaults``), the rig file's ``procedures``
