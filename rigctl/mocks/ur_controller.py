@@ -269,9 +269,9 @@ class Controller:
         self.estop = False
         self.teach = False  # teach_mode() of the running script (free drive)
         self.messages: list[str] = []
-        self.snapshot: dict = {}
+        self._snapshot: dict = {}
+        self._snapshot_tick = -1
         self.steady_since = 0.0
-        self._update_snapshot()
 
     # -- registers --------------------------------------------------------------
 
@@ -535,7 +535,6 @@ class Controller:
                     time.monotonic() - self.last_input > 1.0 / self.watchdog_hz:
                 self.watchdog_hz = 0.0
                 self.stop_program("RTDE watchdog: input registers not updated in time")
-            self._update_snapshot()
             self.tick_cond.notify_all()
 
     def freeze(self, at_fraction: float) -> None:
@@ -617,6 +616,17 @@ class Controller:
             if not self.pending_done and cmd != Cmd.STOP_SCRIPT:
                 self.wint(0, CMD_DONE)
 
+    @property
+    def snapshot(self) -> dict:
+        """The state the RTDE streams send for the newest tick (the caller holds
+        ``lock``): made when first read after a tick, not at every tick, since the streams
+        read at their own rate (125 Hz or less, 500 at most) and a moving arm's pose
+        fields cost a forward kinematics and a Jacobian each."""
+        if self._snapshot_tick != self.tick:
+            self._update_snapshot()
+            self._snapshot_tick = self.tick
+        return self._snapshot
+
     def _update_snapshot(self) -> None:
         """The state the RTDE stream sends this tick. The pose-dependent fields are
         computed again only when the joints or the TCP changed (500 times a second at
@@ -648,7 +658,7 @@ class Controller:
         })
         snap.update(zip(_OUT_INT_NAMES, self.out_int, strict=True))
         snap.update(zip(_OUT_DOUBLE_NAMES, self.out_double, strict=True))
-        self.snapshot = snap
+        self._snapshot = snap
 
     def run_loop(self, stop: threading.Event) -> None:
         next_t = time.perf_counter()
@@ -667,7 +677,8 @@ class Controller:
                     "tcp_pose": matrix_to_pose(self.ctrl_model.tool(self.q, self.tcp)).tolist(),
                     "runtime_state": self.runtime_state, "robot_mode": self.robot_mode,
                     "safety_mode": self.safety_mode, "out_int": self.out_int[:4],
-                    "messages": self.messages[-20:], "model": self.model_name,
+                    "messages": self.messages[-20:], "messages_total": len(self.messages),
+                    "model": self.model_name,
                     "frozen": self.held is not None and self.held is self.motion,
                     "teach_mode": self.teach,
                     "version": list(self.version), "seen": self.seen,
