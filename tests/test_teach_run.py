@@ -74,6 +74,7 @@ class Taught:
         for p in params:
             args += ["--param", p]
         self.before = _captures(self.records)
+        self.messages_before = _arm(sim, {"cmd": "dump"})["messages_total"]
         self.proc = subprocess.Popen(args, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                      stderr=subprocess.PIPE, text=True, cwd=ROOT)
         wait_until(lambda: self._alive() and _arm(sim, {"cmd": "dump"})["teach_mode"],
@@ -128,10 +129,14 @@ def _views(sim, truth, n: int) -> list[np.ndarray]:
     return poses
 
 
-def _teach_off_explicitly(sim) -> None:
+def _teach_off_explicitly(sim, run: Taught) -> None:
+    """Teach mode is off, and this run ended it (the rig is shared by the module's runs:
+    only the controller's messages since ``run`` started count)."""
     dump = _arm(sim, {"cmd": "dump"})
     assert dump["teach_mode"] is False
-    assert "teach mode off: end_teach_mode()" in dump["messages"], dump["messages"]
+    since = dump["messages_total"] - run.messages_before
+    assert since > 0, dump["messages"]
+    assert "teach mode off: end_teach_mode()" in dump["messages"][-since:], dump["messages"]
 
 
 @pytest.mark.timeout(900)
@@ -141,7 +146,7 @@ def test_a_taught_hand_eye_run_calibrates(sim, truth, taught):
         run.pose(np.degrees(q))
     code, out, err = run.finish()
     assert code == 0, err[-3000:]
-    _teach_off_explicitly(sim)
+    _teach_off_explicitly(sim, run)
     result = json.loads(out)
     assert result["summary"]["views"] == 8
     captures = sorted((p for p in sim[1].glob("*/captures/[0-9][0-9][0-9].json")),
@@ -195,7 +200,7 @@ def test_taught_and_pose_file_robot_kinematics_runs_meet_the_truth(sim, truth, t
         run.pose(q)
     code, out, err = run.finish()
     assert code == 0, err[-3000:]
-    _teach_off_explicitly(sim)
+    _teach_off_explicitly(sim, run)
     world = load_world(WORLDS / f"{WORLD}.yaml")
     for how, result in (("pose file", json.loads(filed.stdout)), ("taught", json.loads(out))):
         assert result["summary"]["training_views"] >= RK_VIEWS - 1, how  # an outlier at most
@@ -212,7 +217,7 @@ def test_a_degenerate_taught_set_gets_the_warning(sim, truth, taught):
     for k in range(4):  # every pose one joint (the last) apart from the others
         run.pose(base + np.array([0, 0, 0, 0, 0, 8.0 * k]))
     _code, _out, err = run.finish()
-    _teach_off_explicitly(sim)
+    _teach_off_explicitly(sim, run)
     newest = max(sim[1].glob("*/teach.json"), key=lambda p: p.stat().st_mtime)
     report = json.loads(newest.read_text())["pose_set"]
     assert not report["determined"]
@@ -227,7 +232,7 @@ def test_teach_mode_ends_on_an_abort(sim, truth, taught):
     run.proc.send_signal(signal.SIGTERM)
     _code, out, err = run.finish("")
     assert json.loads(out)["status"] == "aborted", err[-2000:]
-    _teach_off_explicitly(sim)
+    _teach_off_explicitly(sim, run)
 
 
 @pytest.mark.timeout(600)
@@ -247,5 +252,5 @@ def test_teach_mode_ends_on_a_fault(sim, truth, taught, tmp_path):
         control(sim[0].ready["camera"]["control"], {"cmd": "stall", "seconds": 0})
     outcome = json.loads(out)
     assert outcome["status"] == "failed" and "camera" in outcome["reason"].lower(), outcome
-    _teach_off_explicitly(sim)
+    _teach_off_explicitly(sim, run)
     assert yaml.safe_dump(outcome)  # the outcome is plain data
