@@ -6,9 +6,11 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+import pytest
 
 from rigctl.config import CameraConfig
-from rigctl.drivers.camera import changed_share, mean_change
+from rigctl.drivers.base import DeviceError
+from rigctl.drivers.camera import Picture, changed_share, mean_change
 from rigctl.runner import STALE_CHANGED_SHARE
 
 
@@ -52,3 +54,19 @@ def test_a_small_move_of_a_sparse_scene_changes_few_cells_clearly():
     assert mean_change(before, moved) < threshold
     assert changed_share(before, moved) > 2 * STALE_CHANGED_SHARE
     assert changed_share(before, sparse_scene(rng)) == 0.0  # noise only
+
+
+def test_a_frame_kept_encoded_decodes_to_the_grey_of_its_image():
+    """An MJPEG stream's frames are kept as JPEG bytes and decoded to grey on first look:
+    the grey of the decoded colour image, and a clear error for bytes that are no JPEG."""
+    grey = scene(np.random.default_rng(3))
+    colour = cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
+    ok, jpeg = cv2.imencode(".jpg", colour, [cv2.IMWRITE_JPEG_QUALITY, 95])
+    assert ok
+    kept = Picture(jpeg.reshape(1, -1), encoded=True)
+    expected = cv2.cvtColor(cv2.imdecode(jpeg, cv2.IMREAD_COLOR), cv2.COLOR_BGR2GRAY)
+    assert np.abs(kept.grey.astype(int) - expected).max() <= 1
+    assert kept.grey is kept.grey  # decoded once
+    assert np.array_equal(Picture(colour, encoded=False).grey, grey)
+    with pytest.raises(DeviceError, match="12 bytes from the stream is not a JPEG"):
+        _ = Picture(np.frombuffer(b"not an image", np.uint8).reshape(1, -1), True).grey

@@ -87,6 +87,7 @@ def test_capture_survey_end_to_end(sim):
     assert all(c.image_path is not None and c.image_path.exists() for c in captures)
     meta = captures[-1].meta
     assert meta["camera"]["settings"]["width"] == 1280 and len(meta["arm"]["q"]) == 6
+    assert meta["camera"]["settings"]["decoded_on_capture"] is True  # MJPEG kept as bytes
     assert meta["camera"]["timestamp"] > meta["time"] - 1.0
     world = load_world(config.world)
     for capture in captures[2:]:
