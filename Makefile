@@ -3,6 +3,11 @@
 # needs (the arm's client and the plots); the tests install the dev extra (everything).
 # --no-compile: pip would compile every installed module to bytecode (15 of the install's
 # 32 s here); Python compiles what is imported, once, on first use.
+# Python keeps the bytecode it compiles (__pycache__), whatever the shell says: with
+# PYTHONDONTWRITEBYTECODE set, every stand-in, CLI call and pytest worker compiled numpy,
+# scipy, FastAPI and rigctl from source again, 1.2 s of CPU per process start here
+# (tests/test_cli.py: 22 s of CPU without the cache, 9 s with it).
+unexport PYTHONDONTWRITEBYTECODE
 PYTHON ?= python3
 VENV := .venv
 STAMP := $(VENV)/.installed

@@ -77,6 +77,7 @@ def run_once(tests: list[str], extra: list[str], log_path: Path
     # every process of this run inherits the marker, those in sessions of their own too
     # (`sim up` starts its stand-ins so): what a killed pytest could not stop is found by it
     env = {**os.environ, MARKER: basetemp.name}
+    env.pop("PYTHONDONTWRITEBYTECODE", None)  # as `make test` runs (Makefile: unexport)
     with log_path.open("w") as log:
         proc = subprocess.Popen([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
                                  "--basetemp", str(basetemp), *tests, *extra], cwd=ROOT,
