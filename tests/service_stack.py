@@ -129,18 +129,24 @@ class Stack:
             self.sim = None
 
 
+# One HTTP client per test process. httpx.get() and httpx.post() build a client, and
+# with it an SSL context that loads the CA bundle, on every call: polling runs and
+# /health spent 4 % of the suite's CPU there (py-spy over a whole suite run). No
+# keep-alive: every request opens its own connection, as those calls did.
+HTTP = httpx.Client(limits=httpx.Limits(max_keepalive_connections=0))
+
 # A generous bound on every request: on a busy host the service can take seconds to
 # answer (e.g. drawing /plots/history.png); the tests wait on conditions, not on speed.
 REQUEST_TIMEOUT_S = 60
 
 
 def get(url, **kwargs):
-    return httpx.get(url, timeout=kwargs.pop("timeout", REQUEST_TIMEOUT_S), **kwargs)
+    return HTTP.get(url, timeout=kwargs.pop("timeout", REQUEST_TIMEOUT_S), **kwargs)
 
 
 def post(stack, path, body=None, auth=True):
-    return httpx.post(stack.base + path, json=body, headers=AUTH if auth else {},
-                      timeout=REQUEST_TIMEOUT_S)
+    return HTTP.post(stack.base + path, json=body, headers=AUTH if auth else {},
+                     timeout=REQUEST_TIMEOUT_S)
 
 
 def wait_for(stack, run_id, statuses=("succeeded", "failed", "aborted"), timeout=120):

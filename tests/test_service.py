@@ -13,6 +13,7 @@ import pytest
 from tests.mockproc import ROOT, control
 from tests.service_stack import (
     CAMERA_PARAMS,
+    HTTP,
     REQUEST_TIMEOUT_S,
     LockHolder,
     Stack,
@@ -53,7 +54,7 @@ def accepted_camera(stack):
 def test_token_and_input_validation(stack):
     assert get(stack.base + "/health").json()["status"] == "ok"
     assert post(stack, "/runs", {"procedure": "head-sweep"}, auth=False).status_code == 401
-    wrong = httpx.post(stack.base + "/runs", json={"procedure": "head-sweep"},
+    wrong = HTTP.post(stack.base + "/runs", json={"procedure": "head-sweep"},
                        timeout=REQUEST_TIMEOUT_S,
                        headers={"Authorization": "Bearer nope"})
     assert wrong.status_code == 401

@@ -19,6 +19,7 @@ import yaml
 from rigctl.loopback import free_port
 from rigctl.records import RecordIndex
 from tests.mockproc import ROOT, control
+from tests.service_stack import HTTP
 from tests.waiting import wait_until
 
 pytestmark = pytest.mark.integration
@@ -128,14 +129,14 @@ def test_sigterm_on_the_service_mid_run_aborts_the_run_and_exits(start_sim, tmp_
     try:
         def up():
             try:
-                return httpx.get(f"{url}/health", timeout=2).status_code == 200
+                return HTTP.get(f"{url}/health", timeout=2).status_code == 200
             except httpx.HTTPError:
                 return False
 
         wait_until(up, timeout=60, what="the service")
         params = {"pan_deg": [-40, -20, 0, 20, 40], "tilt_deg": [-20, 0, 20], "settle_s": 0.5,
                   "image": True}
-        run_id = httpx.post(f"{url}/runs", json={"procedure": "head-sweep", "params": params},
+        run_id = HTTP.post(f"{url}/runs", json={"procedure": "head-sweep", "params": params},
                             timeout=30).json()["run_id"]
         held = _held_after_a_capture(sim, _index(rig_path))
         assert held["run_id"] == run_id

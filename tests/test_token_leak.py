@@ -24,7 +24,7 @@ from rigctl.records import RunDirectory
 from rigctl.redaction import REDACTED
 from rigctl.runner import recorded_config, solve_recorded
 from tests.mockproc import ROOT
-from tests.service_stack import REQUEST_TIMEOUT_S, start_sim
+from tests.service_stack import HTTP, REQUEST_TIMEOUT_S, start_sim
 from tests.waiting import wait_until
 
 # one worker runs the module, so its service and run are made once
@@ -66,7 +66,7 @@ class Service:
         if self.server.poll() is not None:
             raise RuntimeError(f"service exited: {Path(self.stderr.name).read_text()[-2000:]}")
         try:
-            return httpx.get(self.base + "/health", timeout=2).status_code == 200
+            return HTTP.get(self.base + "/health", timeout=2).status_code == 200
         except httpx.HTTPError:
             return False
 
@@ -92,7 +92,7 @@ def service(tmp_path_factory):
 
 
 def _get(service, path, **kwargs):
-    return httpx.get(service.base + path, timeout=REQUEST_TIMEOUT_S, **kwargs)
+    return HTTP.get(service.base + path, timeout=REQUEST_TIMEOUT_S, **kwargs)
 
 
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -101,7 +101,7 @@ AUTH = {"Authorization": f"Bearer {TOKEN}"}
 @pytest.fixture(scope="module")
 def finished_run(service):
     """A capture-survey queued with the token, followed to its end."""
-    r = httpx.post(service.base + "/runs", json={"procedure": "capture-survey",
+    r = HTTP.post(service.base + "/runs", json={"procedure": "capture-survey",
                                                  "params": PARAMS},
                    headers=AUTH, timeout=REQUEST_TIMEOUT_S)
     assert r.status_code == 202, r.text
