@@ -74,10 +74,10 @@ class Picture:
     """One frame as the grabber read it: an image, or (``encoded``) the JPEG bytes of one,
     decoded to grey on the first look and kept."""
 
-    __slots__ = ("_data", "_encoded", "_grey")
+    __slots__ = ("_data", "_encoded", "_grey", "_source")
 
-    def __init__(self, data: np.ndarray, encoded: bool) -> None:
-        self._data, self._encoded, self._grey = data, encoded, None
+    def __init__(self, data: np.ndarray, encoded: bool, source: str = "camera") -> None:
+        self._data, self._encoded, self._grey, self._source = data, encoded, None, source
 
     @property
     def grey(self) -> np.ndarray:
@@ -86,8 +86,8 @@ class Picture:
             if self._encoded:
                 grey = cv2.imdecode(self._data.reshape(-1), cv2.IMREAD_GRAYSCALE)
                 if grey is None:
-                    raise DeviceError(f"a frame of {self._data.size} bytes from the stream "
-                                      "is not a JPEG image")
+                    raise DeviceError(f"{self._source}: a frame of {self._data.size} bytes "
+                                      "from the stream is not a JPEG image")
             else:
                 data = self._data
                 grey = cv2.cvtColor(data, cv2.COLOR_BGR2GRAY) if data.ndim == 3 else data
@@ -240,7 +240,7 @@ class OpenCVCamera(Camera):
                 continue
             seq += 1
             with self._cond:
-                self._latest = (Picture(image, self.encoded), arrived, seq, live)
+                self._latest = (Picture(image, self.encoded, self.name), arrived, seq, live)
                 self._error = None
                 self._cond.notify_all()
 
@@ -258,10 +258,7 @@ class OpenCVCamera(Camera):
         if not_before is not None and self.cfg.still_threshold > 0:
             latest = self._still(latest, deadline)
         picture, arrived, seq, _live = latest
-        try:
-            image = picture.grey
-        except DeviceError as exc:
-            raise DeviceError(f"{self.name}: {exc}") from None
+        image = picture.grey
         h, w = image.shape[:2]
         if (w, h) != (self.cfg.width, self.cfg.height):
             raise DeviceError(f"{self.name}: frames are {w}x{h}, the rig file says "
@@ -298,10 +295,7 @@ class OpenCVCamera(Camera):
                     f"frames, devices.camera.still_threshold {self.cfg.still_threshold}): is "
                     f"something moving in view? {load_note('devices.camera.timeout_s')}"
                 ) from None
-            try:
-                change = mean_change(frame[0].grey, newer[0].grey)
-            except DeviceError as exc:
-                raise DeviceError(f"{self.name}: {exc}") from None
+            change = mean_change(frame[0].grey, newer[0].grey)
             if change < self.cfg.still_threshold:
                 return newer
             frame = newer
