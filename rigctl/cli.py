@@ -853,11 +853,12 @@ def bench_active_worlds(as_json: bool = typer.Option(False, "--json"),
         return
     rows = [[r["seed"], r["model"], round(r["fx_true"]), r.get("error", "")[:60]]
             + ([] if "error" in r else [r["focal_pct"], r["centre_px"],
-                                        *(r["z"][k] for k in active_worlds.KEYS)])
+                                        *(r["z"][k] for k in active_worlds.KEYS),
+                                        r["solve_s"]])
             for r in result["worlds"]]
     print_table(f"bench active-worlds ({n} worlds)",
                 ["seed", "arm", "f", "failure", "f err %", "centre px", "z fx", "z fy",
-                 "z cx", "z cy"], rows, out)
+                 "z cx", "z cy", "solve s"], rows, out)
     out.print_json(json.dumps(result["summary"]))
 
 

@@ -436,6 +436,34 @@ def test_a_refinement_started_where_another_ended_stays_there():
         [first.fx, first.fy, first.cx, first.cy], abs=1e-6)
 
 
+def test_a_start_carrying_another_refinements_camera_needs_fewer_evaluations(monkeypatch):
+    """``camera_x`` (every camera parameter of an earlier refinement with the same
+    distortion terms: the tiers' predicting refinements start so) ends where the
+    refinement from the intrinsics alone does, in fewer evaluations; a vector of
+    another length is a named error."""
+    import rigctl.calib.active_refine as active_refine
+    _, poses, obs, _ = scenario(theta_deg=5.0, sigma=0.5, seed=7, count=6, points=30)
+    start = {"fx": 880, "fy": 890, "cx": 640, "cy": 360}
+    evaluations: list[int] = []
+    solver = active_refine.levenberg_marquardt
+
+    def counted(*args, **kwargs):
+        fit = solver(*args, **kwargs)
+        evaluations.append(fit.nfev)
+        return fit
+
+    monkeypatch.setattr(active_refine, "levenberg_marquardt", counted)
+    first = refine(motions_of(poses, obs), start, n_dist=2)
+    cold = sum(evaluations)
+    evaluations.clear()
+    warm = refine(motions_of(poses, obs), {**start, "camera_x": first.x}, n_dist=2)
+    assert [warm.fx, warm.fy, warm.cx, warm.cy] == pytest.approx(
+        [first.fx, first.fy, first.cx, first.cy], abs=1e-3)
+    assert sum(evaluations) < cold / 2, (sum(evaluations), cold)
+    with pytest.raises(SolveError, match="camera_x has 13 parameters, this refinement 14"):
+        refine(motions_of(poses, obs), {**start, "camera_x": first.x[:-1]}, n_dist=2)
+
+
 def test_a_start_laid_out_for_other_motions_is_a_named_solve_error():
     _, poses, obs, _ = scenario(theta_deg=5.0, sigma=0.5, seed=7, count=6, points=30)
     first = refine(motions_of(poses, obs), {"fx": 880, "fy": 890, "cx": 640, "cy": 360})

@@ -14,6 +14,7 @@ intrinsic's error divided by its reported sigma (|z| > 3 means the sigma is too 
 from __future__ import annotations
 
 import math
+import time
 from concurrent.futures import ProcessPoolExecutor
 
 import cv2
@@ -171,9 +172,14 @@ def world_trial(args) -> dict:
         # captures), not whether this run's encoders are ideal
         sigma = head_encoder_sigmas(dict(zip(("pan", "tilt", "roll"), spec.head.models,
                                              strict=True))) if estimate_angles else None
+        wall, cpu = time.perf_counter(), time.process_time()
         sol = solve_active(images, angles, ActiveSettings(distortion_terms=distortion_terms,
                                                           shift_m=shift_m,
                                                           encoder_sigma_rad=sigma))
+        # the solve's own seconds: on the wall, and of CPU in this process (the render
+        # before it excluded; CPU is steadier than the wall on a shared machine)
+        row["solve_s"] = time.perf_counter() - wall
+        row["solve_cpu_s"] = time.process_time() - cpu
     except SolveError as exc:
         return {**row, "error": str(exc)}
     res = sol.result
@@ -214,6 +220,10 @@ def summarise(rows: list[dict]) -> dict:
                   "max": float(z.max()), "share_over_3": float(np.mean(z > 3)),
                   "rms": float(np.sqrt(np.mean(z ** 2)))},
     })
+    for key in ("solve_s", "solve_cpu_s"):
+        seconds = np.array([r[key] for r in ok])
+        out[key] = {"median": float(np.median(seconds)),
+                    "p90": float(np.percentile(seconds, 90)), "max": float(seconds.max())}
     return out
 
 

@@ -505,6 +505,15 @@ class _Problem:
         for j, slot in enumerate(DIST_SLOTS[n_dist]):
             self.x[N_BASE + j] = (initial.get("distortion") or [0.0] * 5)[slot]
         self.x[4:7] = initial.get("mount_rotvec", np.zeros(3))
+        camera = initial.get("camera_x")  # every camera parameter of an earlier refinement
+        if camera is not None:
+            camera = np.asarray(camera, float)
+            if camera.shape != (n_cam,):
+                raise SolveError(f"refinement: a start's camera_x has {camera.size} "
+                                 f"parameters, this refinement {n_cam}")
+            self.x[:n_cam] = camera
+            if depths is None:  # the parallax is held at zero without depths
+                self.x[9:12] = 0.0
         warm = initial.get("x_all")  # a refinement of the same motions ended there
         self.free = np.ones(len(self.x), bool)
         # the parallax: estimated with depths, else a consider parameter (held at zero)
@@ -724,11 +733,13 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
            outlier_sigmas: float = 3.0, outer_iterations: int = 4,
            prior_deg: float = 5.0, parallax_sigma: float = 0.003,
            depths: DepthPrior | None = None, offset_sigma_m: float = 0.003,
-           angle_sigma=None, uncertainty: bool = True) -> RefineResult:
+           angle_sigma=None, uncertainty: bool = True, least_squares_end: bool = True
+           ) -> RefineResult:
     """Joint refinement of fx, fy, cx, cy, the mounting rotation and the roll axis (and
     ``n_dist`` distortion terms, ``DIST_SLOTS``) over all motions with the exact rotation
     model (thesis Lemma 3.1, eq. 3.3), from ``initial`` (fx, fy, cx, cy; e.g. Strategy
-    D; optionally ``distortion`` and ``mount_rotvec``, or a ``RefineResult``'s ``x_all``
+    D; optionally ``distortion`` and ``mount_rotvec``; or ``camera_x``, every camera
+    parameter of a refinement with the same ``n_dist``; or a ``RefineResult``'s ``x_all``
     and ``angle_delta`` of the same motions and settings), with a soft-L1 robust loss, then
     3-sigma outlier rejection.
 
@@ -749,7 +760,9 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
     Without, the recorded angles are exact.
 
     Without ``uncertainty`` (a refinement that only predicts the next tier) no
-    covariance is computed: every sigma is NaN."""
+    covariance is computed: every sigma is NaN. Without ``least_squares_end`` the
+    refinement ends on its last robust solve, without the plain least-squares solve on
+    the kept points after it (for a refinement that only predicts, or starts another)."""
     if len(motions) < 2:
         raise SolveError("refinement: needs at least two motions")
     if sum(len(m.ref_points) for m in motions) < 20:
@@ -763,15 +776,18 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
         assoc = pb.associate(pb.x)
         # from a far start the camera moves first, the captures' offsets after
         pb.eliminating = pb.angles is not None and round_ > 0
-        pb.solve(assoc, "soft_l1", 200)
+        final = pb.solve(assoc, "soft_l1", 200)
         kept = sum(int(mk.sum()) for mk in pb.masks)
         dropped = _reject_outliers(pb.residuals(pb.x, assoc, cache=False), motions, pb.masks,
                                    outlier_sigmas)
         if dropped <= OUTLIERS_SETTLED * kept:
             break
     assoc = pb.associate(pb.x)
-    pb.eliminating = pb.angles is not None
-    final = pb.solve(assoc, "linear", 100)
+    # without the least-squares end, a robust solve still moves the captures' offsets
+    # when the rounds ended before any did (the first round holds them)
+    if least_squares_end or (pb.angles is not None and not pb.eliminating):
+        pb.eliminating = pb.angles is not None
+        final = pb.solve(assoc, "linear" if least_squares_end else "soft_l1", 100)
     r = pb.residuals(pb.x, assoc, cache=False)
     if not np.all(np.isfinite(pb.x)) or not np.all(np.isfinite(r)):
         raise SolveError("refinement diverged (non-finite parameters)")
