@@ -120,6 +120,13 @@ def test_solver_kinematics_match_the_simulated_arm():
             assert np.abs(T[:3, :3] - truth[:3, :3]).max() < 1e-9
         for Ta, Tb in zip(calib.frames(q), dh_frames(chain_of(world.arm_true), q), strict=True):
             assert np.abs(Ta - Tb).max() < 1e-12
+    # every frame of many configurations at once (the planners' scans) is the same chain
+    Q = rng.uniform(-math.pi, math.pi, (7, 6))
+    batch = calib.frames_batch(Q)
+    assert batch.shape == (7, 7, 4, 4)
+    for q, frames in zip(Q, batch, strict=True):
+        for Ta, Tb in zip(frames, dh_frames(chain_of(world.arm_true), q), strict=True):
+            assert np.abs(Ta - Tb).max() < 1e-12
     # the errors matter: the nominal chain is millimetres away
     assert np.linalg.norm(nominal_ur("ur5e").fk(q)[:3, 3] - truth[:3, 3]) > 1e-3
 

@@ -171,14 +171,20 @@ def clearance_m(config: RigConfig, model, q) -> float:
     only at the planned configurations, not along the moves between them. With the
     board on the flange (``eye_to_hand``): the elbow, wrist and flange frames' and the
     board centre's height above the base's plane (the table the arm stands on)."""
-    frames = model.frames(q)
+    return float(clearances_m(config, model, np.asarray(q, float)[None])[0])
+
+
+def clearances_m(config: RigConfig, model, Q: np.ndarray) -> np.ndarray:
+    """``clearance_m`` at each configuration of ``Q`` (N, 6), at once: (N,) metres."""
+    frames = model.frames_batch(Q)
     if eye_to_hand(config):
-        board = frames[-1] @ nominal_flange_target(config) @ np.r_[board_centre(config), 1.0]
-        return float(min([T[2, 3] for T in frames[2:]] + [board[2]]))
+        board = frames[:, -1] @ (nominal_flange_target(config) @ np.r_[board_centre(config), 1.0])
+        return np.minimum(np.min(frames[:, 2:, 2, 3], axis=1), board[:, 2])
     T_base_target, _ = target_centre(config)
     normal = -T_base_target[:3, 2]
-    points = [T[:3, 3] for T in frames[2:]] + [(frames[-1] @ nominal_flange_cam(config))[:3, 3]]
-    return float(min(normal @ (p - T_base_target[:3, 3]) for p in points))
+    camera = (frames[:, -1] @ nominal_flange_cam(config))[:, None, :3, 3]
+    points = np.concatenate([frames[:, 2:, :3, 3], camera], axis=1)
+    return np.min((points - T_base_target[:3, 3]) @ normal, axis=1)
 
 
 def eye_to_hand(config: RigConfig) -> bool:
@@ -597,24 +603,32 @@ def board_visible(config: RigConfig, model: KinematicModel, q, K: np.ndarray,
     """Does the camera at joints q (arm ``model``) see every board corner, inside a
     margin? A ChArUco board needs only ``CHARUCO_MIN_SHARE`` of them (and
     ``CHARUCO_MIN_CORNERS``)."""
+    return bool(boards_visible(config, model, np.asarray(q, float)[None], K, margin)[0])
+
+
+def boards_visible(config: RigConfig, model: KinematicModel, Q: np.ndarray, K: np.ndarray,
+                   margin: float = 0.03) -> np.ndarray:
+    """``board_visible`` at each configuration of ``Q`` (N, 6), at once: (N,) bools."""
     tg = config.target
-    T_cam_target = nominal_cam_target(config, model, q)
-    if eye_to_hand(config) and not faces_camera(config, T_cam_target):
-        return False
+    X, W = nominal_frames(config)
+    T_cam_target = robot.cam_target_batch(model, X, W, Q, eye_to_hand(config))
+    ok = np.ones(len(Q), bool)
+    if eye_to_hand(config):
+        ok &= faces_camera_batch(config, T_cam_target)
     pts = target_points(tg)
-    cam = (T_cam_target[:3, :3] @ pts.T).T + T_cam_target[:3, 3]
+    cam = np.einsum("nij,pj->npi", T_cam_target[:, :3, :3], pts) + T_cam_target[:, None, :3, 3]
     partial = is_charuco(tg)
-    if np.any(cam[:, 2] < 0.1) and not partial:
-        return False
-    front = cam[:, 2] >= 0.1
-    px = (K @ cam.T).T
-    px = px[:, :2] / np.where(front, px[:, 2], 1.0)[:, None]
+    front = cam[..., 2] >= 0.1
+    if not partial:
+        ok &= np.all(front, axis=1)
+    px = np.einsum("ij,npj->npi", K, cam)
+    px = px[..., :2] / np.where(front, px[..., 2], 1.0)[..., None]
     w, h = config.devices.camera.width, config.devices.camera.height
-    inside = front & (px[:, 0] > margin * w) & (px[:, 0] < (1 - margin) * w) & \
-        (px[:, 1] > margin * h) & (px[:, 1] < (1 - margin) * h)
+    inside = front & (px[..., 0] > margin * w) & (px[..., 0] < (1 - margin) * w) & \
+        (px[..., 1] > margin * h) & (px[..., 1] < (1 - margin) * h)
     if partial:
-        return bool(inside.sum() >= max(CHARUCO_MIN_SHARE * len(pts), CHARUCO_MIN_CORNERS))
-    return bool(np.all(inside))
+        return ok & (inside.sum(axis=1) >= max(CHARUCO_MIN_SHARE * len(pts), CHARUCO_MIN_CORNERS))
+    return ok & np.all(inside, axis=1)
 
 
 # A board on the flange turned further than this from the fixed camera's line of sight
@@ -626,9 +640,14 @@ MAX_FACING_DEG = 55.0
 def faces_camera(config: RigConfig, T_cam_target: np.ndarray) -> bool:
     """Is the board's normal within ``MAX_FACING_DEG`` of the line of sight to its centre
     (the board's z, into the board, pointing away from the camera)?"""
-    centre = T_cam_target[:3, :3] @ board_centre(config) + T_cam_target[:3, 3]
-    ray = centre / np.linalg.norm(centre)
-    return float(ray @ T_cam_target[:3, 2]) >= math.cos(math.radians(MAX_FACING_DEG))
+    return bool(faces_camera_batch(config, np.asarray(T_cam_target)[None])[0])
+
+
+def faces_camera_batch(config: RigConfig, T_cam_target: np.ndarray) -> np.ndarray:
+    """``faces_camera`` of each of N poses ``T_cam_target`` (N, 4, 4): (N,) bools."""
+    centre = T_cam_target[:, :3, :3] @ board_centre(config) + T_cam_target[:, :3, 3]
+    ray = centre / np.linalg.norm(centre, axis=1)[:, None]
+    return np.sum(ray * T_cam_target[:, :3, 2], axis=1) >= math.cos(math.radians(MAX_FACING_DEG))
 
 
 def planning_K(config: RigConfig, given: dict | None) -> np.ndarray:
@@ -650,23 +669,25 @@ def visible_range(config: RigConfig, model: KinematicModel, q_base, joint: int,
     limits and the arm clear of the target plane (``clearance_m``), scanned outwards from 0
     in ``resolution_deg`` steps up to ``max_deg``."""
     limits = config.devices.arm.joint_limits_rad()[joint]
-
-    def allowed(q) -> bool:
-        return (limits[0] <= q[joint] <= limits[1] and board_visible(config, model, q, K)
-                and clearance_m(config, model, q) >= MIN_CLEARANCE_M)
-
-    if not allowed(np.asarray(q_base, float)):
+    # every offset the scan may test, each side outwards from 0, checked in one batch
+    steps = []
+    reached = 0.0
+    while reached + resolution_deg <= max_deg + 1e-9:
+        reached += resolution_deg
+        steps.append(reached)
+    offsets = [0.0] + [sign * d for sign in (-1.0, 1.0) for d in steps]
+    Q = np.repeat(np.asarray(q_base, float)[None], len(offsets), axis=0)
+    Q[:, joint] += np.radians(offsets)
+    allowed = (limits[0] <= Q[:, joint]) & (Q[:, joint] <= limits[1])
+    allowed &= boards_visible(config, model, Q, K)
+    allowed &= clearances_m(config, model, Q) >= MIN_CLEARANCE_M
+    if not allowed[0]:
         return 0.0, 0.0
     ends = []
-    for sign in (-1.0, 1.0):
-        reached = 0.0
-        while reached + resolution_deg <= max_deg + 1e-9:
-            q = np.array(q_base, float)
-            q[joint] += math.radians(sign * (reached + resolution_deg))
-            if not allowed(q):
-                break
-            reached += resolution_deg
-        ends.append(sign * reached)
+    for side, sign in enumerate((-1.0, 1.0)):
+        run = allowed[1 + side * len(steps):1 + (side + 1) * len(steps)]
+        n = len(run) if run.all() else int(np.argmin(run))  # up to the first refused
+        ends.append(sign * (steps[n - 1] if n else 0.0))
     return ends[0], ends[1]
 
 
