@@ -164,14 +164,14 @@ class KinematicModel:
         """Joints reaching ``T_target`` near ``q_seed``, by damped Gauss-Newton on the pose
         error; ``SolveError`` if it does not converge (unreachable pose)."""
         q = np.array(q_seed, float)
-        lam = 1e-4
+        damping = 1e-4 * np.eye(self.n)
         best, best_at = np.inf, 0
         for k in range(iterations):
             frames = self.frames(q)  # for the pose and the Jacobian alike
             T = frames[-1] @ self.T_flange_tool
             err = np.concatenate([T_target[:3, 3] - T[:3, 3],
                                   rotation_error(T_target[:3, :3] @ T[:3, :3].T)])
-            size = float(np.linalg.norm(err))
+            size = math.sqrt(float(err @ err))  # np.linalg.norm's own arithmetic
             if size < tol:
                 return q
             if size < best / 2:
@@ -179,8 +179,8 @@ class KinematicModel:
             elif k - best_at > 25:  # stalled: no halving in 25 steps, out of reach
                 break
             J = self.geometric_jacobian(q, frames)
-            step = np.linalg.solve(J.T @ J + lam * np.eye(self.n), J.T @ err)
-            norm = np.linalg.norm(step)
+            step = np.linalg.solve(J.T @ J + damping, J.T @ err)
+            norm = math.sqrt(float(step @ step))
             if norm > 0.3:
                 step *= 0.3 / norm
             q = q + step
