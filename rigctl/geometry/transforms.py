@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -26,7 +28,38 @@ def rotvec_to_R(rv) -> np.ndarray:
 
 
 def R_to_rotvec(R) -> np.ndarray:
-    return Rotation.from_matrix(np.asarray(R, float)).as_rotvec()
+    """The rotation vector of one rotation matrix ``R``, from its unit quaternion by
+    Shepperd's choice of the largest diagonal term. scipy's ``Rotation.from_matrix``
+    computes the same (within 1e-15 rad on random rotations), at a tenth of the speed
+    for one matrix: the IK's every step, and every view of every evaluation of the
+    hand-eye and arm refinements."""
+    r = np.asarray(R, float).tolist()
+    tr = r[0][0] + r[1][1] + r[2][2]
+    k = max(range(4), key=(tr, r[0][0], r[1][1], r[2][2]).__getitem__)
+    if k == 0:
+        w = math.sqrt(1.0 + tr) / 2.0
+        x, y, z = ((r[2][1] - r[1][2]) / (4 * w), (r[0][2] - r[2][0]) / (4 * w),
+                   (r[1][0] - r[0][1]) / (4 * w))
+    elif k == 1:
+        x = math.sqrt(1.0 + r[0][0] - r[1][1] - r[2][2]) / 2.0
+        w, y, z = ((r[2][1] - r[1][2]) / (4 * x), (r[0][1] + r[1][0]) / (4 * x),
+                   (r[0][2] + r[2][0]) / (4 * x))
+    elif k == 2:
+        y = math.sqrt(1.0 - r[0][0] + r[1][1] - r[2][2]) / 2.0
+        w, x, z = ((r[0][2] - r[2][0]) / (4 * y), (r[0][1] + r[1][0]) / (4 * y),
+                   (r[1][2] + r[2][1]) / (4 * y))
+    else:
+        z = math.sqrt(1.0 - r[0][0] - r[1][1] + r[2][2]) / 2.0
+        w, x, y = ((r[1][0] - r[0][1]) / (4 * z), (r[0][2] + r[2][0]) / (4 * z),
+                   (r[1][2] + r[2][1]) / (4 * z))
+    if w < 0:
+        w, x, y, z = -w, -x, -y, -z
+    norm = math.sqrt(x * x + y * y + z * z)
+    angle = 2.0 * math.atan2(norm, w)
+    # angle / sin(angle / 2), by its series near zero
+    scale = 2.0 + angle ** 2 / 12.0 + 7.0 * angle ** 4 / 2880.0 if angle < 1e-3 else \
+        angle / math.sin(angle / 2.0)
+    return np.array([scale * x, scale * y, scale * z])
 
 
 def rpy_deg_to_R(rpy_deg) -> np.ndarray:
