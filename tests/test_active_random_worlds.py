@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import pytest
 
-from rigctl.bench.active_worlds import world_trial
+from rigctl.bench.active_worlds import summarise, world_trial
 
 pytestmark = pytest.mark.heavy
 
@@ -51,6 +51,9 @@ def test_default_plan_meets_the_truth_of_an_unseen_world(seed):
     assert max(abs(z) for z in row["z"].values()) < 4.0, row["z"]
     # the arm's move measured the scene's depths, so the parallax was estimated
     assert row["parallax"]["estimated"], row["parallax"]
+    # the benchmark times the solve itself (rendering excluded), on the wall and of CPU
+    assert row["solve_s"] > 0 and row["solve_cpu_s"] > 0, row
+    assert summarise([row])["solve_s"]["median"] == row["solve_s"]
 
 
 # a hang guard, as above
