@@ -1,11 +1,13 @@
-"""The IK's rotation vector (``kinematics.rotation_error``) against scipy's."""
+"""The rotation vector of one matrix (``transforms.R_to_rotvec``, the IK's pose error)
+against scipy's."""
 
 from __future__ import annotations
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from rigctl.geometry.kinematics import nominal_ur, rotation_error
+from rigctl.geometry.kinematics import nominal_ur
+from rigctl.geometry.transforms import R_to_rotvec
 
 
 def test_rotation_error_is_scipys_rotation_vector():
@@ -16,7 +18,7 @@ def test_rotation_error_is_scipys_rotation_vector():
             rotations.append(Rotation.from_rotvec(angle * axis).as_matrix())
     for R in rotations:
         expected = Rotation.from_matrix(R).as_rotvec()
-        assert np.allclose(rotation_error(R), expected, rtol=1e-12, atol=1e-14), R
+        assert np.allclose(R_to_rotvec(R), expected, rtol=1e-12, atol=1e-14), R
 
 
 def test_ik_reaches_random_poses_of_a_ur5e():

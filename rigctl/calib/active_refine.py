@@ -275,13 +275,15 @@ class RefineResult:
     x_all: np.ndarray | None = field(default=None, repr=False)
     angle_delta: np.ndarray | None = field(default=None, repr=False)
 
-    def predictor(self, angles0, angles1, inv_depth: float | None = None):
+    def predictor(self, angles0, angles1, inv_depth: float | np.ndarray | None = None):
         """Where reference pixels land after the head moves from ``angles0`` to
         ``angles1`` under this solution (eq. 3.3 with distortion): for tracking. With
-        ``inv_depth`` (1/m, the contour's) the parallax is the offset ``o`` over that
-        depth, as the refinement with depths models it; without, ``s`` as estimated."""
+        ``inv_depth`` (1/m: one for all points, or each point's) the parallax is the
+        offset ``o`` over that depth, as the refinement with depths models it; without,
+        ``s`` as estimated."""
         def predict_points(points: np.ndarray) -> np.ndarray:
-            rho = None if inv_depth is None else np.full(len(points), inv_depth)
+            rho = None if inv_depth is None else \
+                np.broadcast_to(np.asarray(inv_depth, float), (len(points),))
             return predict_many([Motion(angles0, angles1, points, points)], self.x,
                                 self.n_dist, rho=rho)[0]
         return predict_points

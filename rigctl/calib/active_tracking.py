@@ -12,7 +12,7 @@ import numpy as np
 
 from rigctl.calib import active
 from rigctl.calib.active import ContourStats
-from rigctl.calib.active_refine import Motion, RefineResult, predict_many
+from rigctl.calib.active_refine import Motion, RefineResult
 from rigctl.calib.synthetic import intrinsics, rot_x, rot_y, rot_z
 from rigctl.errors import SolveError
 from rigctl.vision.contours import edge_map, extract_contours
@@ -186,8 +186,7 @@ class Tracker:
             rho = None if self.inv_depth is None or not K.with_depths else \
                 np.concatenate([np.full(len(c.points), float(self.inv_depth[i]))
                                 for i, c in enumerate(self.contours)])
-            pixels = predict_many([Motion(self.angles["ref"], self.angles[label], points,
-                                          points)], K.x, K.n_dist, rho=rho)[0]
+            pixels = K.predictor(self.angles["ref"], self.angles[label], rho)(points)
         return np.split(pixels, np.cumsum([len(c.points) for c in self.contours])[:-1])
 
     def motion(self, label: str, stride: int = 1) -> Motion | None:

@@ -43,11 +43,6 @@ def link_transform(theta: float, d: float, a: float, alpha: float, beta: float =
     return A @ Ry
 
 
-def rotation_error(R: np.ndarray) -> np.ndarray:
-    """The rotation vector of ``R`` (``transforms.R_to_rotvec``): the IK's pose error."""
-    return R_to_rotvec(R)
-
-
 @dataclass
 class KinematicModel:
     """Per-link parameters (arrays of length n) plus base and tool transforms."""
@@ -143,7 +138,7 @@ class KinematicModel:
             frames = self.frames(q)  # for the pose and the Jacobian alike
             T = frames[-1] @ self.T_flange_tool
             err = np.concatenate([T_target[:3, 3] - T[:3, 3],
-                                  rotation_error(T_target[:3, :3] @ T[:3, :3].T)])
+                                  R_to_rotvec(T_target[:3, :3] @ T[:3, :3].T)])
             size = math.sqrt(float(err @ err))  # np.linalg.norm's own arithmetic
             if size < tol:
                 return q
