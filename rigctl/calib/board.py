@@ -88,19 +88,24 @@ def detect_target(image: np.ndarray, target) -> Detection:
 CHARUCO_WINDOW_SHARE = 0.8  # of the gap between a ChArUco corner and its markers' corners
 
 
-def detect_board(image: np.ndarray, rows: int, cols: int) -> np.ndarray | None:
-    """Inner corners (N x 2 pixels, row-major like ``board_points``) or None.
-
-    OpenCV may return the grid in either of its two 180-degree orders. The square
-    enclosed by the first 2x2 inner corners is square (1, 1) of the board, which is black
-    (the origin square (0, 0) is black); in the reversed order it would be square
-    (rows-2, cols-2), white when rows + cols is odd. So a bright first square means the
-    order is reversed, and we flip it. The corners are then refined (``refine_corners``)."""
+def detect_board(image: np.ndarray, rows: int, cols: int,
+                 locate_scale: float | None = None) -> np.ndarray | None:
+    """Inner corners (N x 2 pixels, row-major like ``board_points``) or None: found by
+    ``findChessboardCornersSB`` (the planar target's corners of the Tsai and Zhang steps),
+    put in the board's order (``_checked``), then refined (``refine_corners``).
+    ``locate_scale``: the scale of the first search (``LOCATE_SCALE`` when None; 1 skips
+    it)."""
     gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-    # the quick search first: its corners are where the refinement below starts, and
-    # they end within 1e-4 px (median; 0.01 px at most) of where the slower accurate
-    # search's do, at a fifth of the cost (40 views of the default world: 4.6 s instead
-    # of 20.7 s); the accurate and the exhaustive searches take the boards it misses
+    # the quick search on the image at half scale first: the refinement below takes its
+    # corners to within 0.001 px of where it takes the full image's search's
+    scale = LOCATE_SCALE if locate_scale is None else locate_scale
+    pts = _checked(gray, _located(gray, rows, cols, scale), rows, cols) if scale < 1 else None
+    if pts is not None:
+        return refine_corners(gray, pts, rows, cols)
+    # the quick search on the whole image: its corners end within 1e-4 px (median; 0.01
+    # px at most) of where the slower accurate search's do, at a fifth of the cost (40
+    # views of the default world: 4.6 s instead of 20.7 s); the accurate and the
+    # exhaustive searches take the boards it misses
     found, corners = cv2.findChessboardCornersSB(gray, (cols - 1, rows - 1))
     if not found:
         found, corners = cv2.findChessboardCornersSB(gray, (cols - 1, rows - 1),
@@ -112,7 +117,39 @@ def detect_board(image: np.ndarray, rows: int, cols: int) -> np.ndarray | None:
             gray, (cols - 1, rows - 1), flags=cv2.CALIB_CB_ACCURACY | cv2.CALIB_CB_EXHAUSTIVE)
     if not found:
         return None
-    pts = corners.reshape(-1, 2).astype(float)
+    pts = _checked(gray, corners.reshape(-1, 2).astype(float), rows, cols)
+    return None if pts is None else refine_corners(gray, pts, rows, cols)
+
+
+# The first search runs on the image scaled by this: on 160 views of 16 random worlds
+# (1280 x 720 to 1280 x 960), 0.05 s of CPU a view instead of 0.12 s, with the refined
+# corners as far from the truth (0.107 px RMS, median over the views, against 0.106).
+LOCATE_SCALE = 0.5
+
+
+def _located(gray: np.ndarray, rows: int, cols: int, scale: float) -> np.ndarray | None:
+    """Where ``findChessboardCornersSB``'s quick search finds the inner corners in the
+    image scaled by ``scale`` (N x 2 full-resolution pixels), or None."""
+    small = cv2.resize(gray, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+    found, corners = cv2.findChessboardCornersSB(small, (cols - 1, rows - 1))
+    if not found:
+        return None
+    # pixel centres: x_full + 0.5 = (x_small + 0.5) / scale
+    return (corners.reshape(-1, 2).astype(float) + 0.5) / scale - 0.5
+
+
+def _checked(gray: np.ndarray, pts: np.ndarray | None, rows: int,
+             cols: int) -> np.ndarray | None:
+    """A found grid ``pts`` in the board's order, or None when its squares do not
+    alternate as the board's do.
+
+    OpenCV may return the grid in either of its two 180-degree orders. The square
+    enclosed by the first 2x2 inner corners is square (1, 1) of the board, which is black
+    (the origin square (0, 0) is black); in the reversed order it would be square
+    (rows-2, cols-2), white when rows + cols is odd. So a bright first square means the
+    order is reversed, and we flip it."""
+    if pts is None:
+        return None
     if (rows + cols) % 2 == 1:
         w = cols - 1
         quad = np.array([pts[0], pts[1], pts[w + 1], pts[w]], np.float32)
@@ -124,9 +161,7 @@ def detect_board(image: np.ndarray, rows: int, cols: int) -> np.ndarray | None:
         ring = float(np.mean(gray))
         if inside > ring:
             pts = pts[::-1].copy()
-    if not squares_alternate(gray, pts, rows, cols):
-        return None
-    return refine_corners(gray, pts, rows, cols)
+    return pts if squares_alternate(gray, pts, rows, cols) else None
 
 
 # cornerSubPix's half window: this fraction of the distance to the nearest neighbouring
