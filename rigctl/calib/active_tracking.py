@@ -180,14 +180,14 @@ class Tracker:
         if not self.contours:
             return []
         points = np.concatenate([c.points for c in self.contours])
+        sizes = [len(c.points) for c in self.contours]
         if not isinstance(K, RefineResult):
             pixels = pinhole_predictor(K, self.rel[label])(points)
         else:
             rho = None if self.inv_depth is None or not K.with_depths else \
-                np.concatenate([np.full(len(c.points), float(self.inv_depth[i]))
-                                for i, c in enumerate(self.contours)])
+                np.repeat(np.asarray(self.inv_depth, float)[:len(sizes)], sizes)
             pixels = K.predictor(self.angles["ref"], self.angles[label], rho)(points)
-        return np.split(pixels, np.cumsum([len(c.points) for c in self.contours])[:-1])
+        return np.split(pixels, np.cumsum(sizes)[:-1])
 
     def motion(self, label: str, stride: int = 1) -> Motion | None:
         """The tracked contours of ``label`` as one refinement motion: every
