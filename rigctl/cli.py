@@ -862,6 +862,33 @@ def bench_active_worlds(as_json: bool = typer.Option(False, "--json"),
     out.print_json(json.dumps(result["summary"]))
 
 
+@bench_app.command("detection")
+def bench_detection(as_json: bool = typer.Option(False, "--json"),
+                    n: int = typer.Option(16, "--n", min=1, max=1000),
+                    first_seed: int = typer.Option(1000, "--first-seed", min=0),
+                    views: int = typer.Option(10, "--views", min=1, max=100)) -> None:
+    """Checkerboard detection on N random worlds' rendered views: the half-scale first
+    search against the whole image's (CPU a view, views found, corner error against
+    truth, largest corner difference)."""
+    from rigctl.bench import detection
+    from rigctl.bench.common import print_table
+
+    result = detection.run(n, first_seed, views)
+    if as_json:
+        _print_json(result)
+        return
+    summary = result["summary"]
+    print_table(f"bench detection ({summary['views']} views of {n} worlds)",
+                ["search", "CPU s a view", "found", "RMS px median", "RMS px p90",
+                 "shared px RMS"],
+                [[name, *(summary[name][k] for k in (
+                    "cpu_s_per_view", "found", "rms_px_median", "rms_px_p90",
+                    "shared_px_rms"))] for name in detection.SEARCHES], out)
+    largest = summary["largest_change_px"]
+    out.print("largest corner difference between the searches: "
+              + ("-" if largest is None else f"{largest:.4f} px"))
+
+
 @bench_app.command("worlds")
 def bench_worlds(as_json: bool = typer.Option(False, "--json"),
                  n: int = typer.Option(20, "--n", min=1, max=500),
