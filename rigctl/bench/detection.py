@@ -6,7 +6,9 @@ from cameras around the board's normal (10-40 deg off it, at 1.1-1.8 times the d
 where the board fills the image), JPEG at the world's quality as the stand-in sends it.
 Both searches run on every view. Reports, per search: CPU a view, views found, each
 view's corner error against the truth (RMS over its corners; median and p90 over the
-views) and its shared (mean) error; and the largest difference of a corner between them.
+views) and its shared (mean) error; and the largest difference of a corner between them
+(a board with rows + cols even taken in either search's order: it looks the same after a
+half turn, and the procedures order it by where the nominal arm predicts it).
 """
 
 from __future__ import annotations
@@ -95,7 +97,8 @@ def summarise(rows: list[dict]) -> dict:
     a, b = SEARCHES
     both = [(r[a]["corners"], r[b]["corners"]) for r in rows
             if r[a]["corners"] is not None and r[b]["corners"] is not None]
-    out["largest_change_px"] = max((float(np.abs(x - y).max()) for x, y in both),
+    # a board with rows + cols even may come in either order (``_error``)
+    out["largest_change_px"] = max((float(np.abs(_error(x, y)).max()) for x, y in both),
                                    default=None)
     return out
 
