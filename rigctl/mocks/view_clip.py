@@ -26,31 +26,37 @@ def _planes(lim_x: float, lim_y: float, near: float) -> list[tuple[np.ndarray, f
 
 
 def _clip_one(points: np.ndarray, normal: np.ndarray, c: float) -> np.ndarray:
-    """One Sutherland-Hodgman pass: the part of the polygon where ``n . p >= c``."""
+    """One Sutherland-Hodgman pass: the part of the polygon where ``n . p >= c``. Each
+    vertex in order: itself when inside, then where its edge to the next one crosses
+    the plane (``a + (b - a) sa / (sa - sb)``), all edges at once."""
     s = points @ normal - c
-    out = []
-    n = len(points)
-    for k in range(n):
-        a, b = points[k], points[(k + 1) % n]
-        sa, sb = s[k], s[(k + 1) % n]
-        if sa >= 0:
-            out.append(a)
-        if (sa >= 0) != (sb >= 0):
-            out.append(a + (b - a) * (sa / (sa - sb)))
-    return np.array(out).reshape(-1, 3)
+    following = np.concatenate((points[1:], points[:1]))
+    s_following = np.concatenate((s[1:], s[:1]))
+    inside = s >= 0
+    crosses = np.flatnonzero(inside != (s_following >= 0))
+    candidates = np.empty((len(points), 2, 3))  # (n, 2, 3): each vertex, then its cut
+    candidates[:, 0] = points
+    a, b, sa, sb = points[crosses], following[crosses], s[crosses], s_following[crosses]
+    candidates[crosses, 1] = a + (b - a) * (sa / (sa - sb))[:, None]
+    keep = np.zeros((len(points), 2), bool)
+    keep[:, 0] = inside
+    keep[crosses, 1] = True
+    return candidates[keep]
 
 
 def _densify(points: np.ndarray) -> np.ndarray:
     """Points inserted along each edge (the cut ones are long), as many as its length in
-    normalised image coordinates needs to bend with the distortion."""
-    out = []
-    n = len(points)
-    for k in range(n):
-        a, b = points[k], points[(k + 1) % n]
-        length = np.hypot(*(b[:2] / b[2] - a[:2] / a[2]))
-        m = max(int(np.ceil(length * CUT_EDGE_DENSITY)), 1)
-        out += [a + (b - a) * f for f in np.arange(m) / m]
-    return np.array(out)
+    normalised image coordinates needs to bend with the distortion: edge ``a -> b`` in
+    ``m`` steps, ``a + (b - a) j / m`` for j = 0 .. m - 1."""
+    following = np.roll(points, -1, axis=0)
+    step = following[:, :2] / following[:, 2:3] - points[:, :2] / points[:, 2:3]
+    length = np.hypot(step[:, 0], step[:, 1])
+    m = np.maximum(np.ceil(length * CUT_EDGE_DENSITY).astype(int), 1)
+    edge = np.repeat(np.arange(len(points)), m)
+    j = np.arange(len(edge)) - np.repeat(np.cumsum(m) - m, m)
+    f = j / m[edge]
+    a = points[edge]
+    return a + (following[edge] - a) * f[:, None]
 
 
 def clip_to_view(points: np.ndarray, lim_x: float, lim_y: float, near: float) -> np.ndarray:
@@ -60,7 +66,12 @@ def clip_to_view(points: np.ndarray, lim_x: float, lim_y: float, near: float) ->
         (np.abs(points[:, 1]) <= lim_y * points[:, 2])
     if inside.all():
         return points
-    for normal, c in _planes(lim_x, lim_y, near):
+    planes = _planes(lim_x, lim_y, near)
+    # wholly outside one of the planes: nothing of it is left after all of them (most of
+    # a ChArUco board's cells, near the camera)
+    if any(np.all(points @ normal - c < 0) for normal, c in planes):
+        return np.empty((0, 3))
+    for normal, c in planes:
         points = _clip_one(points, normal, c)
         if len(points) < 3:
             return np.empty((0, 3))
