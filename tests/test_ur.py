@@ -383,3 +383,19 @@ def test_emergency_stop_reaches_the_driver(arm_proc):
         with pytest.raises(SafetyError, match="emergency stop"):
             arm.move_joint(5, 0.1)
         control(arm_proc.ready["control"], {"cmd": "release_estop"})
+
+
+def test_a_move_refused_for_a_protective_stop_just_before_it_is_a_safety_error(arm_proc):
+    """A protective stop that lands between two moves: the control script refuses the next
+    move while the receive stream does not show the stop yet (here the stream is held for
+    a second). The refusal is the ``SafetyError`` it is, so that a run pauses on it, not
+    a failed run's ``DeviceError``. (On a host too slow to start the move within that
+    second, the stream shows the stop first and the move is refused as a ``SafetyError``
+    before it is sent: the test then passes without this path.)"""
+    sock = arm_proc.ready["control"]
+    with URArm(arm_config(arm_proc.ready["host"], stream_timeout_s=5)) as arm:
+        control(sock, {"cmd": "stall_stream", "seconds": 1.0})
+        control(sock, {"cmd": "protective_stop"})
+        refused = raises(lambda: arm.move_joint(5, 0.1), Exception)
+        assert isinstance(refused, SafetyError), refused
+        assert "protective stop" in str(refused)

@@ -263,7 +263,7 @@ class URArm(Arm):
         status = Status("arm moveJ to [" + ", ".join(f"{math.degrees(x):.1f}" for x in q) +
                         "] deg")
         if not self.control.moveJ(q, v, a, True):
-            raise DeviceError(f"arm {self.cfg.host}: moveJ refused by the controller")
+            self._refused("moveJ")
         self._watch(status, target_q=q)
         return status
 
@@ -276,9 +276,20 @@ class URArm(Arm):
         status = Status("arm moveL")
         v, a = self.cfg.linear_speed_mm_s / 1000.0, self.cfg.linear_accel_mm_s2 / 1000.0
         if not self.control.moveL(pose, v, a, True):
-            raise DeviceError(f"arm {self.cfg.host}: moveL refused by the controller")
+            self._refused("moveL")
         self._watch(status, target_pose=pose)
         return status
+
+    def _refused(self, command: str) -> None:
+        """Raise for a ``command`` the controller refused. A protective or emergency stop
+        that came just before it is the ``SafetyError`` it is (a run pauses on it): the
+        receive stream shows the stop one sample later than the control script refuses,
+        so the state is read from the second sample after the refusal. Anything else is
+        a ``DeviceError``."""
+        self._sample_after_now()
+        self._sample_after_now()
+        self.check_safety()
+        raise DeviceError(f"arm {self.cfg.host}: {command} refused by the controller")
 
     def _watch(self, status: Status, target_q=None, target_pose=None) -> None:
         if self._watch_thread is not None and self._watch_thread.is_alive():

@@ -92,6 +92,7 @@ class Camera:
         self.render_s: list[float] = []
         self.viewers = 0
         self._still: tuple[tuple, np.ndarray] | None = None  # (state, noiseless image)
+        self._still_jpeg: bytes | None = None  # that image encoded, in a noiseless world
         self.noise = PixelNoise((world.size[1], world.size[0]), world.spec.camera.pixel_noise,
                                 world.spec.seed)
 
@@ -111,7 +112,18 @@ class Camera:
             image = self.world.render(self.world.T_base_cam(q, angles), noise=False, q=q,
                                       **({"supersample": 1} if moving else {}))
             self._still = (key, image)
+            self._still_jpeg = None
         return self.noise.add(self._still[1])
+
+    def jpeg(self, angles: tuple, q: np.ndarray, moving: bool, quality: list[int]) -> bytes:
+        """``picture`` as JPEG. A world without pixel noise gives the same frame again
+        while nothing moves: it is encoded once."""
+        image = self.picture(angles, q, moving)
+        if self.noise.fields:
+            return cv2.imencode(".jpg", image, quality)[1].tobytes()
+        if self._still_jpeg is None:
+            self._still_jpeg = cv2.imencode(".jpg", image, quality)[1].tobytes()
+        return self._still_jpeg
 
     def state(self) -> tuple[tuple[float, float, float], np.ndarray, bool]:
         """Head angles and arm joints now (the stand-ins' true values), and whether
@@ -148,8 +160,7 @@ class Camera:
                 t_sample = time.time()
                 angles, q, moving = self.state()
                 t0 = time.perf_counter()
-                image = self.picture(angles, q, moving)
-                _ok, jpeg = cv2.imencode(".jpg", image, quality)
+                jpeg = self.jpeg(angles, q, moving, quality)
                 self.render_s.append(time.perf_counter() - t0)
                 self.render_s = self.render_s[-200:]
                 if time.time() - t_sample > MAX_FRAME_AGE_S:
@@ -157,7 +168,7 @@ class Camera:
                 else:
                     with self.cond:
                         self.frame = {"seq": index, "t_sample": t_sample,
-                                      "jpeg": jpeg.tobytes(), "head": angles, "q": q.tolist()}
+                                      "jpeg": jpeg, "head": angles, "q": q.tolist()}
                         self.cond.notify_all()
                 index += 1
                 self.rendered = index
