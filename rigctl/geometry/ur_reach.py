@@ -40,17 +40,23 @@ LENGTH_TOL_M = 0.01
 BASE_SLACK_M = 0.001
 
 
+def _angles_off(model: KinematicModel) -> np.ndarray:
+    """Each D-H alpha's difference from the UR pattern, then each Hayati beta (12,)."""
+    return np.abs(np.concatenate([np.asarray(model.alpha) - UR_ALPHA, model.beta]))
+
+
+def _small_lengths(model: KinematicModel) -> np.ndarray:
+    """The lengths a UR has zero: a1, a4, a5, a6, d2, d3 (absolute, m)."""
+    return np.abs([model.a[0], model.a[3], model.a[4], model.a[5], model.d[1], model.d[2]])
+
+
 def is_ur_like(model: KinematicModel) -> bool:
     """The model has a UR's six links: the D-H pattern of the module docstring, within
     ``ANGLE_TOL_RAD`` and ``LENGTH_TOL_M``."""
     if model.n != 6 or abs(model.d[5]) < 0.01:
         return False
-    angles_ok = all(abs(a - b) <= ANGLE_TOL_RAD for a, b in zip(model.alpha, UR_ALPHA,
-                                                                  strict=True))
-    betas_ok = bool(np.all(np.abs(model.beta) <= ANGLE_TOL_RAD))
-    lengths_ok = all(abs(v) <= LENGTH_TOL_M for v in (model.a[0], model.a[3], model.a[4],
-                                                     model.a[5], model.d[1], model.d[2]))
-    return angles_ok and betas_ok and lengths_ok
+    return bool(np.all(_angles_off(model) <= ANGLE_TOL_RAD) and
+                np.all(_small_lengths(model) <= LENGTH_TOL_M))
 
 
 def slack_for(model: KinematicModel) -> float:
@@ -58,12 +64,9 @@ def slack_for(model: KinematicModel) -> float:
     base slack, plus twice its links' total length times the sum of its angles off the
     UR pattern (each such angle turns the later axes, moving points and the lengths along
     axes by at most that much per metre), plus its small lengths (a1, a4-a6, d2, d3)."""
-    angle = sum(abs(a - b) for a, b in zip(model.alpha, UR_ALPHA, strict=True)) + \
-        float(np.sum(np.abs(model.beta)))
     links = float(np.sum(np.abs(model.a)) + np.sum(np.abs(model.d)))
-    small = sum(abs(v) for v in (model.a[0], model.a[3], model.a[4], model.a[5],
-                                 model.d[1], model.d[2]))
-    return BASE_SLACK_M + 2.0 * links * angle + small
+    return BASE_SLACK_M + 2.0 * links * float(np.sum(_angles_off(model))) + \
+        float(np.sum(_small_lengths(model)))
 
 
 def surely_unreachable(model: KinematicModel, T_base_tool: np.ndarray,

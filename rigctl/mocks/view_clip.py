@@ -25,13 +25,17 @@ def _planes(lim_x: float, lim_y: float, near: float) -> list[tuple[np.ndarray, f
             (np.array([0.0, 0.0, 1.0]), near)]
 
 
+def _following(values: np.ndarray) -> np.ndarray:
+    """Each row's successor around the polygon (the first after the last)."""
+    return np.concatenate((values[1:], values[:1]))
+
+
 def _clip_one(points: np.ndarray, normal: np.ndarray, c: float) -> np.ndarray:
     """One Sutherland-Hodgman pass: the part of the polygon where ``n . p >= c``. Each
     vertex in order: itself when inside, then where its edge to the next one crosses
     the plane (``a + (b - a) sa / (sa - sb)``), all edges at once."""
     s = points @ normal - c
-    following = np.concatenate((points[1:], points[:1]))
-    s_following = np.concatenate((s[1:], s[:1]))
+    following, s_following = _following(points), _following(s)
     inside = s >= 0
     crosses = np.flatnonzero(inside != (s_following >= 0))
     candidates = np.empty((len(points), 2, 3))  # (n, 2, 3): each vertex, then its cut
@@ -48,7 +52,7 @@ def _densify(points: np.ndarray) -> np.ndarray:
     """Points inserted along each edge (the cut ones are long), as many as its length in
     normalised image coordinates needs to bend with the distortion: edge ``a -> b`` in
     ``m`` steps, ``a + (b - a) j / m`` for j = 0 .. m - 1."""
-    following = np.roll(points, -1, axis=0)
+    following = _following(points)
     step = following[:, :2] / following[:, 2:3] - points[:, :2] / points[:, 2:3]
     length = np.hypot(step[:, 0], step[:, 1])
     m = np.maximum(np.ceil(length * CUT_EDGE_DENSITY).astype(int), 1)
