@@ -608,8 +608,12 @@ class _Problem:
         key = (xf.tobytes(), id(assoc), id(targets), self.angles.delta.tobytes(),
                self.angles.scale)
         if self._elimination is None or self._elimination[0] != key:
-            J, G, counts, r = self._jacobian_and_residuals(xf, assoc, targets, 0)
-            self._elimination = (key, self.angles.eliminate(r, G, counts, J))
+            # rows after the residuals' for the offsets' and the priors' rows, so that
+            # ``jac`` hands over this one array instead of a copy stacked from its parts
+            n_prior = int(np.isfinite(self.prior_sigma[self.free]).sum())
+            J, G, counts, r = self._jacobian_and_residuals(
+                xf, assoc, targets, 3 * len(self.motions) + n_prior)
+            self._elimination = (key, self.angles.eliminate(r, G, counts, J[:len(r)]), J)
         return self._elimination[1]
 
     def jac(self, xf: np.ndarray, assoc, targets) -> np.ndarray:
@@ -623,7 +627,11 @@ class _Problem:
         prior[np.arange(len(with_prior)), with_prior] = 1.0 / self.prior_sigma[self.free][has]
         if self.eliminating:
             e = self.eliminated(xf, assoc, targets)
-            return np.vstack([e.jac_rows, e.jac_prior, prior])
+            J = self._elimination[2]
+            n = len(e.residuals)
+            J[n:n + len(e.jac_prior)] = e.jac_prior
+            J[n + len(e.jac_prior):] = prior
+            return J
         J, _ = self._jacobian_at(xf, assoc, targets, len(with_prior))
         self._jacobian = None  # handed over: its prior rows are written below
         J[len(J) - len(with_prior):] = prior
@@ -676,8 +684,11 @@ class _Problem:
         free_cam = np.flatnonzero(self.free[:self.n_cam])
         free_rho = self.free[self.n_cam:self.n_cam + self.n_rho]
         n_rows = len(point)
-        J = np.zeros((n_rows + extra_rows, int(self.free.sum())))
-        J[:n_rows, :len(free_cam)] = J_cam[:, free_cam]
+        # column-major, as ``residual_jacobian`` writes its columns: each column is one
+        # contiguous copy (a row-major copy of 100,000 rows cost twice as much)
+        J = np.zeros((n_rows + extra_rows, int(self.free.sum())), order="F")
+        for column, cam_column in enumerate(free_cam):
+            J[:n_rows, column] = J_cam[:, cam_column]
         if free_rho.any():  # each point's inverse depth is its contour's parameter
             column = np.full(len(free_rho), -1)
             column[free_rho] = len(free_cam) + np.arange(int(free_rho.sum()))
