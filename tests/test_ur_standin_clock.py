@@ -8,7 +8,6 @@ the stand-in's own controller, in process: no sockets, no loop thread.
 
 from __future__ import annotations
 
-import threading
 import time
 
 import numpy as np
@@ -48,34 +47,3 @@ def test_a_move_or_a_running_program_keeps_the_loop_stepping():
     ctrl.motion = None
     ctrl.runtime_state = RUNTIME_PLAYING
     assert not ctrl.at_rest()
-
-
-class _CountingEvent(threading.Event):
-    """An event that records whether each wait ended by being set (True) or timed out."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.waits: list[bool] = []
-
-    def wait(self, timeout=None) -> bool:
-        woken = super().wait(timeout)
-        self.waits.append(woken)
-        return woken
-
-
-def test_an_idle_loop_sleeps_until_something_wakes_it():
-    # three rounds of the loop with nobody connected and nothing moving: every sleep
-    # times out, none is cut short by the loop itself (it once woke itself and spun)
-    ctrl = _controller()
-    ctrl._woken = _CountingEvent()
-    stop = threading.Event()
-    rounds = []
-
-    def watched() -> bool:
-        rounds.append(1)
-        if len(rounds) > 3:
-            stop.set()
-        return False
-
-    ctrl.run_loop(stop, watched)
-    assert len(ctrl._woken.waits) >= 3 and not any(ctrl._woken.waits)

@@ -677,11 +677,6 @@ class Controller:
         """Before anything from outside the loop changes the state (a connection, a
         control request, a program starting): the clock catches up with the ticks an
         idle loop slept through, and the loop wakes."""
-        self._catch_up()
-        self._woken.set()
-
-    def _catch_up(self) -> None:
-        """While the loop idles: the clock forward by the whole ticks that passed."""
         with self.lock:
             if self._idle:
                 passed = int((time.perf_counter() - self._next_t) / PERIOD)
@@ -690,6 +685,7 @@ class Controller:
                     self.t = self.tick * PERIOD
                     self._next_t += passed * PERIOD
                     self.tick_cond.notify_all()
+        self._woken.set()
 
     def run_loop(self, stop: threading.Event, watched=lambda: True) -> None:
         """Step every ``PERIOD``; while nobody is ``watched`` (connected) and the arm is
@@ -702,7 +698,7 @@ class Controller:
             if self._idle:
                 self._woken.wait(IDLE_SLEEP_S)
                 self._woken.clear()
-                self._catch_up()  # not ``wake``: the loop must not wake itself
+                self.wake()
                 continue
             self._next_t += PERIOD
             self.step()
