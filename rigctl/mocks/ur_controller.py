@@ -276,10 +276,6 @@ class Controller:
         self._snapshot: dict = {}
         self._snapshot_tick = -1
         self.steady_since = 0.0
-        # the loop's schedule, whether it idles (``run_loop``) and what wakes it
-        self._next_t = time.perf_counter()
-        self._idle = False
-        self._woken = threading.Event()
 
     # -- registers --------------------------------------------------------------
 
@@ -341,7 +337,6 @@ class Controller:
         self.uploads += 1
 
     def _start_program(self, offset: int, upload: int, delayed: bool = False) -> None:
-        self.wake()  # a delayed start may come while nobody is connected
         with self.lock:
             if upload != self.uploads:  # stopped, or another script came, meanwhile
                 return
@@ -673,40 +668,31 @@ class Controller:
         """Whether a tick would change nothing but the clock: no move, no program."""
         return self.motion is None and self.runtime_state != RUNTIME_PLAYING
 
-    def wake(self) -> None:
-        """Before anything from outside the loop changes the state (a connection, a
-        control request, a program starting): the clock catches up with the ticks an
-        idle loop slept through, and the loop wakes."""
-        with self.lock:
-            if self._idle:
-                passed = int((time.perf_counter() - self._next_t) / PERIOD)
-                if passed > 0:
-                    self.tick += passed
-                    self.t = self.tick * PERIOD
-                    self._next_t += passed * PERIOD
-                    self.tick_cond.notify_all()
-        self._woken.set()
-
-    def run_loop(self, stop: threading.Event, watched=lambda: True) -> None:
+    def run_loop(self, stop: threading.Event, watched=lambda: True,
+                 wake: threading.Event | None = None) -> None:
         """Step every ``PERIOD``; while nobody is ``watched`` (connected) and the arm is
-        ``at_rest``, sleep ``IDLE_SLEEP_S`` at a time (``wake`` cuts it short) and let
-        the clock catch up in whole ticks."""
-        self._next_t = time.perf_counter()
+        ``at_rest``, sleep ``IDLE_SLEEP_S`` at a time (``wake`` cuts it short) and then
+        advance the clock by the ticks that passed."""
+        next_t = time.perf_counter()
         while not stop.is_set():
-            with self.lock:
-                self._idle = not watched() and self.at_rest()
-            if self._idle:
-                self._woken.wait(IDLE_SLEEP_S)
-                self._woken.clear()
-                self.wake()
+            if wake is not None and not watched() and self.at_rest():
+                wake.wait(IDLE_SLEEP_S)
+                wake.clear()
+                with self.lock:
+                    passed = int((time.perf_counter() - next_t) / PERIOD)
+                    if passed > 0:
+                        self.tick += passed
+                        self.t = self.tick * PERIOD
+                        next_t += passed * PERIOD
+                        self.tick_cond.notify_all()
                 continue
-            self._next_t += PERIOD
+            next_t += PERIOD
             self.step()
-            remaining = self._next_t - time.perf_counter()
+            remaining = next_t - time.perf_counter()
             if remaining > 0:
                 time.sleep(remaining)  # never spin: spinning holds the GIL from the streams
-            if time.perf_counter() - self._next_t > 0.05:  # fell far behind: resynchronise
-                self._next_t = time.perf_counter()
+            if time.perf_counter() - next_t > 0.05:  # fell far behind: resynchronise
+                next_t = time.perf_counter()
 
     def dump(self) -> dict:
         with self.lock:
@@ -887,6 +873,7 @@ class Server:
         self.stop_event = threading.Event()
         self.clients: set[socket.socket] = set()
         self.clients_lock = threading.Lock()
+        self.client_came = threading.Event()  # wakes the controller's idle loop
         self.listeners = {}
         for port, handler in ((30004, self.on_rtde), (29999, self.on_dashboard),
                               (30003, self.on_script), (30001, self.on_primary),
@@ -910,7 +897,7 @@ class Server:
 
     def start(self) -> None:
         threading.Thread(target=self.ctrl.run_loop,
-                         args=(self.stop_event, lambda: bool(self.clients)),
+                         args=(self.stop_event, lambda: bool(self.clients), self.client_came),
                          daemon=True, name="controller").start()
         for port, (sock, handler) in self.listeners.items():
             threading.Thread(target=self._accept, args=(sock, handler), daemon=True,
@@ -929,7 +916,7 @@ class Server:
                 sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
                 with self.clients_lock:
                     self.clients.add(sock)
-            self.ctrl.wake()
+            self.client_came.set()  # a control request may start a move, too
             threading.Thread(target=handler, args=(sock,), daemon=True).start()
 
     def on_rtde(self, sock: socket.socket) -> None:
@@ -1031,7 +1018,6 @@ class Server:
     def _control(self, request: dict) -> dict:
         cmd = request.get("cmd")
         ctrl = self.ctrl
-        ctrl.wake()  # a request may start a move (``freedrive``) on an idle controller
         if cmd == "protective_stop":
             ctrl.protective_stop("injected")
         elif cmd == "emergency_stop":
@@ -1073,7 +1059,6 @@ class Server:
 
     def close(self) -> None:
         self.stop_event.set()
-        self.ctrl.wake()
         for sock, _ in self.listeners.values():
             sock.close()
         with self.clients_lock:
