@@ -58,10 +58,6 @@ log = logging.getLogger("mock.ur")
 
 PERIOD = 0.002
 STREAM_RESYNC_S = 0.05  # a stream this late drops the packages it missed
-# With no client connected, no move and no program, nothing changes and nothing watches:
-# the loop sleeps this long (or until a client connects) and the clock then catches up
-# in whole ticks, instead of 500 steps a second (2 % of a core per idle stand-in).
-IDLE_SLEEP_S = 0.05
 JOINT_ACCEL_MAX = 40.0  # rad/s^2
 # RTDE outputs a CB3 (3.x) does not offer (RTDE guide: added with PolyScope 5.x)
 E_SERIES_ONLY_OUTPUTS = frozenset({"ft_raw_wrench", "actual_current_as_torque"})
@@ -664,28 +660,9 @@ class Controller:
         snap.update(zip(_OUT_DOUBLE_NAMES, self.out_double, strict=True))
         self._snapshot = snap
 
-    def at_rest(self) -> bool:
-        """Whether a tick would change nothing but the clock: no move, no program."""
-        return self.motion is None and self.runtime_state != RUNTIME_PLAYING
-
-    def run_loop(self, stop: threading.Event, watched=lambda: True,
-                 wake: threading.Event | None = None) -> None:
-        """Step every ``PERIOD``; while nobody is ``watched`` (connected) and the arm is
-        ``at_rest``, sleep ``IDLE_SLEEP_S`` at a time (``wake`` cuts it short) and then
-        advance the clock by the ticks that passed."""
+    def run_loop(self, stop: threading.Event) -> None:
         next_t = time.perf_counter()
         while not stop.is_set():
-            if wake is not None and not watched() and self.at_rest():
-                wake.wait(IDLE_SLEEP_S)
-                wake.clear()
-                with self.lock:
-                    passed = int((time.perf_counter() - next_t) / PERIOD)
-                    if passed > 0:
-                        self.tick += passed
-                        self.t = self.tick * PERIOD
-                        next_t += passed * PERIOD
-                        self.tick_cond.notify_all()
-                continue
             next_t += PERIOD
             self.step()
             remaining = next_t - time.perf_counter()
@@ -873,7 +850,6 @@ class Server:
         self.stop_event = threading.Event()
         self.clients: set[socket.socket] = set()
         self.clients_lock = threading.Lock()
-        self.client_came = threading.Event()  # wakes the controller's idle loop
         self.listeners = {}
         for port, handler in ((30004, self.on_rtde), (29999, self.on_dashboard),
                               (30003, self.on_script), (30001, self.on_primary),
@@ -896,9 +872,8 @@ class Server:
             pass
 
     def start(self) -> None:
-        threading.Thread(target=self.ctrl.run_loop,
-                         args=(self.stop_event, lambda: bool(self.clients), self.client_came),
-                         daemon=True, name="controller").start()
+        threading.Thread(target=self.ctrl.run_loop, args=(self.stop_event,), daemon=True,
+                         name="controller").start()
         for port, (sock, handler) in self.listeners.items():
             threading.Thread(target=self._accept, args=(sock, handler), daemon=True,
                              name=f"accept-{port}").start()
@@ -916,7 +891,6 @@ class Server:
                 sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
                 with self.clients_lock:
                     self.clients.add(sock)
-            self.client_came.set()  # a control request may start a move, too
             threading.Thread(target=handler, args=(sock,), daemon=True).start()
 
     def on_rtde(self, sock: socket.socket) -> None:
