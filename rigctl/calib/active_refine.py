@@ -627,6 +627,8 @@ class _Problem:
         prior[np.arange(len(with_prior)), with_prior] = 1.0 / self.prior_sigma[self.free][has]
         if self.eliminating:
             e = self.eliminated(xf, assoc, targets)
+            if e.jac_rows is None:  # a turned-over step (``CaptureAngles.eliminate``)
+                raise ValueError("no Jacobian where the model turned over")
             J = self._elimination[2]
             n = len(e.residuals)
             J[n:n + len(e.jac_prior)] = e.jac_prior
