@@ -593,13 +593,17 @@ class _Problem:
         """Residuals and the priors' rows, over the free parameters; with the head
         angles, the residuals at each capture's best offsets and those offsets' prior
         rows (``active_angles``)."""
-        has = np.isfinite(self.prior_sigma[self.free])
+        has = self._has_prior()
         prior_rows = (xf - self.prior_mean[self.free])[has] / self.prior_sigma[self.free][has]
         if self.eliminating:
             e = self.eliminated(xf, assoc, targets)
             return np.concatenate([e.residuals, e.prior_rows, prior_rows])
         _, r = self._jacobian_at(xf, assoc, targets, len(prior_rows))
         return np.concatenate([r, prior_rows])
+
+    def _has_prior(self) -> np.ndarray:
+        """Which free parameters have a prior row (a finite prior sigma)."""
+        return np.isfinite(self.prior_sigma[self.free])
 
     def eliminated(self, xf: np.ndarray, assoc, targets):
         """The captures' offsets eliminated at ``xf`` (``CaptureAngles.eliminate``, with
@@ -610,7 +614,7 @@ class _Problem:
         if self._elimination is None or self._elimination[0] != key:
             # rows after the residuals' for the offsets' and the priors' rows, so that
             # ``jac`` hands over this one array instead of a copy stacked from its parts
-            n_prior = int(np.isfinite(self.prior_sigma[self.free]).sum())
+            n_prior = int(self._has_prior().sum())
             J, G, counts, r = self._jacobian_and_residuals(
                 xf, assoc, targets, 3 * len(self.motions) + n_prior)
             self._elimination = (key, self.angles.eliminate(r, G, counts, J[:len(r)]), J)
@@ -621,7 +625,7 @@ class _Problem:
         columns, then each free inverse depth's column, which only its contour's rows
         touch, then the reference captures' angle offsets; with the head angles, reduced
         by the other captures' (``active_angles``)."""
-        has = np.isfinite(self.prior_sigma[self.free])
+        has = self._has_prior()
         with_prior = np.flatnonzero(has)
         prior = np.zeros((len(with_prior), len(xf)))
         prior[np.arange(len(with_prior)), with_prior] = 1.0 / self.prior_sigma[self.free][has]
