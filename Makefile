@@ -31,14 +31,15 @@ $(DEMO_STAMP): pyproject.toml | $(VENV)/bin/python
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 
-# Four pytest workers on two cores: much of an end-to-end test is waiting on simulated
+# Five pytest workers on two cores: much of an end-to-end test is waiting on simulated
 # motion, which more workers fill (two -> three: 13.6 -> 11.6 min; three -> four: 8:55 ->
-# 8:25 of pytest on this machine, where the cores are then busy 89 % of the time). --dist
-# loadgroup hands out one test at a time to a free worker, the heavy ones first
-# (tests/conftest.py); a module whose fixtures must be made once (the simulated rig of
-# tests/test_e2e_default_world.py) is one xdist_group and goes to one worker.
+# 8:25; four -> five: 7:57 -> 6:47 of pytest on this machine, the slowest tests no slower:
+# they wait more than they compute). --dist loadgroup hands out one test at a time to a
+# free worker, the heavy ones first (tests/conftest.py); a module whose fixtures must be
+# made once (the simulated rig of tests/test_e2e_default_world.py) is one xdist_group and
+# goes to one worker. tools/load_check.py runs the suite with this many workers too.
 # TEST_WORKERS=0 runs the suite in one process.
-TEST_WORKERS ?= 4
+TEST_WORKERS ?= 5
 
 test: $(STAMP)
 	$(VENV)/bin/ruff check .

@@ -108,6 +108,14 @@ def last_line(path: Path) -> str:
     return lines[-1] if lines else ""
 
 
+def make_test_workers() -> int:
+    """The pytest workers `make test` starts: the Makefile's ``TEST_WORKERS`` default."""
+    for line in (ROOT / "Makefile").read_text().splitlines():
+        if line.startswith("TEST_WORKERS ?="):
+            return int(line.split("=", 1)[1])
+    raise SystemExit("tools/load_check.py: no `TEST_WORKERS ?= N` line in the Makefile")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--busy", type=int, default=2, help="busy loops (cores kept busy)")
@@ -116,8 +124,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--logs", default="load-check-logs", help="one pytest log per run")
     parser.add_argument("pytest_args", nargs="*", help="passed to pytest (after --)")
     args = parser.parse_args(argv)
-    # the whole suite as `make test` runs it (four workers), the end-to-end files in one
-    tests = E2E if args.e2e else ["-n", "4", "--dist", "loadgroup"]
+    # the whole suite as `make test` runs it (its workers), the end-to-end files in one
+    tests = E2E if args.e2e else ["-n", str(make_test_workers()), "--dist", "loadgroup"]
     logs = Path(args.logs)
     logs.mkdir(parents=True, exist_ok=True)
     busy = start_busy_loops(args.busy)
