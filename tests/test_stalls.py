@@ -166,11 +166,21 @@ def test_each_stand_in_paused_300ms_mid_run_and_the_run_succeeds(start_sim):
     assert outcome.result["captures"] == len([s for s in steps if "capture" in s.lower()])
 
 
+# A busy host may fail a run with the hardware timing before the stall is reached (the
+# load check saw "read torque failed after 4 tries in 0.14 s" at load 7.5 on 2 cores, 0.3 s
+# into the run): such a run is tried again, up to this many times in all.
+STALL_ATTEMPTS = 4
+
+
 @pytest.mark.timeout(240)
 def test_a_stall_past_the_hardware_timing_fails_with_a_load_aware_message(start_sim, tmp_path):
     """The head paused mid-move (held there by the stand-in, so the driver is polling it)
     and kept paused until the run is over: with the hardware defaults the driver gives up
-    and the run fails, naming the time spent, the host's load and the keys to raise."""
+    and the run fails, naming the time spent, the host's load and the keys to raise.
+
+    A run that the host's load failed before it reached the stalled move proves nothing
+    about the stall: its message must be the same load-aware one, and the run is made
+    again (``STALL_ATTEMPTS`` in all); the test fails if no run reaches the stall."""
     sim = start_sim(world="ideal")
     text = yaml.safe_load(sim.rig_path.read_text())
     head = text["devices"]["head"]
@@ -182,15 +192,29 @@ def test_a_stall_past_the_hardware_timing_fails_with_a_load_aware_message(start_
     assert config.devices.head.retry_budget_s() < STALL_S
     steps, _ = _survey_steps(config)
     head_move = _first(steps, "head", after=1)
-    staller = Staller(sim, head=head_move, head_until=lambda: staller.released.is_set())
-    runner = Runner(config, show_progress=False, on_event=staller.on_event)
-    try:
-        outcome = runner.run("capture-survey", PARAMS)
-    finally:
-        staller.resume_all()
-    assert staller.done == [sim.ready["children"][0]]
-    assert outcome.status == "failed"
-    reason = outcome.reason
+    failed_before_the_stall = []
+    for _ in range(STALL_ATTEMPTS):
+        staller = Staller(sim, head=head_move)
+        staller.head_until = staller.released.is_set
+        runner = Runner(config, show_progress=False, on_event=staller.on_event)
+        try:
+            outcome = runner.run("capture-survey", PARAMS)
+        finally:
+            staller.resume_all()
+        assert outcome.status == "failed", outcome.reason
+        _assert_load_aware(outcome.reason)
+        if head_move in staller.triggers:  # the run never reached the stalled move
+            assert staller.done == [], staller.done
+            failed_before_the_stall.append(outcome.reason)
+            continue
+        assert staller.done == [sim.ready["children"][0]]
+        break
+    else:
+        pytest.fail(f"the host's load failed all {STALL_ATTEMPTS} runs before the stall: "
+                    f"{failed_before_the_stall}")
+
+
+def _assert_load_aware(reason: str) -> None:
     assert "failed after 4 tries in" in reason, reason
     assert "host load" in reason and "devices.head.packet_timeout_ms" in reason, reason
 
