@@ -16,16 +16,21 @@ from tests.mockproc import ROOT
 
 
 def assert_resolves_alone(run_dir: Path, scratch: Path) -> None:
-    """Copy ``run_dir`` into ``scratch`` (which holds no index), `rigctl solve` the copy
-    from ``scratch`` as working directory, and compare the new result with the recorded one."""
+    """Copy ``run_dir`` into ``scratch`` (which holds no index) without its plots, `rigctl
+    solve` the copy from ``scratch`` as working directory, and compare the new result with
+    the recorded one; the same plots must be drawn again."""
     scratch.mkdir(parents=True, exist_ok=True)
     copy = scratch / run_dir.name
     shutil.copytree(run_dir, copy)
     assert not (scratch / "index.sqlite").exists()
+    # the plots are drawn again, into a plots/ folder made again if it was removed
+    plots = sorted(p.name for p in (copy / "plots").glob("*.png"))
+    shutil.rmtree(copy / "plots", ignore_errors=True)
     done = subprocess.run([sys.executable, "-m", "rigctl.cli", "solve", str(copy), "--json"],
                           capture_output=True, text=True, timeout=300, cwd=scratch,
                           env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert done.returncode == 0, f"{run_dir.name}: {done.stderr[-2000:]}"
+    assert sorted(p.name for p in (copy / "plots").glob("*.png")) == plots, done.stderr[-2000:]
     recorded = json.loads((run_dir / "result.json").read_text())
     again = json.loads((copy / "result.json").read_text())
     differences = list(_differences(recorded, again))

@@ -494,19 +494,17 @@ def _export(sol: RobotSolution, intr: dict) -> dict[str, Any]:
 
 
 def _plot(ctx, ref, meas) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    # matplotlib's object API: no pyplot state in the service's threads, nor its import
+    from matplotlib.figure import Figure
 
     r = robot.residuals(ref.model, ref.X, ref.W, meas)
-    fig, ax = plt.subplots(figsize=(6, 3.5))
+    fig = Figure(figsize=(6, 3.5))
+    ax = fig.subplots()
     ax.hist(r, bins=60)
     ax.set(xlabel="corner reprojection residual (px)", ylabel="count",
            title=f"robot-kinematics residuals (RMS {ref.rms:.3f} px)")
     fig.tight_layout()
     fig.savefig(ctx.plots_dir / "residuals.png", dpi=80)
-    plt.close(fig)
 
 
 PROCEDURE = RobotKinematics()
