@@ -687,6 +687,7 @@ def solve_recorded(run_path, index: RecordIndex | None = None,
     procedure = procedures.get_procedure(params_doc["procedure"])
     params = procedure.params_model.model_validate(params_doc["params"])
     inputs = run.read_json("inputs.json") if (run.path / "inputs.json").exists() else {}
+    run.plots_dir.mkdir(exist_ok=True)  # a copy may have lost it: plots are drawn again
     ctx = SolveContext(run, config, params, inputs)
     with one_blas_thread():
         result = procedure.solve(ctx)

@@ -169,8 +169,6 @@ class SolveContext:
 
     @property
     def plots_dir(self) -> Path:
-        """The run's ``plots/``, made again if an offline re-solve finds it removed."""
-        self.run.plots_dir.mkdir(exist_ok=True)
         return self.run.plots_dir
 
 
