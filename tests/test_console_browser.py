@@ -517,8 +517,11 @@ def test_console_for_the_operator(page, stack, artifacts):
     assert control(sock, {"cmd": "dump"})["teach_mode"] is False
 
     # 2. curation: two captures checked, solved again; the result names them
+    # the open page reloads itself when the decision is recorded (a goto from here would
+    # race that reload): wait for it to show the decision
     _decided(stack, run_id)
-    page.goto(f"{base}/console/runs/{run_id}")
+    page.wait_for_selector("#run-decision", timeout=WAIT_MS)
+    assert page.inner_text("#run-status") == "succeeded"
     assert page.locator("input[name=exclude]").count() == TAUGHT_VIEWS
     page.check("input[name=exclude][value='1']")
     page.check("input[name=exclude][value='3']")
