@@ -207,9 +207,13 @@ async function checkRun(runBar) {
   if (!response.ok) return;
   const run = await response.json();
   const shown = document.getElementById("run-status").textContent;
-  const waitingForDecision = run.status === "succeeded" && "calibration" in runBar.dataset
-    && !run.decision;
-  if (run.status !== shown && !waitingForDecision) location.reload();
+  const calibration = run.status === "succeeded" && "calibration" in runBar.dataset;
+  const waitingForDecision = calibration && !run.decision;
+  // a decision recorded while the stream was opening: the page shows the run's end
+  // without it, and no event will tell
+  const decisionMissed = calibration && run.decision
+    && !document.getElementById("run-decision");
+  if ((run.status !== shown && !waitingForDecision) || decisionMissed) location.reload();
 }
 
 function setupDecision() {
