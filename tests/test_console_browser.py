@@ -141,6 +141,7 @@ def _open_following(page, stack, run_id: str) -> None:
     decision is recorded), so the comparison appears without a reload from here."""
     page.goto(f"{stack.base}/console/runs/{run_id}")
     page.wait_for_selector("#run-decision", timeout=WAIT_MS)
+    page.wait_for_load_state("load")
     assert page.inner_text("#run-status") == "succeeded"
 
 
@@ -521,6 +522,7 @@ def test_console_for_the_operator(page, stack, artifacts):
     # race that reload): wait for it to show the decision
     _decided(stack, run_id)
     page.wait_for_selector("#run-decision", timeout=WAIT_MS)
+    page.wait_for_load_state("load")  # the whole page and its script, as a goto waits
     assert page.inner_text("#run-status") == "succeeded"
     assert page.locator("input[name=exclude]").count() == TAUGHT_VIEWS
     page.check("input[name=exclude][value='1']")

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import signal
 import subprocess
 import sys
@@ -56,7 +57,8 @@ def test_input_voltage_out_of_range_stops_the_move_and_names_the_servo(bus):  # 
 
 
 DROP_SCRIPT = """
-import json, sys, time
+import faulthandler, json, sys, time
+faulthandler.dump_traceback_later(float(sys.argv[4]), exit=True)  # a hang: where it stopped
 from rigctl.drivers.ur import URArm
 from rigctl.config import parse_rig
 from rigctl.errors import DeviceError
@@ -82,7 +84,23 @@ say(step="closing")
 arm.close()
 say(step="closed")
 """
+DROP_DUMP_S = 75  # the child dumps its threads' stacks and exits if it runs this long
 DROP_WAIT_S = 90  # under the test's hang guard, so that a hang shows where it stopped
+
+
+def _stopped_in(stderr: str) -> str | None:
+    """The source line the child's main thread stood on when faulthandler's timer dumped
+    its stacks (the innermost frame of the thread whose outermost is the script), or None
+    when it did not dump."""
+    if "Timeout (" not in stderr:
+        return None
+    for block in re.split(r"(?:Current thread|Thread) 0x", stderr)[1:]:
+        frames = re.findall(r'File "(.+?)", line (\d+) in', block)
+        if frames and frames[-1][0] == "<string>":
+            path, line = frames[0]
+            source = Path(path).read_text().splitlines() if Path(path).is_file() else []
+            return source[int(line) - 1].strip() if int(line) <= len(source) else path
+    return None
 
 
 @pytest.mark.timeout(150)  # a hang guard, above DROP_WAIT_S
@@ -95,25 +113,39 @@ def test_dropped_rtde_connections_are_reported_as_a_lost_link(arm_proc, tmp_path
     inside the arm's teardown, after the report, is put down to that doubt."""
     report = tmp_path / "steps.jsonl"
     child = subprocess.Popen([sys.executable, "-c", DROP_SCRIPT, arm_proc.ready["host"],
-                              arm_proc.ready["control"], str(report)], stdout=subprocess.PIPE,
-                             stderr=subprocess.PIPE, text=True, cwd=ROOT)
+                              arm_proc.ready["control"], str(report), str(DROP_DUMP_S)],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
     try:
-        _, err = child.communicate(timeout=DROP_WAIT_S)
-        hung = False
-    except subprocess.TimeoutExpired:
-        child.kill()  # by its PID (Popen.kill)
-        _, err = child.communicate(timeout=30)
-        hung = True
+        try:
+            _, err = child.communicate(timeout=DROP_WAIT_S)
+        except subprocess.TimeoutExpired:  # not even faulthandler's timer ended it
+            child.kill()
+            _, err = child.communicate(timeout=30)
+    finally:
+        if child.poll() is None:  # interrupted meanwhile: stopped by its PID all the same
+            child.kill()
+            child.wait(timeout=30)
+    stopped_in = _stopped_in(err)
+    hung = stopped_in is not None or child.returncode == -signal.SIGKILL
     lines = [json.loads(line) for line in report.read_text().splitlines()] \
         if report.exists() else []
     steps = [line.get("step", "error" if "error" in line else "?") for line in lines]
-    where = f"child's steps {steps}, hung: {hung}, exit {child.returncode}; stderr: {err[-2000:]}"
+    where = (f"child's steps {steps}, stopped in {stopped_in!r}, exit {child.returncode}; "
+             f"stderr: {err[-3000:]}")
     errors = [line["error"] for line in lines if "error" in line]
     assert steps[:3] == ["opened", "dropped", "error"], where
     assert "RTDE connection lost (closed by the controller" in errors[0], where
-    if hung or child.returncode != 0:  # ur_rtde's own teardown, after the report
-        assert steps[-1] == "closing", where
-        assert hung or child.returncode == -signal.SIGSEGV, where
+    if child.returncode == 0:
+        assert steps[-1] == "closed", where
+        return
+    # ur_rtde's own teardown, after the report: a crash, or a hang inside one of its calls
+    # (the driver's own waits are bounded by teardown_timeout_s)
+    assert steps[-1] == "closing", where
+    if hung:
+        assert stopped_in and re.search(r"\.(disconnect|isConnected|stopScript)\(", stopped_in), \
+            where
+        pytest.xfail(f"ur_rtde hung in the arm's teardown, at {stopped_in!r}")
+    assert child.returncode == -signal.SIGSEGV, where
 
 
 @pytest.mark.parametrize("end", ["failed", "aborted"])

@@ -178,7 +178,9 @@ async function refreshUntilGone(runId, tries) {
 
 function setupLive() {
   const live = document.querySelector("[data-live]");
-  const runBar = document.querySelector("progress[data-run]");
+  // the run's progress bar, or (a calibration that ended) the mark that its decision is due
+  const runBar = document.querySelector("progress[data-run]")
+    || document.getElementById("awaiting-decision");
   if (!live && !runBar) return;
   const mine = e => runBar && runBar.dataset.run === e.run_id;
   const source = subscribe({
