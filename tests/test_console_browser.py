@@ -140,6 +140,13 @@ def _open_following(page, stack, run_id: str) -> None:
     reloads itself when the run starts, and when it finishes (a calibration: when its
     decision is recorded), so the comparison appears without a reload from here."""
     page.goto(f"{stack.base}/console/runs/{run_id}")
+    _shows_the_decision(page)
+
+
+def _shows_the_decision(page) -> None:
+    """Wait until the open run page, reloaded by itself on the decision's event, shows
+    the decision and has loaded whole (its script too, as a goto would wait); the run
+    succeeded."""
     page.wait_for_selector("#run-decision", timeout=WAIT_MS)
     page.wait_for_load_state("load")
     assert page.inner_text("#run-status") == "succeeded"
@@ -521,9 +528,7 @@ def test_console_for_the_operator(page, stack, artifacts):
     # the open page reloads itself when the decision is recorded (a goto from here would
     # race that reload): wait for it to show the decision
     _decided(stack, run_id)
-    page.wait_for_selector("#run-decision", timeout=WAIT_MS)
-    page.wait_for_load_state("load")  # the whole page and its script, as a goto waits
-    assert page.inner_text("#run-status") == "succeeded"
+    _shows_the_decision(page)
     assert page.locator("input[name=exclude]").count() == TAUGHT_VIEWS
     page.check("input[name=exclude][value='1']")
     page.check("input[name=exclude][value='3']")

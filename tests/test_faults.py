@@ -116,11 +116,10 @@ def test_dropped_rtde_connections_are_reported_as_a_lost_link(arm_proc, tmp_path
                               arm_proc.ready["control"], str(report), str(DROP_DUMP_S)],
                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
     try:
-        try:
-            _, err = child.communicate(timeout=DROP_WAIT_S)
-        except subprocess.TimeoutExpired:  # not even faulthandler's timer ended it
-            child.kill()
-            _, err = child.communicate(timeout=30)
+        _, err = child.communicate(timeout=DROP_WAIT_S)
+    except subprocess.TimeoutExpired:  # not even faulthandler's timer ended it
+        child.kill()
+        _, err = child.communicate(timeout=30)
     finally:
         if child.poll() is None:  # interrupted meanwhile: stopped by its PID all the same
             child.kill()
