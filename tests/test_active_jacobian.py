@@ -126,3 +126,28 @@ def test_head_angle_columns_equal_central_differences(curve, depths, n_dist):
             numeric_G[bounds[m]:bounds[m + 1], k] = d[bounds[m]:bounds[m + 1]]
     err = np.abs(G - numeric_G).max(axis=0) / (np.abs(numeric_G).max(axis=0) + 1e-9)
     assert err.max() < 1e-5, f"own-offset columns off by {err.max():.2e}"
+
+
+@pytest.mark.parametrize(("curve", "depths", "n_dist", "angles"),
+                         [(True, True, 5, True), (False, False, 2, False)])
+def test_jacobian_in_threaded_chunks_is_the_serial_one_bit_for_bit(monkeypatch, curve,
+                                                                   depths, n_dist, angles):
+    """``_raw_jacobian`` forms its rows in motion-aligned chunks side by side
+    (``rigctl.calib.threads``): every number equals one serial pass's."""
+    from rigctl.calib import active_refine, threads
+    from rigctl.calib.active_refine import CurveTargets
+
+    pb, assoc = _problem(curve, depths, n_dist, angles=angles)
+    targets = CurveTargets.build(pb.motions, pb.masks, assoc)
+    monkeypatch.setattr(active_refine, "threads_here", lambda: 1)
+    serial = pb._raw_jacobian(pb.x.copy(), assoc, targets, extra_rows=3)
+    for parts in (2, 3):
+        monkeypatch.setattr(active_refine, "threads_here", lambda parts=parts: parts)
+        chunked = pb._raw_jacobian(pb.x.copy(), assoc, targets, extra_rows=3)
+        assert len(threads.row_chunks(chunked[2], parts)) == parts
+        for a, b in zip(serial, chunked, strict=True):
+            if isinstance(a, np.ndarray):
+                assert np.array_equal(a, b)
+            else:
+                assert a == b
+    assert np.abs(serial[0]).max() > 0

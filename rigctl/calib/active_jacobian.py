@@ -47,10 +47,29 @@ def _distortion_terms(xy: np.ndarray, k: np.ndarray, slots) -> tuple:
     return xd, J00, J01, J11, [columns[slot]() for slot in slots]
 
 
+def undistortion_terms(und_unique: np.ndarray, k: np.ndarray, dist_slots) -> tuple:
+    """At each distinct reference point (undistorted normalised ``und_unique``), what
+    ``residual_jacobian`` needs of the undistortion ``u = D^-1(u0)``: ``u0 = D(u)``, the
+    entries of ``du / du0 = Jd(u)^-1`` (A00, A01 = A10, A11) and ``dD/dk`` of the terms in
+    ``dist_slots``. Taken once per evaluation when the rows are split into chunks."""
+    u0, I00, I01, I11, Jk = _distortion_terms(und_unique, k, dist_slots)
+    det = I00 * I11 - I01 * I01
+    return u0, I11 / det, -I01 / det, I00 / det, Jk
+
+
+def distortion_vector(x: np.ndarray, n_dist: int, dist_slots) -> np.ndarray:
+    """OpenCV's five distortion terms (k1, k2, p1, p2, k3) from the camera parameters
+    ``x``, zero where ``dist_slots`` estimates none."""
+    k = np.zeros(5)
+    k[list(dist_slots)] = x[N_BASE:N_BASE + n_dist]
+    return k
+
+
 def residual_jacobian(x: np.ndarray, n_dist: int, dist_slots: tuple, und_unique: np.ndarray,
                       point: np.ndarray, normals: np.ndarray, rotations: list[np.ndarray],
                       d_rotations: np.ndarray, counts: list[int], s: np.ndarray,
-                      rho: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
+                      rho: np.ndarray | None, und_terms: tuple | None = None
+                      ) -> tuple[np.ndarray, np.ndarray | None]:
     """d residual / d x over the camera parameters (rows, N_BASE + n_dist), with depths
     d residual / d rho of each row's own inverse depth (rows,), and each row's predicted
     pixel (rows, 2; the residual is its distance from the target along the normal). With the head
@@ -69,11 +88,11 @@ def residual_jacobian(x: np.ndarray, n_dist: int, dist_slots: tuple, und_unique:
     owns; ``s``: the parallax per row (rows, 3) or shared (3,); ``rho``: per row, or None
     when ``s`` is held (then x[9:12] is that ``s``). Rays are rows: a motion maps ``ray``
     to ``ray @ R - s``. Only the products with each motion's own rotation go motion by
-    motion."""
+    motion. ``und_terms``: ``undistortion_terms`` of ``und_unique``, when the caller
+    took them once for several chunks of rows (else they are taken here)."""
     fx, fy = x[0], x[1]
     F = np.array([fx, fy])
-    k = np.zeros(5)
-    k[list(dist_slots)] = x[N_BASE:N_BASE + n_dist]
+    k = distortion_vector(x, n_dist, dist_slots)
     und = und_unique[point]
     n = len(und)
     rays = np.column_stack([und, np.ones(n)]) + s
@@ -124,10 +143,10 @@ def residual_jacobian(x: np.ndarray, n_dist: int, dist_slots: tuple, und_unique:
     # back through the undistortion u = D^-1(u0): du / du0 = Jd(u)^-1, at each distinct
     # reference point once
     if n_dist:
-        u0_in, I00, I01, I11, Jk_in = _distortion_terms(und_unique, k, dist_slots)
-        det = I00 * I11 - I01 * I01
+        u0_in, B00, B01, B11, Jk_in = und_terms if und_terms is not None else \
+            undistortion_terms(und_unique, k, dist_slots)
         # the inverse's entries, per distinct point, then per row
-        A00, A01, A11 = (I11 / det)[point], (-I01 / det)[point], (I00 / det)[point]
+        A00, A01, A11 = B00[point], B01[point], B11[point]
         du0, du1 = dr_du[:, 0], dr_du[:, 1]
         dr_du0 = np.empty((n, 2))
         dr_du0[:, 0] = du0 * A00 + du1 * A01

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import math
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -38,6 +37,7 @@ from rigctl.calib.active_refine import (
 )
 from rigctl.calib.active_tracking import SHIFT, WIDE_WINDOW, Tracker, roll_tiers, tier_key, tiers
 from rigctl.calib.blas_threads import with_one_blas_thread
+from rigctl.calib.threads import map_in_threads
 from rigctl.errors import SolveError
 from rigctl.timing import stage_timer
 from rigctl.vision.tracking import track_in_range
@@ -375,8 +375,7 @@ def _refine_each(jobs: dict[str, tuple[list, dict]], starts: dict[str, dict], la
 
     if not starts:
         return {}, {}
-    with ThreadPoolExecutor(max_workers=min(FINAL_THREADS, len(starts))) as pool:
-        done = dict(zip(starts, pool.map(refine_from, starts), strict=True))
+    done = dict(zip(starts, map_in_threads(refine_from, starts, FINAL_THREADS), strict=True))
     results: dict[str, RefineResult] = {}
     errors: dict[str, SolveError] = {}
     for name, (outcome, seconds) in done.items():
@@ -582,9 +581,9 @@ def second_station(images: dict, angles: dict, K: RefineResult, settings: Active
         raise SolveError(f"no depths measured ({tr.report.get('scene_depth')})")
     labels = sorted((k for k in images if k not in ("ref", SHIFT)),
                     key=lambda k: (k.startswith("roll"), abs(math.degrees(tr.rel[k][2]))))
-    for label in labels:
-        tr.track(label, K, TIER_WINDOW_PX,
-                 ROLL_JOINT_WINDOW_PX if label.startswith("roll") else 0.0)
+    tr.track_all([lb for lb in labels if not lb.startswith("roll")], K, TIER_WINDOW_PX)
+    tr.track_all([lb for lb in labels if lb.startswith("roll")], K, TIER_WINDOW_PX,
+                 ROLL_JOINT_WINDOW_PX)
     motions = [replace(m, label=STATION_PREFIX + m.label, groups=m.groups + first_ids,
                        reference=STATION_PREFIX + m.reference)
                for m in (tr.motion(lb, REFINE_STRIDE) for lb in labels) if m is not None]
@@ -654,8 +653,7 @@ def solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, f
 
     small, wide, roll_groups, order = _tiers(images, tr)
     with stage("tracking: small pans and tilts"):
-        for label in small:
-            tr.track(label, K0, 12.0)
+        tr.track_all(small, K0, 12.0)
     # each tier is tracked by prediction from the model refined on the tiers before it;
     # those refinements only predict: a quarter of the points do
     K1: dict | RefineResult = dict(K0)
@@ -684,8 +682,7 @@ def solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, f
         if roll_groups and tier is roll_groups[0]:
             K_pans = K1
         with stage(f"tracking: {key.removeprefix('K_for_')}"):
-            for label in tier:
-                tr.track(label, K1, TIER_WINDOW_PX,
+            tr.track_all(tier, K1, TIER_WINDOW_PX,
                          ROLL_JOINT_WINDOW_PX if tier is not wide else 0.0)
         done += tier
     K_pans = K1 if K_pans is None else K_pans

@@ -39,7 +39,13 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from rigctl.calib.active_angles import CaptureAngles
-from rigctl.calib.active_jacobian import N_BASE, distort, residual_jacobian
+from rigctl.calib.active_jacobian import (
+    N_BASE,
+    distort,
+    distortion_vector,
+    residual_jacobian,
+    undistortion_terms,
+)
 from rigctl.calib.active_rotations import (
     motion_rotations,
     mounting,
@@ -53,6 +59,7 @@ from rigctl.calib.covariance import (
     larger_variances,
 )
 from rigctl.calib.normal_lm import levenberg_marquardt
+from rigctl.calib.threads import map_in_threads, row_chunks, threads_here
 from rigctl.errors import SolveError
 
 PARAM_NAMES = ["fx", "fy", "cx", "cy", "n_x", "n_y", "n_z", "a_x", "a_y", "s_x", "s_y", "s_z",
@@ -578,11 +585,12 @@ class _Problem:
 
     def associate(self, xv: np.ndarray) -> list:
         """For curve-mode motions, the nearest tracked contour point to each prediction."""
-        out = []
-        for m, (motion, pred) in enumerate(zip(self.motions, self.predicted(xv), strict=True)):
-            out.append(motion.tree().query(pred[self.masks[m]])[1] if motion.curve_mode
-                       else None)
-        return out
+        def nearest(m: int, pred: np.ndarray):
+            motion = self.motions[m]
+            return motion.tree().query(pred[self.masks[m]])[1] if motion.curve_mode else None
+
+        # the k-d trees' queries release the interpreter: the motions side by side
+        return map_in_threads(lambda item: nearest(*item), enumerate(self.predicted(xv)))
 
     def residuals(self, xv: np.ndarray, assoc, targets=None, cache: bool = True) -> np.ndarray:
         return _residuals(xv[:self.n_cam], self.motions, self.n_dist, self.masks, assoc,
@@ -678,39 +686,58 @@ class _Problem:
         rho_rows = None if rho is None else rho[point]
         s = o if rho is None else rho_rows[:, None] * o
         offsets = self.offsets(xv)
-        J_cam, d_rho, pixels = residual_jacobian(
-            cam, self.n_dist, DIST_SLOTS[self.n_dist], und, inverse[point], normals,
-            self.cache.rotations(self.motions, N, a, offsets),
-            rotation_derivatives(self.motions, cam, offsets=offsets,
-                                 angles=self.angles is not None),
-            counts, s, rho_rows)
+        rotations = self.cache.rotations(self.motions, N, a, offsets)
+        d_rotations = rotation_derivatives(self.motions, cam, offsets=offsets,
+                                           angles=self.angles is not None)
+        slots = DIST_SLOTS[self.n_dist]
+        und_terms = undistortion_terms(und, distortion_vector(cam, self.n_dist, slots),
+                                       slots) if self.n_dist else None
         # one array for the whole Jacobian: the residual rows' camera and inverse-depth
         # columns, then the priors' rows (copying a Jacobian of 100,000 rows costs as
-        # much as forming it)
+        # much as forming it); column-major, as ``residual_jacobian`` writes its columns:
+        # each column is one contiguous copy (a row-major copy cost twice as much)
         free_cam = np.flatnonzero(self.free[:self.n_cam])
         free_rho = self.free[self.n_cam:self.n_cam + self.n_rho]
         n_rows = len(point)
-        # column-major, as ``residual_jacobian`` writes its columns: each column is one
-        # contiguous copy (a row-major copy of 100,000 rows cost twice as much)
         J = np.zeros((n_rows + extra_rows, int(self.free.sum())), order="F")
-        for column, cam_column in enumerate(free_cam):
-            J[:n_rows, column] = J_cam[:, cam_column]
+        row_column = None
         if free_rho.any():  # each point's inverse depth is its contour's parameter
             column = np.full(len(free_rho), -1)
             column[free_rho] = len(free_cam) + np.arange(int(free_rho.sum()))
             row_column = column[self.groups[point]]
-            has = np.flatnonzero(row_column >= 0)
-            J[has, row_column[has]] = d_rho[has]
-        if self.angles is None:
-            return J, None, counts, pixels
         # the reference captures' offsets: their columns (after the free depths), each
         # motion's rows in its station's three
         first = len(free_cam) + int(free_rho.sum())
+        G = None if self.angles is None else np.empty((n_rows, 3))
+        pixels = np.empty((n_rows, 2))
         bounds = np.cumsum([0, *counts])
-        for station, a, b in zip(self.station_of, bounds[:-1], bounds[1:], strict=True):
-            column = first + 3 * station
-            J[a:b, column:column + 3] = J_cam[a:b, self.n_cam:self.n_cam + 3]
-        return J, J_cam[:, self.n_cam + 3:], counts, pixels
+
+        def rows_of(chunk: tuple[int, int]) -> None:
+            """The Jacobian's rows of motions ``chunk[0]`` to ``chunk[1]`` (excluded)."""
+            m0, m1 = chunk
+            a, b = bounds[m0], bounds[m1]
+            J_cam, d_rho, pixels[a:b] = residual_jacobian(
+                cam, self.n_dist, slots, und, inverse[point[a:b]], normals[a:b],
+                rotations[m0:m1], d_rotations[m0:m1], counts[m0:m1],
+                s if s.ndim == 1 else s[a:b], None if rho_rows is None else rho_rows[a:b],
+                und_terms)
+            for column, cam_column in enumerate(free_cam):
+                J[a:b, column] = J_cam[:, cam_column]
+            if row_column is not None:
+                has = np.flatnonzero(row_column[a:b] >= 0)
+                J[a + has, row_column[a:b][has]] = d_rho[has]
+            if G is None:
+                return
+            for m in range(m0, m1):
+                column = first + 3 * self.station_of[m]
+                J[bounds[m]:bounds[m + 1], column:column + 3] = \
+                    J_cam[bounds[m] - a:bounds[m + 1] - a, self.n_cam:self.n_cam + 3]
+            G[a:b] = J_cam[:, self.n_cam + 3:]
+
+        # the rows in motion-aligned chunks, side by side in threads: the same numbers
+        # as one pass (every row is computed alone)
+        map_in_threads(rows_of, row_chunks(counts, threads_here()))
+        return J, G, counts, pixels
 
     def _row_layout(self, assoc, targets) -> tuple[np.ndarray, np.ndarray, list[int]]:
         """For each residual row, in ``_residuals``' order: its reference point (row of

@@ -14,6 +14,7 @@ from rigctl.calib import active
 from rigctl.calib.active import ContourStats
 from rigctl.calib.active_refine import Motion, RefineResult
 from rigctl.calib.synthetic import intrinsics, rot_x, rot_y, rot_z
+from rigctl.calib.threads import map_in_threads
 from rigctl.errors import SolveError
 from rigctl.vision.contours import edge_map, extract_contours
 from rigctl.vision.tracking import common_shift, track_by_prediction, track_by_shift
@@ -50,7 +51,7 @@ class Tracker:
     def __init__(self, images: dict, angles: dict, window: float, min_points: int,
                  assumed_centre: list[float] | None = None) -> None:
         self.angles = angles
-        self.emaps = {k: edge_map(img) for k, img in images.items()}
+        self.emaps = dict(zip(images, map_in_threads(edge_map, images.values()), strict=True))
         self.inv_depth: np.ndarray | None = None  # each contour's, once measured (1/m)
         h, w = images["ref"].shape[:2]
         self.size = (w, h)
@@ -150,26 +151,44 @@ class Tracker:
         +-``window`` px around the prediction. With ``joint_window``, the predictions
         are first moved by the one shift, within +-``joint_window`` px, that lays all of
         them best on the image's edges (``common_shift``)."""
+        self.track_all([label], K, window, joint_window)
+
+    def track_all(self, labels: list[str], K: dict | RefineResult, window: float,
+                  joint_window: float = 0.0) -> None:
+        """``track`` of each of ``labels`` from the same ``K``, the captures side by side
+        in threads (each capture's tracking is independent of the others'); the matches
+        and the report are recorded in the labels' order."""
+        outcomes = map_in_threads(lambda label: self._tracked(label, K, window, joint_window),
+                                  labels)
+        for label, (matches, shift) in zip(labels, outcomes, strict=True):
+            if joint_window > 0:
+                self.report.setdefault("joint_shift_px", {})[label] = shift
+            self.matches[label] = matches
+            rejected: dict[str, int] = {}
+            for m in matches:
+                if not m.ok:
+                    key = m.reason.split(" (")[0]
+                    rejected[key] = rejected.get(key, 0) + 1
+            self.report["motions"][label] = {
+                "tracked": sum(m.ok for m in matches), "rejected": rejected,
+                "angles_deg": np.degrees(self.rel[label]).tolist()}
+
+    def _tracked(self, label: str, K: dict | RefineResult, window: float,
+                 joint_window: float) -> tuple[list, list | None]:
+        """``label``'s matches, one per reference contour, and the joint shift applied
+        (None: none found or none asked); reads the tracker, changes nothing."""
         # each contour's prediction is made once: the model's can be costly (distortion
         # and depths), and the joint shift and the per-contour search both need it
         predicted = self._predict_contours(K, label)
+        shift = None
         if joint_window > 0:
             shift = common_shift(predicted, self.emaps[label], joint_window)
             if shift is not None:
                 predicted = [q + np.asarray(shift, float) for q in predicted]
-            self.report.setdefault("joint_shift_px", {})[label] = \
-                None if shift is None else list(shift)
-        self.matches[label] = [
-            track_by_prediction(c, self.emaps[label], lambda _points, q=q: q, window=window)
-            for c, q in zip(self.contours, predicted, strict=True)]
-        rejected: dict[str, int] = {}
-        for m in self.matches[label]:
-            if not m.ok:
-                key = m.reason.split(" (")[0]
-                rejected[key] = rejected.get(key, 0) + 1
-        self.report["motions"][label] = {
-            "tracked": sum(m.ok for m in self.matches[label]), "rejected": rejected,
-            "angles_deg": np.degrees(self.rel[label]).tolist()}
+        matches = [track_by_prediction(c, self.emaps[label], lambda _points, q=q: q,
+                                       window=window)
+                   for c, q in zip(self.contours, predicted, strict=True)]
+        return matches, None if shift is None else list(shift)
 
     def _predict_contours(self, K: dict | RefineResult, label: str) -> list[np.ndarray]:
         """Every contour's points predicted into ``label``, in one pass over all of them:

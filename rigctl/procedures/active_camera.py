@@ -23,6 +23,7 @@ from pydantic import Field
 
 from rigctl.calib.active_angles import head_encoder_sigmas
 from rigctl.calib.active_pipeline import SHIFT, STATION_PREFIX, ActiveSettings, solve_active
+from rigctl.calib.threads import map_in_threads
 from rigctl.errors import SolveError
 
 from .base import (
@@ -154,7 +155,9 @@ class ActiveCamera(Procedure):
         params: ActiveCameraParams = ctx.params
         with ctx.stage("load images"):
             caps = {c.meta["label"]: c for c in ctx.captures() if c.image_path is not None}
-            images = {k: c.load_image() for k, c in caps.items()}
+            # decoding releases the interpreter: the captures side by side
+            images = dict(zip(caps, map_in_threads(lambda c: c.load_image(), caps.values()),
+                              strict=True))
         angles = {k: tuple(c.meta["head"][a] for a in ("pan", "tilt", "roll"))
                   for k, c in caps.items()}
         settings = ActiveSettings(window=params.window, min_points=params.min_points,
