@@ -161,6 +161,7 @@ class Runner(ResumeMixin):
         self.operator = operator or _whoami()
         self.on_event = on_event
         self._board: BoardDetection | None = None
+        self._prefetch: CapturePrefetch | None = None
         self.abort_event = threading.Event()
         self.continue_event = threading.Event()  # the operator's resume of a paused run
         self._abort_reason = "abort requested"
@@ -277,6 +278,8 @@ class Runner(ResumeMixin):
             root.setLevel(logging.INFO)
         self._board = (BoardDetection(self.config.target)
                        if procedure.detects_board and self.config.target else None)
+        work = procedure.capture_work(params)
+        self._prefetch = CapturePrefetch(work) if work is not None else None
         self._emit(type="started", run_id=run_id, procedure=procedure.name,
                    total=len(plan.steps))
         status, reason, result = "running", None, None
@@ -295,8 +298,7 @@ class Runner(ResumeMixin):
             problems = rig.close_all()
             if problems:
                 log.warning("after the run: %s", "; ".join(problems))
-            if self._board is not None:
-                self._board.finish()
+            self._finish_capture_work(ctx)
             self._emit(type="step", run_id=run_id, step="solve", index=len(plan.steps),
                        total=len(plan.steps))
             solve_started = time.monotonic()
@@ -320,8 +322,7 @@ class Runner(ResumeMixin):
         finally:
             if status != "succeeded":
                 self._stop_and_record(rig, run, reason)
-            if self._board is not None:
-                self._board.finish()
+            self._end_capture_work()
             resuming.end_segment(run, status, reason, error)
             self._index_update(run, run_id, status=status, reason=reason, ended_at=utcnow(),
                                result_summary=summarize(result) if result else None)
@@ -336,6 +337,23 @@ class Runner(ResumeMixin):
             self._emit(type="finished", run_id=run_id, status=status, reason=reason)
         return RunOutcome(run_id, status, reason, str(run.path), result, timings,
                           operator_stop)
+
+    def _finish_capture_work(self, ctx: SolveContext) -> None:
+        """After the motion: wait for the work on the captures done while the rig moved
+        (board detection, the procedure's ``capture_work``) and hand it to the solve."""
+        if self._board is not None:
+            self._board.finish()
+        if self._prefetch is not None:
+            ctx.prefetched = self._prefetch.finish()
+
+    def _end_capture_work(self) -> None:
+        """When the run ends, however: the board detections submitted are finished (their
+        files are part of the record), the procedure's capture work is dropped."""
+        if self._board is not None:
+            self._board.finish()
+        if self._prefetch is not None:
+            self._prefetch.cancel()
+            self._prefetch = None
 
     def _safe_stop(self, rig: Rig, reason: str | None) -> None:
         """Stop every touched device, then close each (which applies its park policy)."""
@@ -542,6 +560,8 @@ class Runner(ResumeMixin):
         run.write_capture(state["capture"], image, meta)
         if image is not None and self._board is not None:
             self._board.submit(run.capture(state["capture"]), image)
+        if image is not None and self._prefetch is not None:
+            self._prefetch.submit(state["capture"], image)
         state["capture"] += 1
         if health is not None:  # a servo at its temperature limit or in alert pauses
             try:
@@ -584,6 +604,37 @@ class BoardDetection:
     def finish(self) -> None:
         """Wait for the captures already submitted."""
         self.pool.shutdown(wait=True)
+
+
+class CapturePrefetch:
+    """A procedure's ``capture_work`` on each capture's image, on one worker thread while
+    the rig moves on (OpenCV and numpy release the GIL). A failure there is logged and
+    that capture left out: the solve then does the work itself."""
+
+    def __init__(self, work: Callable[[Any], Any]) -> None:
+        from concurrent.futures import ThreadPoolExecutor
+
+        self.work = work
+        self.outcomes: dict[int, Any] = {}
+        self.pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="prefetch")
+
+    def submit(self, index: int, image) -> None:
+        self.pool.submit(self._do, index, image)
+
+    def _do(self, index: int, image) -> None:
+        try:
+            self.outcomes[index] = self.work(image)
+        except Exception as exc:
+            log.warning("work on capture %03d while moving: %s", index, exc)
+
+    def finish(self) -> dict[int, Any]:
+        """Wait for the captures already submitted; their outcomes, by capture index."""
+        self.pool.shutdown(wait=True)
+        return dict(self.outcomes)
+
+    def cancel(self) -> None:
+        """Drop what has not started (the run ended without a solve)."""
+        self.pool.shutdown(wait=False, cancel_futures=True)
 
 
 def _same_view(before, after, threshold: float) -> bool:

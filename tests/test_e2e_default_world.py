@@ -83,6 +83,10 @@ def test_active_camera_on_default_world(camera_run):
     # the reference, pan/tilt +-3, +-8, +-12, +-16, +-20 and +-25 deg, seven rolls (every
     # 45 deg), and one capture after the arm moved the camera 10 mm sideways
     assert len(list(Path(run_dirs[0], "captures").glob("*.png"))) == 33
+    # every capture's edge map was taken while the head moved on (the re-solve in
+    # test_robot_kinematics_end_to_end takes them from the PNGs, to the same result)
+    assert "active-camera: 33 of 33 captures' edge maps taken while the rig moved" in \
+        (run_dirs[0] / "run.log").read_text()
     depths = out["tracking"]["scene_depth"]
     assert depths["contours_measured"] >= 6
     assert np.linalg.norm(depths["move_in_camera_mm"]) == pytest.approx(10.0, rel=0.01)

@@ -568,14 +568,15 @@ class SecondStation:
 
 
 def second_station(images: dict, angles: dict, K: RefineResult, settings: ActiveSettings,
-                   first_ids: int) -> SecondStation:
+                   first_ids: int, emaps: dict | None = None) -> SecondStation:
     """The second station's contours, their depths from its own SHIFT capture, and every
     other capture there tracked by prediction from ``K`` (a refinement with the first
     station's depths: the head's geometry is the same at both). ``SolveError`` when it
     has no reference, no depths or too few tracked motions."""
     if "ref" not in images or SHIFT not in images:
         raise SolveError("no reference or no shift capture")
-    tr = Tracker(images, angles, settings.window, settings.min_points, settings.assumed_centre)
+    tr = Tracker(images, angles, settings.window, settings.min_points, settings.assumed_centre,
+                 emaps)
     depths = _measured_depths(tr, K, settings, images)
     if depths is None:
         raise SolveError(f"no depths measured ({tr.report.get('scene_depth')})")
@@ -594,7 +595,8 @@ def second_station(images: dict, angles: dict, K: RefineResult, settings: Active
 
 def _second_station_if_any(images: dict, angles: dict, K: dict | RefineResult,
                            depths: SceneDepths | None, settings: ActiveSettings,
-                           tr: Tracker, timings: dict) -> SecondStation | None:
+                           tr: Tracker, timings: dict, emaps: dict | None = None
+                           ) -> SecondStation | None:
     """``second_station`` when there are its captures and the first station's depths;
     its report (or why it was not used) goes into the first station's."""
     if not images:
@@ -608,7 +610,7 @@ def _second_station_if_any(images: dict, angles: dict, K: dict | RefineResult,
         return None
     t0 = time.perf_counter()
     try:
-        second = second_station(images, angles, K, settings, len(tr.contours))
+        second = second_station(images, angles, K, settings, len(tr.contours), emaps)
     except SolveError as exc:
         tr.report["second_station"] = f"not used: {exc}"
         return None
@@ -632,12 +634,18 @@ def _with_second_station(motions: list[Motion], prior: DepthPrior | None,
 
 @with_one_blas_thread
 def solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, float, float]],
-                 settings: ActiveSettings | None = None) -> ActiveSolution:
+                 settings: ActiveSettings | None = None,
+                 emaps: dict | None = None) -> ActiveSolution:
     """Intrinsics from images taken at known head angles (radians; labels ``ref``,
     ``pan+``, ``pan-``, ``tilt+``, ``tilt-``, ``roll...``, ``SHIFT``; those with
     ``STATION_PREFIX`` are a second station's, ``second_station``): thesis chapter 3 with
-    the refinement beyond it. Raises ``SolveError`` with the stage that failed."""
+    the refinement beyond it. ``emaps``: edge maps already taken of some images, by
+    label (``vision.contours.edge_map``; the same as taken here). Raises ``SolveError``
+    with the stage that failed."""
     settings = settings or ActiveSettings()
+    emaps = emaps or {}
+    emaps_far = {k.removeprefix(STATION_PREFIX): v for k, v in emaps.items()
+                 if k.startswith(STATION_PREFIX)}
     images, angles, images_far, angles_far = split_stations(images, angles)
     if "ref" not in images:
         raise SolveError("active-camera: no reference capture recorded")
@@ -648,7 +656,7 @@ def solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, f
     stage = stage_timer(timings)
     with stage("contours and first K"):
         tr = Tracker(images, angles, settings.window, settings.min_points,
-                     settings.assumed_centre)
+                     settings.assumed_centre, emaps)
         K0 = tr.first_K()
 
     small, wide, roll_groups, order = _tiers(images, tr)
@@ -695,7 +703,8 @@ def solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, f
         strategies = _strategies(tr, [lb for group in roll_groups for lb in group])
         start = _final_start(K_pans, strategies, K0)
 
-    second = _second_station_if_any(images_far, angles_far, K1, depths, settings, tr, timings)
+    second = _second_station_if_any(images_far, angles_far, K1, depths, settings, tr, timings,
+                                    emaps_far)
 
     motions, prior = _with_second_station(
         [m for m in (tr.motion(lb, REFINE_STRIDE) for lb in order) if m is not None],

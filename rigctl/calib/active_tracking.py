@@ -16,7 +16,7 @@ from rigctl.calib.active_refine import Motion, RefineResult
 from rigctl.calib.synthetic import intrinsics, rot_x, rot_y, rot_z
 from rigctl.calib.threads import map_in_threads
 from rigctl.errors import SolveError
-from rigctl.vision.contours import edge_map, extract_contours
+from rigctl.vision.contours import EdgeMap, edge_map, extract_contours
 from rigctl.vision.tracking import common_shift, track_by_prediction, track_by_shift
 
 MOTIONS = ("pan+", "pan-", "tilt+", "tilt-")
@@ -49,9 +49,16 @@ class Tracker:
     """Contours of the reference image followed through the other captures."""
 
     def __init__(self, images: dict, angles: dict, window: float, min_points: int,
-                 assumed_centre: list[float] | None = None) -> None:
+                 assumed_centre: list[float] | None = None,
+                 emaps: dict[str, EdgeMap] | None = None) -> None:
+        """``emaps``: edge maps already taken of some of ``images`` (``edge_map``, by
+        label; e.g. while the rig moved on); the others' are taken here."""
         self.angles = angles
-        self.emaps = dict(zip(images, map_in_threads(edge_map, images.values()), strict=True))
+        known = {k: v for k, v in (emaps or {}).items() if k in images}
+        missing = [k for k in images if k not in known]
+        known.update(zip(missing, map_in_threads(edge_map, [images[k] for k in missing]),
+                         strict=True))
+        self.emaps = {k: known[k] for k in images}
         self.inv_depth: np.ndarray | None = None  # each contour's, once measured (1/m)
         h, w = images["ref"].shape[:2]
         self.size = (w, h)

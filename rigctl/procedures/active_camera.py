@@ -14,6 +14,7 @@ refinement on the ones before; then Strategies A-D and the nonlinear refinement.
 
 from __future__ import annotations
 
+import logging
 import math
 from typing import Annotated, Any, Literal
 
@@ -37,6 +38,8 @@ from .base import (
     SolveContext,
 )
 from .camera_settings import settings_of_run
+
+log = logging.getLogger(__name__)
 
 # The head's rotations repeated at the second station (``second_station_mm``): the
 # pans and tilts the centre of projection's offset shifts (its component along the axis
@@ -150,14 +153,29 @@ class ActiveCamera(Procedure):
         steps.append(MoveHead(0.0, 0.0, 0.0, "home"))
         return steps
 
+    def capture_work(self, params: ActiveCameraParams):
+        """Each capture's edge map, taken while the head moves on to the next pose."""
+        return image_and_edge_map
+
     def solve(self, ctx: SolveContext) -> dict[str, Any]:
         """Thesis chapter 3 on the run's captures (``rigctl.calib.active_pipeline``)."""
         params: ActiveCameraParams = ctx.params
         with ctx.stage("load images"):
             caps = {c.meta["label"]: c for c in ctx.captures() if c.image_path is not None}
-            # decoding releases the interpreter: the captures side by side
-            images = dict(zip(caps, map_in_threads(lambda c: c.load_image(), caps.values()),
-                              strict=True))
+            # in a live run, the images and their edge maps taken while the rig moved on
+            # (``capture_work``); the others read from disk, side by side (decoding
+            # releases the interpreter)
+            prefetched = {label: ctx.prefetched[c.index] for label, c in caps.items()
+                          if c.index in ctx.prefetched}
+            to_load = [label for label in caps if label not in prefetched]
+            loaded = dict(zip(to_load, map_in_threads(lambda lb: caps[lb].load_image(),
+                                                      to_load), strict=True))
+            images = {label: prefetched[label][0] if label in prefetched else loaded[label]
+                      for label in caps}
+            emaps = {label: emap for label, (_, emap) in prefetched.items()}
+        if ctx.prefetched:
+            log.info("active-camera: %d of %d captures' edge maps taken while the rig "
+                     "moved", len(prefetched), len(caps))
         angles = {k: tuple(c.meta["head"][a] for a in ("pan", "tilt", "roll"))
                   for k, c in caps.items()}
         settings = ActiveSettings(window=params.window, min_points=params.min_points,
@@ -169,7 +187,7 @@ class ActiveCamera(Procedure):
                                   encoder_sigma_rad=head_encoder_sigmas(
                                       servo_models(caps.values(), ctx.config)))
         with ctx.stage("pipeline"):
-            solution = solve_active(images, angles, settings)
+            solution = solve_active(images, angles, settings, emaps)
         ctx.timings_s.update({f"pipeline: {k}": v for k, v in solution.timings_s.items()})
         # the size and focus these intrinsics hold for (checked by procedures using them)
         solution.result["camera_settings"] = settings_of_run(ctx.run)
@@ -178,6 +196,14 @@ class ActiveCamera(Procedure):
         ctx.defer("plots", lambda: _plots(ctx, images, solution.contours, solution.matches,
                                           solution.refined, solution.order))
         return solution.result
+
+
+def image_and_edge_map(image: np.ndarray) -> tuple[np.ndarray, Any]:
+    """One capture's image and its edge map (``vision.contours.edge_map``): what the
+    solve takes of each capture before anything else (``ActiveCamera.capture_work``)."""
+    from rigctl.vision.contours import edge_map
+
+    return image, edge_map(image)
 
 
 def servo_models(captures, config) -> dict[str, str]:

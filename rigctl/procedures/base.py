@@ -133,6 +133,10 @@ class SolveContext:
     inputs: dict[str, Any] = field(default_factory=dict)
     timings_s: dict[str, float] = field(default_factory=dict)  # per stage, see ``stage``
     deferred: list[tuple[str, Callable[[], None]]] = field(default_factory=list)
+    # in a live run, the outcome of the procedure's ``capture_work`` on each capture's
+    # image, by capture index, done while the rig moved on (empty offline: the solve
+    # does that work itself, with the same outcome)
+    prefetched: dict[int, Any] = field(default_factory=dict)
 
     def stage(self, name: str):
         """Time one stage of the solve (``rigctl bench solve`` prints them)."""
@@ -226,6 +230,14 @@ class Procedure:
 
     def plan(self, params: Any, config: RigConfig) -> list[Step]:
         raise NotImplementedError
+
+    def capture_work(self, params: Any) -> Callable[[Any], Any] | None:
+        """Work on one capture's image that the solve would do anyway and that needs no
+        other capture (e.g. its edge map): in a live run the runner does it on each image
+        while the rig moves on, and the solve finds the outcomes in
+        ``SolveContext.prefetched``. None: no such work. The outcome must be what the
+        solve computes from the recorded image, so a re-solve gives the same result."""
+        return None
 
     def solve(self, ctx: SolveContext) -> dict[str, Any]:
         raise NotImplementedError
