@@ -304,6 +304,7 @@ class Runner(ResumeMixin):
             solve_started = time.monotonic()
             with one_blas_thread():
                 result = procedure.solve(ctx)
+            ctx.prefetched = {}  # the solve is done with them (hundreds of MB of edge maps)
             timings["solve_s"] = time.monotonic() - solve_started
             run.write_result(result)
             status = "succeeded"
@@ -633,8 +634,10 @@ class CapturePrefetch:
         return dict(self.outcomes)
 
     def cancel(self) -> None:
-        """Drop what has not started (the run ended without a solve)."""
-        self.pool.shutdown(wait=False, cancel_futures=True)
+        """Drop what has not started (the run ended without a solve); wait for the one
+        running, so that nothing of the run goes on after it."""
+        self.pool.shutdown(wait=True, cancel_futures=True)
+        self.outcomes.clear()
 
 
 def _same_view(before, after, threshold: float) -> bool:

@@ -55,3 +55,26 @@ def test_map_in_threads_raises_the_first_error_in_order():
     with pytest.raises(ValueError, match="item 2"):
         map_in_threads(fn, range(5), threads=2)
     assert map_in_threads(fn, [0, 1], threads=1) == [0, 1]
+
+
+@pytest.mark.parametrize("value", ["two", "0", "-1", "1.5"])
+def test_a_bad_thread_count_is_refused_naming_the_variable(monkeypatch, value):
+    from rigctl.calib.threads import solve_threads
+    from rigctl.errors import ConfigError
+
+    monkeypatch.setenv("RIGCTL_SOLVE_THREADS", value)
+    with pytest.raises(ConfigError, match="RIGCTL_SOLVE_THREADS"):
+        solve_threads()
+
+
+def test_the_thread_count_comes_from_the_environment(monkeypatch):
+    from rigctl.calib.threads import DEFAULT_THREADS, solve_threads
+
+    monkeypatch.setenv("RIGCTL_SOLVE_THREADS", "1")
+    assert solve_threads() == 1 and threads_here() == 1
+    seen = map_in_threads(lambda _: threading.current_thread().name, range(4))
+    assert set(seen) == {threading.current_thread().name}  # serial, in this thread
+    monkeypatch.setenv("RIGCTL_SOLVE_THREADS", "3")
+    assert solve_threads() == 3
+    monkeypatch.delenv("RIGCTL_SOLVE_THREADS")
+    assert solve_threads() == DEFAULT_THREADS >= 1

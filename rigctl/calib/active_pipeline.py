@@ -60,8 +60,8 @@ TIER_WINDOW_PX = 24.0  # search window around a tier's prediction (the first K's
 MODEL_ERROR_FOCAL = 1.0e-4   # relative, per focal length
 MODEL_ERROR_CENTRE_PX = 0.15  # per coordinate
 DISTINCT_START_PX = 3.0  # the final refinement also starts from centres this far apart
-# the final refinement's starts are refined side by side in this many threads, on every
-# COARSE_FACTOR-th point (``_refine_from_starts``)
+# the final refinement's starts are refined side by side in up to this many threads, on
+# every COARSE_FACTOR-th point (``_refine_from_starts``)
 FINAL_THREADS = 2
 COARSE_FACTOR = 4
 SAME_END_PX = 1.0  # a coarse refinement ending this close to a basin's first is in it
@@ -268,9 +268,9 @@ def _refine_from_starts(motions, starts: dict[str, dict], kwargs: dict,
     every basin is refined on all points, as the coarse costs do not rank them reliably.
     Should no refinement on all points succeed, every start is refined on all points
     from where it was (``fallback``), as before the coarse stage; if that fails too, its
-    first error is raised. The refinements of each stage run side by side in
-    ``FINAL_THREADS`` threads (each is independent and spends its time in numpy, which
-    releases the interpreter)."""
+    first error is raised. The refinements of each stage run side by side in up to
+    ``FINAL_THREADS`` threads (``calib.threads``: serial with ``RIGCTL_SOLVE_THREADS=1``;
+    each is independent and spends its time in numpy, which releases the interpreter)."""
     timings = {} if timings is None else timings
     report: dict[str, dict] = {name: {"centre": [start["cx"], start["cy"]]}
                                for name, start in starts.items()}
@@ -362,8 +362,8 @@ def _refine_each(jobs: dict[str, tuple[list, dict]], starts: dict[str, dict], la
                  timings: dict[str, float]
                  ) -> tuple[dict[str, RefineResult], dict[str, SolveError]]:
     """``refine`` of each start's motions with its keyword arguments (``jobs``, by name)
-    from that start, side by side in ``FINAL_THREADS`` threads: the results and the
-    errors, by name (each start's seconds into ``timings``)."""
+    from that start, side by side in up to ``FINAL_THREADS`` threads (``map_in_threads``):
+    the results and the errors, by name (each start's seconds into ``timings``)."""
     def refine_from(name: str) -> tuple[RefineResult | SolveError, float]:
         job_motions, job_kwargs = jobs[name]
         started = time.perf_counter()

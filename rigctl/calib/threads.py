@@ -4,6 +4,7 @@ OpenCV's filters and template matching, numpy's array arithmetic on large arrays
 scipy's k-d tree queries release the interpreter, so independent pieces of work (one
 capture's edge map, one capture's tracking) overlap in threads. Results are collected in
 the items' order, so a threaded stage gives the same result, bit for bit, as a serial one.
+``RIGCTL_SOLVE_THREADS`` sets how many threads (1: serial).
 """
 
 from __future__ import annotations
@@ -14,29 +15,47 @@ from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
 from typing import TypeVar
 
+from rigctl.errors import ConfigError
+
 T = TypeVar("T")
 R = TypeVar("R")
 
 # two is what a calibration rig's controller (and CI's machine) has to spare; more threads
-# than cores only add switching. ``RIGCTL_SOLVE_THREADS`` sets it (1: every solve serial,
-# e.g. on a controller busy with other work).
-SOLVE_THREADS = int(os.environ.get("RIGCTL_SOLVE_THREADS") or max(1, min(2, os.cpu_count() or 1)))
+# than cores only add switching
+DEFAULT_THREADS = max(1, min(2, os.cpu_count() or 1))
+THREADS_VARIABLE = "RIGCTL_SOLVE_THREADS"  # 1: every solve serial (a busy controller)
 _local = threading.local()
 
 
+def solve_threads() -> int:
+    """The threads a solve may use: ``RIGCTL_SOLVE_THREADS`` when set (a positive
+    integer), else ``DEFAULT_THREADS``."""
+    value = os.environ.get(THREADS_VARIABLE, "").strip()
+    if not value:
+        return DEFAULT_THREADS
+    try:
+        threads = int(value)
+    except ValueError:
+        threads = 0
+    if threads < 1:
+        raise ConfigError(f"environment variable {THREADS_VARIABLE}={value!r}: a positive "
+                          "integer, the threads a solve may use (1: serial)")
+    return threads
+
+
 def threads_here() -> int:
-    """How many threads work started here may use: ``SOLVE_THREADS``, or one inside a
+    """How many threads work started here may use: ``solve_threads()``, or one inside a
     thread of ``map_in_threads`` (its siblings already use the other cores)."""
-    return getattr(_local, "threads", SOLVE_THREADS)
+    return getattr(_local, "threads", None) or solve_threads()
 
 
 def map_in_threads(fn: Callable[[T], R], items: Iterable[T],
-                   threads: int = SOLVE_THREADS) -> list[R]:
-    """``[fn(item) for item in items]``, computed in up to ``threads`` threads (one when
-    called from such a thread: ``threads_here``); the first exception raised by ``fn``
-    (in the items' order) is raised again."""
+                   threads: int | None = None) -> list[R]:
+    """``[fn(item) for item in items]``, computed in up to ``threads`` threads (default
+    and at most ``threads_here()``: one when called from such a thread); the first
+    exception raised by ``fn`` (in the items' order) is raised again."""
     items = list(items)
-    threads = min(threads, threads_here(), len(items))
+    threads = min(threads or threads_here(), threads_here(), len(items))
     if threads <= 1:
         return [fn(item) for item in items]
 
