@@ -33,6 +33,13 @@ from rigctl.hardware.ur_models import ControllerIdentity, check_model
 log = logging.getLogger(__name__)
 
 ARRIVAL_TOL_RAD = 1e-3
+ARRIVAL_TOL_M = 1e-4  # a linear move's TCP
+# After a move ends, how long newer samples are awaited for the arm to show it arrived.
+# The end comes from the control interface's RTDE connection and the joints from the
+# receive interface's, each read by its own thread; on a loaded host the receive
+# stream's newest sample can predate the end by tenths of a second (load check, two busy
+# cores: a sample taken "after" the end still 1.011 deg short, the move in fact done).
+ARRIVAL_GRACE_S = 2.0
 
 
 def bounded_call(fn, timeout: float, what: str):
@@ -319,18 +326,18 @@ class URArm(Arm):
                     status.set_progress(1 - left / span)
                 running = self.control.getAsyncOperationProgress() >= 0
                 if not running:
+                    # q above may predate the end of the move (a loaded host widens that
+                    # gap): judge arrival on samples taken after the end
                     if target_q is not None:
-                        # q above may predate the end of the move (a loaded host widens
-                        # that gap): judge arrival on a sample taken after the end
-                        q = self._sample_after_now()
-                        left = max(abs(t - c) for t, c in zip(target_q, q, strict=True))
-                    if target_q is not None and left > ARRIVAL_TOL_RAD:
-                        raise DeviceError(f"arm: move ended {math.degrees(left):.3f} deg short "
-                                          "of its target")
+                        left = self._settled_distance(
+                            lambda: self._joints_from(target_q), ARRIVAL_TOL_RAD)
+                        if left > ARRIVAL_TOL_RAD:
+                            raise DeviceError(f"arm: move ended {math.degrees(left):.3f} deg "
+                                              "short of its target")
                     if target_pose is not None:
-                        self._sample_after_now()
-                        err = math.dist(target_pose[:3], self.receive.getActualTCPPose()[:3])
-                        if err > 1e-4:
+                        err = self._settled_distance(
+                            lambda: self._tcp_from(target_pose), ARRIVAL_TOL_M)
+                        if err > ARRIVAL_TOL_M:
                             raise DeviceError(f"arm: moveL ended {err * 1000:.2f} mm short")
                     status.set_finished()
                     return
@@ -339,6 +346,28 @@ class URArm(Arm):
                 time.sleep(0.01)
         except Exception as exc:
             status.set_exception(exc)
+
+    def _joints_from(self, target_q) -> float:
+        """The largest joint's distance (rad) from ``target_q`` on a sample taken after
+        the call."""
+        q = self._sample_after_now()
+        return max(abs(t - c) for t, c in zip(target_q, q, strict=True))
+
+    def _tcp_from(self, target_pose) -> float:
+        """The TCP's distance (m) from ``target_pose`` on a sample taken after the call."""
+        self._sample_after_now()
+        return math.dist(target_pose[:3], self.receive.getActualTCPPose()[:3])
+
+    def _settled_distance(self, distance, tolerance: float) -> float:
+        """``distance()`` (from the target, on a sample taken after the call) until it is
+        within ``tolerance`` or ``ARRIVAL_GRACE_S`` have passed; the last value. A move
+        that really stopped short (the arm in the operator's hands) is reported after the
+        grace."""
+        deadline = time.monotonic() + ARRIVAL_GRACE_S
+        while True:
+            value = distance()
+            if value <= tolerance or time.monotonic() >= deadline:
+                return value
 
     def _sample_after_now(self) -> list[float]:
         """Joint angles from an RTDE sample whose controller timestamp is newer than the one
