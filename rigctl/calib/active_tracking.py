@@ -151,20 +151,15 @@ class Tracker:
             raise SolveError("active-camera: no first focal length from the pan/tilt shifts")
         return f
 
-    def track(self, label: str, K: dict | RefineResult, window: float,
-              joint_window: float = 0.0) -> None:
-        """Follows every reference contour into ``label``'s image: predicted by a pinhole
-        ``K`` or by a refinement's whole model (distortion included), then searched
-        +-``window`` px around the prediction. With ``joint_window``, the predictions
-        are first moved by the one shift, within +-``joint_window`` px, that lays all of
-        them best on the image's edges (``common_shift``)."""
-        self.track_all([label], K, window, joint_window)
-
     def track_all(self, labels: list[str], K: dict | RefineResult, window: float,
                   joint_window: float = 0.0) -> None:
-        """``track`` of each of ``labels`` from the same ``K``, the captures side by side
-        in threads (each capture's tracking is independent of the others'); the matches
-        and the report are recorded in the labels' order."""
+        """Follows every reference contour into each of ``labels``' images, from the same
+        ``K``: predicted by a pinhole ``K`` or by a refinement's whole model (distortion
+        included), then searched +-``window`` px around the prediction; with
+        ``joint_window``, the predictions are first moved by the one shift, within
+        +-``joint_window`` px, that lays all of them best on the image's edges
+        (``common_shift``). The captures side by side in threads (each capture's tracking
+        is independent of the others'); matches and report recorded in the labels' order."""
         outcomes = map_in_threads(lambda label: self._tracked(label, K, window, joint_window),
                                   labels)
         for label, (matches, shift) in zip(labels, outcomes, strict=True):

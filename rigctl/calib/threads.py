@@ -55,7 +55,8 @@ def map_in_threads(fn: Callable[[T], R], items: Iterable[T],
     and at most ``threads_here()``: one when called from such a thread); the first
     exception raised by ``fn`` (in the items' order) is raised again."""
     items = list(items)
-    threads = min(threads or threads_here(), threads_here(), len(items))
+    limit = threads_here()
+    threads = min(threads or limit, limit, len(items))
     if threads <= 1:
         return [fn(item) for item in items]
 
