@@ -160,8 +160,8 @@ class Runner(ResumeMixin):
         self.show_progress = show_progress
         self.operator = operator or _whoami()
         self.on_event = on_event
-        self._board: BoardDetection | None = None
-        self._prefetch: CapturePrefetch | None = None
+        self._board: CaptureWorker | None = None
+        self._prefetch: CaptureWorker | None = None
         self.abort_event = threading.Event()
         self.continue_event = threading.Event()  # the operator's resume of a paused run
         self._abort_reason = "abort requested"
@@ -276,10 +276,16 @@ class Runner(ResumeMixin):
         root.addHandler(handler)
         if root.level > logging.INFO or root.level == logging.NOTSET:
             root.setLevel(logging.INFO)
-        self._board = (BoardDetection(self.config.target)
-                       if procedure.detects_board and self.config.target else None)
+        self._board = self._prefetch = None
+        if procedure.detects_board and self.config.target:
+            target = self.config.target
+            self._board = CaptureWorker(
+                lambda index, image: run.capture(index).save_board_corners(target, image),
+                "board detection")
         work = procedure.capture_work(params)
-        self._prefetch = CapturePrefetch(work) if work is not None else None
+        if work is not None:
+            self._prefetch = CaptureWorker(lambda index, image: work(image),
+                                           "work while moving")
         self._emit(type="started", run_id=run_id, procedure=procedure.name,
                    total=len(plan.steps))
         status, reason, result = "running", None, None
@@ -560,7 +566,7 @@ class Runner(ResumeMixin):
             meta["arm_commanded"] = state["arm_commanded"]
         run.write_capture(state["capture"], image, meta)
         if image is not None and self._board is not None:
-            self._board.submit(run.capture(state["capture"]), image)
+            self._board.submit(state["capture"], image)
         if image is not None and self._prefetch is not None:
             self._prefetch.submit(state["capture"], image)
         state["capture"] += 1
@@ -582,51 +588,28 @@ STEP_HANDLERS: dict[type, Callable[..., None]] = {
 STEP_HANDLERS[teach.TeachStep] = teach.teach_step  # free drive (rigctl.teach)
 
 
-class BoardDetection:
-    """Detects the target (checkerboard or ChArUco board) in each capture on one worker
-    thread while the rig moves on (OpenCV releases the GIL), writing ``NNN.board.json``;
-    a failure there is logged and the solve detects that capture itself."""
+class CaptureWorker:
+    """Work on each capture's image (``work(image)``) on one worker thread while the rig
+    moves on (OpenCV and numpy release the GIL). A failure there is logged (under
+    ``what``) and that capture has no outcome: the solve then does the work itself.
+    Used for the board's detection (whose outcome is its ``NNN.board.json``, part of the
+    record) and for a procedure's ``capture_work`` (whose outcomes the solve takes)."""
 
-    def __init__(self, target) -> None:
+    def __init__(self, work: Callable[[Any], Any], what: str) -> None:
         from concurrent.futures import ThreadPoolExecutor
 
-        self.target = target
-        self.pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="board")
-
-    def submit(self, capture, image) -> None:
-        self.pool.submit(self._detect, capture, image)
-
-    def _detect(self, capture, image) -> None:
-        try:
-            capture.save_board_corners(self.target, image)
-        except Exception as exc:
-            log.warning("board detection in capture %03d: %s", capture.index, exc)
-
-    def finish(self) -> None:
-        """Wait for the captures already submitted."""
-        self.pool.shutdown(wait=True)
-
-
-class CapturePrefetch:
-    """A procedure's ``capture_work`` on each capture's image, on one worker thread while
-    the rig moves on (OpenCV and numpy release the GIL). A failure there is logged and
-    that capture left out: the solve then does the work itself."""
-
-    def __init__(self, work: Callable[[Any], Any]) -> None:
-        from concurrent.futures import ThreadPoolExecutor
-
-        self.work = work
+        self.work, self.what = work, what
         self.outcomes: dict[int, Any] = {}
-        self.pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="prefetch")
+        self.pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix=what.split()[0])
 
     def submit(self, index: int, image) -> None:
         self.pool.submit(self._do, index, image)
 
     def _do(self, index: int, image) -> None:
         try:
-            self.outcomes[index] = self.work(image)
+            self.outcomes[index] = self.work(index, image)
         except Exception as exc:
-            log.warning("work on capture %03d while moving: %s", index, exc)
+            log.warning("%s in capture %03d: %s", self.what, index, exc)
 
     def finish(self) -> dict[int, Any]:
         """Wait for the captures already submitted; their outcomes, by capture index."""
