@@ -589,13 +589,13 @@ STEP_HANDLERS[teach.TeachStep] = teach.teach_step  # free drive (rigctl.teach)
 
 
 class CaptureWorker:
-    """Work on each capture's image (``work(image)``) on one worker thread while the rig
-    moves on (OpenCV and numpy release the GIL). A failure there is logged (under
+    """Work on each capture's image (``work(index, image)``) on one worker thread while
+    the rig moves on (OpenCV and numpy release the GIL). A failure there is logged (under
     ``what``) and that capture has no outcome: the solve then does the work itself.
     Used for the board's detection (whose outcome is its ``NNN.board.json``, part of the
     record) and for a procedure's ``capture_work`` (whose outcomes the solve takes)."""
 
-    def __init__(self, work: Callable[[Any], Any], what: str) -> None:
+    def __init__(self, work: Callable[[int, Any], Any], what: str) -> None:
         from concurrent.futures import ThreadPoolExecutor
 
         self.work, self.what = work, what
