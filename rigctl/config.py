@@ -278,9 +278,12 @@ class ArmConfig(_Strict):
     rtde_frequency_hz: float = Field(125.0, ge=10, le=500, description="rate of the RTDE "
                                      "state stream, Hz: 10 to 125 on CB3, to 500 on e-Series "
                                      "and UR-Series")
-    # The RTDE stream (rtde_frequency_hz) silent this long: connection lost.
+    # The RTDE stream (rtde_frequency_hz) silent this long: connection lost. ur_rtde itself
+    # drops the link after 2.5 s of silence (drivers.ur.UR_RTDE_READ_DEADLINE_S).
     stream_timeout_s: float = Field(1.0, gt=0, le=30, description="the RTDE stream silent this "
-                                    "long means the connection is lost, seconds")
+                                    "long means the connection is lost, seconds (ur_rtde "
+                                    "itself drops the link after 2.5 s of silence, so a "
+                                    "longer limit ends there)")
     # Bound on each teardown call (stopScript, stopJ) into ur_rtde.
     teardown_timeout_s: float = Field(3.0, gt=0, le=60, description="bound on each teardown call "
                                       "(stopScript, stopJ) into ur_rtde, seconds")

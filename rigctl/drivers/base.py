@@ -49,18 +49,20 @@ __all__ = [
 ]
 
 
-def load_note(knobs: str) -> str:
+def load_note(knobs: str | None) -> str:
     """A clause for a timeout message: the host's load, and the rig-file keys that give
-    the device more time. A process descheduled on a busy host (a stand-in, or the
-    client itself) misses a timeout set for hardware; the message should say so."""
+    the device more time (``knobs``; None: no key helps). A process descheduled on a
+    busy host (a stand-in, or the client itself) misses a timeout set for hardware; the
+    message should say so."""
     cores = os.cpu_count() or 1
     try:
         load = os.getloadavg()[0]
     except OSError:
-        return f"if the host is busy, raise {knobs} in the rig file"
+        return (f"if the host is busy, raise {knobs} in the rig file" if knobs else
+                "the host may have been too busy to run the stream")
     busy = "busy" if load >= 0.8 * cores else "not busy"
-    return (f"host load {load:.1f} on {cores} cores ({busy}); a loaded host delays replies, "
-            f"raise {knobs} in the rig file if this recurs")
+    note = f"host load {load:.1f} on {cores} cores ({busy}); a loaded host delays replies"
+    return f"{note}, raise {knobs} in the rig file if this recurs" if knobs else note
 
 
 def check_axis_limit(name: str, value: float, lo: float, hi: float) -> None:

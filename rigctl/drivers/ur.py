@@ -40,6 +40,11 @@ ARRIVAL_TOL_M = 1e-4  # a linear move's TCP
 # stream's newest sample can predate the end by tenths of a second (load check, two busy
 # cores: a sample taken "after" the end still 1.011 deg short, the move in fact done).
 ARRIVAL_GRACE_S = 2.0
+# ur_rtde's own deadline on each read of the RTDE stream: silent this long, its receive
+# interface closes the socket and reports itself disconnected, with no reconnect
+# (ur_rtde src/rtde.cpp, the default read deadline, 2.5 s; the same default is in the
+# installed 1.6.5 library). A stream_timeout_s above it cannot be reached.
+UR_RTDE_READ_DEADLINE_S = 2.5
 
 
 def bounded_call(fn, timeout: float, what: str):
@@ -209,10 +214,15 @@ class URArm(Arm):
 
     def _link_problem(self) -> str | None:
         """Why the link is down now, or None while it is up."""
-        if self.receive is None or not self.receive.isConnected():
-            return (f"arm {self.cfg.host}: RTDE connection lost (closed by the controller or "
-                    "the network)")
         silent = time.monotonic() - self._last_ts[1]
+        if self.receive is None or not self.receive.isConnected():
+            if silent < 0.8 * UR_RTDE_READ_DEADLINE_S:
+                return (f"arm {self.cfg.host}: RTDE connection lost (closed by the controller "
+                        "or the network)")
+            return (f"arm {self.cfg.host}: RTDE connection lost (no new sample for "
+                    f"{silent:.1f} s: ur_rtde closes its link after "
+                    f"{UR_RTDE_READ_DEADLINE_S:g} s without data, whatever "
+                    f"devices.arm.stream_timeout_s says; {load_note(None)})")
         if silent < self.cfg.stream_timeout_s:
             return None
         return (f"arm {self.cfg.host}: RTDE connection lost (no new sample for {silent:.1f} s,"

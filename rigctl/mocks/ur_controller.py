@@ -821,9 +821,18 @@ class RTDEConnection:
                         flat[name] = known
                     values.extend(known[1])
                 self.send("U", struct.pack(self.output_fmt, 1, *values))
-        except (OSError, struct.error) as exc:
+        except OSError as exc:  # the client went away
             log.debug("stream ended: %s", exc)
             self.streaming = False
+        except Exception as exc:  # a fault of this stand-in: never silent
+            # a stream that stops with the socket open reads, to ur_rtde, as silence until
+            # its own read deadline (2.5 s) drops the link; closing it says so at once
+            log.warning("RTDE stream ended by a fault: %r; closing the connection", exc)
+            self.streaming = False
+            try:
+                self.sock.shutdown(socket.SHUT_RDWR)
+            except OSError:
+                pass
 
 
 def _flatten(value) -> tuple:
