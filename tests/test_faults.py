@@ -63,14 +63,15 @@ from rigctl.drivers.ur import URArm
 from rigctl.config import parse_rig
 from rigctl.errors import DeviceError
 from tests.mockproc import ROOT, control
-host, sock, report = sys.argv[1:4]
+host, sock, report, fault, stream_timeout = sys.argv[1:4] + sys.argv[5:7]
 def say(**kw):  # into a file of its own: ur_rtde's threads print to stdout and stderr
     with open(report, "a") as f:
         f.write(json.dumps(kw) + "\\n")
-arm = URArm(parse_rig(f"devices:\\n  arm: {{host: {host}}}\\n").devices.arm)
+arm = URArm(parse_rig(f"devices:\\n  arm: {{host: {host}, stream_timeout_s: {stream_timeout}}}"
+                      "\\n").devices.arm)
 arm.open()
 say(step="opened")
-control(sock, {"cmd": "drop_connections"})
+control(sock, json.loads(fault))
 say(step="dropped")
 deadline = time.monotonic() + 20
 while time.monotonic() < deadline:
@@ -103,17 +104,33 @@ def _stopped_in(stderr: str) -> str | None:
     return None
 
 
+# the stand-in's fault, the rig file's stream_timeout_s, and what the driver must report
+LINK_FAULTS = {
+    "dropped": ({"cmd": "drop_connections"}, 1.0,
+                "RTDE connection lost (closed by the controller"),
+    # a stream silent for 4 s, past ur_rtde's own read deadline (2.5 s), under a limit of
+    # 30 s: ur_rtde drops the link itself, and the driver names that deadline
+    "silent": ({"cmd": "stall_stream", "seconds": 4.0}, 30.0,
+               "ur_rtde closes its link after 2.5 s without data"),
+}
+
+
 @pytest.mark.timeout(150)  # a hang guard, above DROP_WAIT_S
-def test_dropped_rtde_connections_are_reported_as_a_lost_link(arm_proc, tmp_path):  # noqa: F811
-    """In a child process: after a drop, ur_rtde's control interface reconnects from its
-    own thread, and that thread has crashed the process (SIGSEGV) in about half of the
-    trials here, whatever the driver does meanwhile, and once under the load check hung
-    it past 120 s (a known doubt, see the closing notes). The driver's own report must
-    come first; the child's steps tell where a hang stopped. Only a crash or a hang
-    inside the arm's teardown, after the report, is put down to that doubt."""
+@pytest.mark.parametrize("fault", sorted(LINK_FAULTS))
+def test_a_lost_rtde_link_is_reported_by_its_cause(arm_proc, tmp_path, fault):  # noqa: F811
+    """In a child process: the stand-in drops its RTDE connections, or its stream falls
+    silent past ur_rtde's read deadline (which then closes the sockets itself). After
+    that, ur_rtde's control interface reconnects from its own thread, and that thread
+    has crashed the process (SIGSEGV) in about half of the trials here, whatever the
+    driver does meanwhile, and once under the load check hung it past 120 s (a known
+    doubt, see the closing notes). The driver's own report, naming the cause, must come
+    first; the child's steps tell where a hang stopped. Only a crash or a hang inside the
+    arm's teardown, after the report, is put down to that doubt."""
+    command, stream_timeout_s, expected = LINK_FAULTS[fault]
     report = tmp_path / "steps.jsonl"
     child = subprocess.Popen([sys.executable, "-c", DROP_SCRIPT, arm_proc.ready["host"],
-                              arm_proc.ready["control"], str(report), str(DROP_DUMP_S)],
+                              arm_proc.ready["control"], str(report), str(DROP_DUMP_S),
+                              json.dumps(command), str(stream_timeout_s)],
                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
     try:
         _, err = child.communicate(timeout=DROP_WAIT_S)
@@ -133,7 +150,7 @@ def test_dropped_rtde_connections_are_reported_as_a_lost_link(arm_proc, tmp_path
              f"stderr: {err[-3000:]}")
     errors = [line["error"] for line in lines if "error" in line]
     assert steps[:3] == ["opened", "dropped", "error"], where
-    assert "RTDE connection lost (closed by the controller" in errors[0], where
+    assert expected in errors[0], where
     if child.returncode == 0:
         assert steps[-1] == "closed", where
         return
