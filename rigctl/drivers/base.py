@@ -59,7 +59,7 @@ def load_note(knobs: str | None) -> str:
         load = os.getloadavg()[0]
     except OSError:
         return (f"if the host is busy, raise {knobs} in the rig file" if knobs else
-                "the host may have been too busy to run the stream")
+                "the host may have been too busy to reply in time")
     busy = "busy" if load >= 0.8 * cores else "not busy"
     note = f"host load {load:.1f} on {cores} cores ({busy}); a loaded host delays replies"
     return f"{note}, raise {knobs} in the rig file if this recurs" if knobs else note

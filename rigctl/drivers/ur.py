@@ -45,6 +45,9 @@ ARRIVAL_GRACE_S = 2.0
 # (ur_rtde src/rtde.cpp, the default read deadline, 2.5 s; the same default is in the
 # installed 1.6.5 library). A stream_timeout_s above it cannot be reached.
 UR_RTDE_READ_DEADLINE_S = 2.5
+# a link found closed after this much silence is put down to that deadline (the monitor
+# polls every 20 ms, so a closure by the deadline is seen at about 2.5 s of silence)
+DEADLINE_SILENCE_S = 0.8 * UR_RTDE_READ_DEADLINE_S
 
 
 def bounded_call(fn, timeout: float, what: str):
@@ -216,7 +219,7 @@ class URArm(Arm):
         """Why the link is down now, or None while it is up."""
         silent = time.monotonic() - self._last_ts[1]
         if self.receive is None or not self.receive.isConnected():
-            if silent < 0.8 * UR_RTDE_READ_DEADLINE_S:
+            if silent < DEADLINE_SILENCE_S:
                 return (f"arm {self.cfg.host}: RTDE connection lost (closed by the controller "
                         "or the network)")
             return (f"arm {self.cfg.host}: RTDE connection lost (no new sample for "
