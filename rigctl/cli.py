@@ -838,7 +838,9 @@ def bench_active_worlds(as_json: bool = typer.Option(False, "--json"),
                             "(default: as each world's servos read them, quantized and noisy)"),
                         ) -> None:
     """The active-camera pipeline on N random worlds (rendered directly, no stand-ins):
-    focal and centre error against truth, and error / sigma of each intrinsic."""
+    focal and centre error against truth, error / sigma of each intrinsic, and the head
+    geometry's rotation from home against the world's (largest error in degrees and
+    Mahalanobis norm, over a few pans and tilts and over a few rolls)."""
     from rigctl.bench import active_worlds
     from rigctl.bench.common import print_table
 
@@ -854,11 +856,16 @@ def bench_active_worlds(as_json: bool = typer.Option(False, "--json"),
     rows = [[r["seed"], r["model"], round(r["fx_true"]), r.get("error", "")[:60]]
             + ([] if "error" in r else [r["focal_pct"], r["centre_px"],
                                         *(r["z"][k] for k in active_worlds.KEYS),
+                                        r["head_geometry"]["pan_tilt"]["rotation_error_deg"],
+                                        r["head_geometry"]["pan_tilt"]["mahalanobis"],
+                                        r["head_geometry"]["roll"]["rotation_error_deg"],
+                                        r["head_geometry"]["roll"]["mahalanobis"],
                                         r["solve_s"]])
             for r in result["worlds"]]
     print_table(f"bench active-worlds ({n} worlds)",
                 ["seed", "arm", "f", "failure", "f err %", "centre px", "z fx", "z fy",
-                 "z cx", "z cy", "solve s"], rows, out)
+                 "z cx", "z cy", "pan/tilt deg", "pan/tilt z", "roll deg", "roll z",
+                 "solve s"], rows, out)
     out.print_json(json.dumps(result["summary"]))
 
 

@@ -51,6 +51,13 @@ def test_default_plan_meets_the_truth_of_an_unseen_world(seed):
     assert max(abs(z) for z in row["z"].values()) < 4.0, row["z"]
     # the arm's move measured the scene's depths, so the parallax was estimated
     assert row["parallax"]["estimated"], row["parallax"]
+    # the head's geometry (``head_geometry``) turns the camera as the world's head does:
+    # 0.001-0.005 deg off over pans and tilts of 15-20 deg, 0.01-0.03 deg over rolls,
+    # each within its reported covariance (Mahalanobis norm, 3 dof)
+    head = row["head_geometry"]
+    assert head["pan_tilt"]["rotation_error_deg"] < 0.02, head
+    assert head["roll"]["rotation_error_deg"] < 0.1, head
+    assert head["pan_tilt"]["mahalanobis"] < 4.0 and head["roll"]["mahalanobis"] < 4.0, head
     # the benchmark times the solve itself (rendering excluded), on the wall and of CPU
     assert row["solve_s"] > 0 and row["solve_cpu_s"] > 0, row
     assert summarise([row])["solve_s"]["median"] == row["solve_s"]

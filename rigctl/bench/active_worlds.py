@@ -20,12 +20,13 @@ from concurrent.futures import ProcessPoolExecutor
 import cv2
 import numpy as np
 
+from rigctl.calib import head_model
 from rigctl.calib.active_angles import head_encoder_sigmas
 from rigctl.calib.active_depth import camera_shift_joints
 from rigctl.calib.active_pipeline import SHIFT, STATION_PREFIX, ActiveSettings, solve_active
 from rigctl.errors import SolveError
 from rigctl.geometry.kinematics import nominal_ur
-from rigctl.geometry.transforms import xyz_rpy_to_T
+from rigctl.geometry.transforms import R_to_rotvec, xyz_rpy_to_T
 from rigctl.mocks.dxl_models import SPEC_BY_NAME as SERVO_SPECS
 from rigctl.mocks.random_world import random_world
 from rigctl.mocks.sim import rig_mount
@@ -43,6 +44,11 @@ POSES_DEG = {label: tuple(math.degrees(a) for a in angles)
 KEYS = ("fx", "fy", "cx", "cy")
 # how the head's encoders read (``encoder_reading``)
 ENCODER_MODES = ("ideal", "hardware", "quantized", "noisy", "true")
+# head angles (deg) at which the calibrated head geometry's rotation from home is checked
+# against the world's (``head_check``): pans and tilts a head beside the arm would re-aim
+# by, and rolls
+HEAD_CHECK_DEG = ((20.0, 0.0, 0.0), (-20.0, 0.0, 0.0), (0.0, 15.0, 0.0), (0.0, -15.0, 0.0),
+                  (20.0, 15.0, 0.0), (-20.0, -15.0, 0.0), (0.0, 0.0, 90.0), (0.0, 0.0, 180.0))
 # the soft limits of the rig file ``rigctl sim up`` writes (the config's default)
 SIM_RIG_JOINT_LIMITS = [(-2 * math.pi, 2 * math.pi)] * 6
 
@@ -199,8 +205,37 @@ def world_trial(args) -> dict:
     elif station is not None:
         row["second_station"] = station
     row["scene_depth"] = res["tracking"].get("scene_depth")
+    row["head_geometry"] = head_check(world, res)
     row["timings_s"] = sol.timings_s
     return row
+
+
+def head_check(world: World, result: dict) -> dict:
+    """The recorded head geometry (``head_model``) against the world's: at each of
+    ``HEAD_CHECK_DEG``, the rotation from home's error (deg) and its Mahalanobis norm
+    under the reported covariance (squared, chi-squared with 3 degrees of freedom when
+    honest), the largest of each over the pans and tilts (``pan_tilt``, what re-aiming
+    a head beside the arm needs) and over the rolls (``roll``); the centre's offset
+    error (mm) when it was estimated."""
+    geometry = head_model.from_result(result)
+    T0 = world.T_head_cam(0.0, 0.0, 0.0)
+    out: dict = {}
+    for part in ("pan_tilt", "roll"):
+        errors, norms = [], []
+        for deg in HEAD_CHECK_DEG:
+            if (part == "roll") != (deg[2] != 0.0):
+                continue
+            angles = tuple(math.radians(v) for v in deg)
+            R_true = (np.linalg.inv(T0) @ world.T_head_cam(*angles))[:3, :3]
+            R = geometry.rotation_from_home(angles)
+            errors.append(math.degrees(np.linalg.norm(R_to_rotvec(R @ R_true.T))))
+            norms.append(float(geometry.rotation_error_z(angles, R_true)[3]))
+        out[part] = {"rotation_error_deg": max(errors), "mahalanobis": max(norms),
+                     "mahalanobis_all": norms}
+    if geometry.offset_estimated:
+        out["offset_error_mm"] = 1000 * float(np.linalg.norm(geometry.offset_m
+                                                             - world.cam_offset))
+    return out
 
 
 def summarise(rows: list[dict]) -> dict:
@@ -220,6 +255,20 @@ def summarise(rows: list[dict]) -> dict:
                   "max": float(z.max()), "share_over_3": float(np.mean(z > 3)),
                   "rms": float(np.sqrt(np.mean(z ** 2)))},
     })
+    heads = [r["head_geometry"] for r in ok if "head_geometry" in r]
+    if heads:
+        out["head_geometry"] = {}
+        for part in ("pan_tilt", "roll"):
+            rot = np.array([h[part]["rotation_error_deg"] for h in heads])
+            m2 = np.array([m ** 2 for h in heads for m in h[part]["mahalanobis_all"]])
+            out["head_geometry"][part] = {
+                "rotation_error_deg": {"median": float(np.median(rot)),
+                                       "p90": float(np.percentile(rot, 90)),
+                                       "max": float(rot.max())},
+                # mean 3 and 0.1 % over 16.3 for an honest covariance (chi-squared, 3 dof)
+                "mahalanobis_sq": {"mean": float(m2.mean()),
+                                   "share_over_16": float(np.mean(m2 > 16.27)),
+                                   "max": float(m2.max())}}
     for key in ("solve_s", "solve_cpu_s"):
         seconds = np.array([r[key] for r in ok])
         out[key] = {"median": float(np.median(seconds)),

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from rigctl.calib import active
+from rigctl.calib import active, head_model
 from rigctl.calib.active_depth import SceneDepths, contour_shift, fit_depths, rigid_shifts
 from rigctl.calib.active_jacobian import N_BASE
 from rigctl.calib.active_refine import (
@@ -751,6 +751,7 @@ def _result(tr: Tracker, refined: RefineResult, depths: SceneDepths | None,
         "width": w, "height": h,
         "distortion": [refined.k1, refined.k2, refined.p1, refined.p2, refined.k3],
         "roll_axis_in_cam": refined.roll_axis.tolist(),
+        "head_geometry": _head_geometry(refined, names, cov, settings).as_dict(),
         "parallax": parallax,
         "head_angles": _head_angles_report(refined, settings),
         "centre_identifiability": centre_identifiability(names, cov),
@@ -758,6 +759,19 @@ def _result(tr: Tracker, refined: RefineResult, depths: SceneDepths | None,
         "strategies": strategies, "tracking": tr.report,
         "summary": summary,
     }
+
+
+def _head_geometry(refined: RefineResult, names: list[str], cov: np.ndarray,
+                   settings: ActiveSettings) -> head_model.HeadGeometry:
+    """The head's geometry the refinement ended with (``head_model``): the centre's
+    offset as estimated when the scene's depths were measured, else zero with the prior
+    ``settings.nodal_offset_mm`` as its sigma."""
+    if refined.with_depths:
+        offset = np.asarray(refined.parallax, float)
+        sigma = np.array([refined.sigma[n] for n in head_model.OFFSET_NAMES])
+    else:
+        offset, sigma = np.zeros(3), np.full(3, settings.nodal_offset_mm / 1000.0)
+    return head_model.from_refinement(refined.x, names, cov, offset, sigma, refined.with_depths)
 
 
 def _head_angles_report(refined: RefineResult, settings: ActiveSettings) -> dict[str, Any]:
