@@ -42,6 +42,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import brentq, least_squares
 
+from rigctl.calib import robot_stations
 from rigctl.calib.covariance import robust_covariance, view_clusters
 from rigctl.errors import SolveError
 from rigctl.geometry.camera import camera_matrix, invert_batch, project_batch
@@ -367,7 +368,13 @@ class Measurements:
     sigma_t: float = 0.001
     # the camera stands beside the arm (eye-to-hand): X = T_base_cam, W = T_flange_target
     fixed: bool = False
+    # with ``fixed``, the head re-aimed between views (``robot_stations``): each view's
+    # station and each station's predicted pose from home with its prior; None: all home
+    stations: robot_stations.Stations | None = None
 
+    @property
+    def station_count(self) -> int:
+        return 0 if self.stations is None else self.stations.count
 
 
 @dataclass
@@ -383,6 +390,9 @@ class RefineResult:
     rms: float
     condition_kinematic: float = float("nan")  # link parameters only, X and W projected out
     covariance: np.ndarray | None = None  # of every refined parameter (camera too, if free)
+    # the head's stations after the first (``robot_stations``): each one's refined pose
+    # from home; their parameters follow X and W in ``names``
+    stations: list[np.ndarray] = field(default_factory=list)
 
 
 def _pack(model, X, W, mask, free_XW):
@@ -414,17 +424,24 @@ def _unpack(p, model0, X0, W0, mask, free_XW):
 
 
 def residuals(model, X, W, meas: Measurements, K: np.ndarray | None = None,
-              dist: np.ndarray | None = None) -> np.ndarray:
+              dist: np.ndarray | None = None, stations: list[np.ndarray] | None = None
+              ) -> np.ndarray:
     """Pose residuals (scaled by the sigmas) or pixel residuals for every capture. A pose
     residual is ``log(C_k W^-1 FK(q_k) X)``: measured times predicted-inverse, in the
     camera frame, where a camera's pose error lives (the loop of (4.11) closed at the
     camera). Taken in the target frame instead, a rotation error would leak into
     translation times the camera-to-target distance and the sigmas would weight it
-    wrongly."""
+    wrongly. A view taken with the head re-aimed (``meas.stations``) is seen from its
+    station, ``D_s^-1`` times the home camera's (``stations``: each station's pose, by
+    default as predicted)."""
     from scipy.spatial.transform import Rotation
 
     Q = _cached(meas, "_Q", lambda: np.array(meas.q, float))
     T_cam_target = cam_target_batch(model, X, W, Q, meas.fixed)
+    if meas.stations is not None and meas.stations.count:
+        T_cam_target = robot_stations.view_inverses(
+            meas.stations, meas.stations.predicted if stations is None else stations) \
+            @ T_cam_target
     if meas.corners is None:  # pose residuals, every capture at once
         E = _cached(meas, "_C", lambda: np.array(meas.C)) @ invert_batch(T_cam_target)
         rv = Rotation.from_matrix(E[:, :3, :3]).as_rotvec()
@@ -476,33 +493,62 @@ def refine(model0: KinematicModel, X0, W0, meas: Measurements, mask=None,
     rank-deficient one (plain D-H on parallel joints) would otherwise run on.
     ``extra_starts`` (model, X, W) are solved from as well and the lowest cost wins: a
     link-by-link start that noisy sweeps threw degrees off can fall into a local minimum
-    that the nominal model's start avoids."""
+    that the nominal model's start avoids. With ``meas.stations`` (the head beside the
+    arm re-aimed) each station's pose from home is refined too, from its prediction and
+    with its prior (``robot_stations``); the prior's rows stay out of the view clusters
+    and enter the covariance as prior information."""
     mask = mask or identifiable_mask(model0, absorb=free_XW)
     p0, names = _pack(model0, X0, W0, mask, free_XW)
-    if len(meas.q) * 6 < len(p0):
+    n_base = len(p0)
+    stations = meas.stations if meas.station_count and free_XW else None
+    if stations is not None:
+        names = names + robot_stations.names(stations.count)
+    n_params = n_base + (0 if stations is None else 6 * stations.count)
+    if len(meas.q) * 6 < n_params:
         raise SolveError(f"robot refinement: {len(meas.q)} captures cannot determine "
-                         f"{len(p0)} parameters")
+                         f"{n_params} parameters")
+    scale = robot_stations.PRIOR_PIXEL_SCALE if meas.corners is not None else 1.0
 
     def solve(base, X_base, W_base):
         def fun(p):
-            return residuals(*_unpack(p, base, X_base, W_base, mask, free_XW), meas)
+            model, X, W = _unpack(p[:n_base], base, X_base, W_base, mask, free_XW)
+            if stations is None:
+                return residuals(model, X, W, meas)
+            D = robot_stations.unpack(p[n_base:])
+            return np.r_[residuals(model, X, W, meas, stations=D),
+                         robot_stations.prior_rows(stations, D, scale)]
 
-        sol = least_squares(fun, _pack(base, X_base, W_base, mask, free_XW)[0],
+        start = _pack(base, X_base, W_base, mask, free_XW)[0]
+        if stations is not None:
+            start = np.r_[start, robot_stations.pack(stations.predicted)]
+        sol = least_squares(fun, start,
                             loss="soft_l1" if robust else "linear", f_scale=3.0,
                             x_scale="jac", max_nfev=max_nfev)
         sol = least_squares(fun, sol.x, loss="linear", x_scale="jac", max_nfev=max_nfev // 2)
-        return sol, _unpack(sol.x, base, X_base, W_base, mask, free_XW)
+        return sol, _unpack(sol.x[:n_base], base, X_base, W_base, mask, free_XW)
 
     sol, (model, X, W) = min((solve(*start) for start in [(model0, X0, W0), *extra_starts]),
                              key=lambda found: found[0].cost)
-    J = sol.jac
+    n_prior = 0 if stations is None else 6 * stations.count
+    n_rows = len(sol.fun) - n_prior
+    J, r = sol.jac[:n_rows], sol.fun[:n_rows]
     sv = scaled_singular_values(J)
     condition = condition_number(sv)
-    cov = _view_robust(J, sol.fun, rows_per_view(meas), np.zeros((len(p0), len(p0))))
+    P = np.zeros((len(sol.x), len(sol.x)))
+    if n_prior:
+        # the prior's information in the residuals' units (``robust_covariance``): its
+        # rows were scaled for a pixel of ``scale``, the residuals have their own variance
+        J_prior = sol.jac[n_rows:]
+        s2 = float(np.sum(r ** 2) / max(n_rows - len(sol.x), 1))
+        P = J_prior.T @ J_prior * (s2 / scale ** 2)
+    cov = _view_robust(J, r, rows_per_view(meas), P)
     sigma = np.sqrt(np.clip(np.diag(cov), 0, None))
-    return RefineResult(model, X, W, names, sol.x, sigma, condition, sv,
-                        float(np.sqrt(np.mean(sol.fun ** 2))),
-                        _kinematic_condition(J, 12 if free_XW else 0), cov)
+    result = RefineResult(model, X, W, names, sol.x, sigma, condition, sv,
+                          float(np.sqrt(np.mean(r ** 2))),
+                          _kinematic_condition(J, (12 if free_XW else 0) + n_prior), cov)
+    if stations is not None:
+        result.stations = robot_stations.unpack(sol.x[n_base:])
+    return result
 
 
 def _view_robust(J: np.ndarray, r: np.ndarray, rows: list[int], P: np.ndarray,
@@ -587,6 +633,11 @@ def refine_with_camera(ref: RefineResult, meas: Measurements, prior_sigma: dict[
     model with its sigma."""
     mask = mask or identifiable_mask(ref.model, absorb=True)
     p_arm, names = _pack(ref.model, ref.X, ref.W, mask, True)
+    n_frames = len(p_arm)
+    stations = meas.stations if meas.station_count else None
+    if stations is not None:
+        p_arm = np.r_[p_arm, robot_stations.pack(ref.stations or stations.predicted)]
+        names = names + robot_stations.names(stations.count)
     n_arm = len(p_arm)
     K0, dist0 = meas.K, np.zeros(5)
     dist0[:min(5, len(meas.dist))] = np.asarray(meas.dist, float)[:5]
@@ -599,15 +650,21 @@ def refine_with_camera(ref: RefineResult, meas: Measurements, prior_sigma: dict[
         return camera_matrix(*c[:4]), c[4:]
 
     def pixels(p):
-        model, X, W = _unpack(p[:n_arm], ref.model, ref.X, ref.W, mask, True)
-        return residuals(model, X, W, meas, *camera(p))
+        model, X, W = _unpack(p[:n_frames], ref.model, ref.X, ref.W, mask, True)
+        if stations is None:
+            return residuals(model, X, W, meas, *camera(p))
+        D = robot_stations.unpack(p[n_frames:n_arm])
+        return np.r_[residuals(model, X, W, meas, *camera(p), stations=D),
+                     robot_stations.prior_rows(stations, D, scale)]
 
     board = least_squares(pixels, np.r_[p_arm, prior, dist0], x_scale="jac",
                           max_nfev=max_nfev)
-    n_px = len(board.fun)
-    s2_board = float(np.sum(board.fun ** 2) / max(n_px - len(board.x), 1))
-    board_cov = _view_robust(board.jac, board.fun, rows_per_view(meas),
-                             np.zeros((len(board.x), len(board.x))), s2_board)
+    n_station_rows = 0 if stations is None else 6 * stations.count
+    n_px = len(board.fun) - n_station_rows
+    s2_board = float(np.sum(board.fun[:n_px] ** 2) / max(n_px - len(board.x), 1))
+    station_info = board.jac[n_px:].T @ board.jac[n_px:]
+    board_cov = _view_robust(board.jac[:n_px], board.fun[:n_px], rows_per_view(meas),
+                             station_info, s2_board)
     inflation = prior_inflation(board.x[n_arm:n_arm + 4],
                                 board_cov[n_arm:n_arm + 4, n_arm:n_arm + 4], prior, sig)
     sig = sig * inflation
@@ -616,7 +673,7 @@ def refine_with_camera(ref: RefineResult, meas: Measurements, prior_sigma: dict[
         return np.r_[pixels(p), (p[n_arm:n_arm + 4] - prior) / sig * scale]
 
     sol = least_squares(fun, board.x, x_scale="jac", max_nfev=max_nfev)
-    model, X, W = _unpack(sol.x[:n_arm], ref.model, ref.X, ref.W, mask, True)
+    model, X, W = _unpack(sol.x[:n_frames], ref.model, ref.X, ref.W, mask, True)
     K, dist = camera(sol.x)
     J = sol.jac
     J_prior = J[n_px:]
@@ -628,8 +685,10 @@ def refine_with_camera(ref: RefineResult, meas: Measurements, prior_sigma: dict[
     result = RefineResult(model, X, W, names, sol.x[:n_arm], sigma[:n_arm],
                           condition_number(sv), sv,
                           float(np.sqrt(np.mean(sol.fun[:n_px] ** 2))),
-                          _kinematic_condition(J[:n_px, :n_arm], 12))
+                          _kinematic_condition(J[:n_px, :n_arm], 12 + n_station_rows))
     result.covariance = cov
+    if stations is not None:
+        result.stations = robot_stations.unpack(sol.x[n_frames:n_arm])
     cam = CameraRefinement(K, dist, dict(zip(CAMERA_KEYS + DIST_KEYS,
                                              sigma[n_arm:].tolist(), strict=True)),
                            dict(zip(CAMERA_KEYS, prior.tolist(), strict=True)),
