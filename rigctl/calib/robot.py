@@ -723,8 +723,11 @@ def camera_position_sigma(model: KinematicModel, X, W, names: list[str], cov: np
     ``W^-1 FK(q) X`` at each configuration, from the refinement's covariance of the
     parameters ``names`` (first-order propagation, central differences): mrcal's
     projection uncertainty carried over to an arm. Returns (len(q_list), 3)."""
+    # the configurations are the head's at home: its stations' parameters do not move them
+    keep = [i for i, name in enumerate(names) if not name.startswith("station")]
+    names = [names[i] for i in keep]
     n = len(names)
-    cov = np.asarray(cov, float)[:n, :n]
+    cov = np.asarray(cov, float)[np.ix_(keep, keep)]
 
     def position(m, x, w):
         return invert_batch(cam_target_batch(m, x, w, np.asarray(q_list, float), fixed))[:, :3, 3]

@@ -23,19 +23,21 @@ generalised; ``rigctl.calib.robot``):
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
-from rigctl.calib import handeye, robot
+from rigctl.calib import handeye, robot, robot_stations
 from rigctl.calib.blas_threads import with_one_blas_thread
 from rigctl.calib.extrinsic import CORNER_FACTOR, CORNER_MIN_PX, estimate_pose
+from rigctl.calib.head_model import HeadGeometry
 from rigctl.errors import SolveError
 from rigctl.geometry.kinematics import KinematicModel
 from rigctl.timing import stage_timer
 
 MIN_TRAINING_VIEWS = 8
+MIN_HOME_VIEWS = 6  # the hand-eye stage's views at home, with the head re-aimed (``_home_views``)
 # A training view is an outlier when its corners' RMS residual exceeds both this many
 # times the median view's and OUTLIER_MIN_PX. At a correct solution views sit at the
 # corner noise, ~0.1-0.3 px. A view with wrong corners pulls the solve and spreads its
@@ -65,6 +67,10 @@ class BoardView:
     q: np.ndarray
     corners: np.ndarray
     C: np.ndarray
+    # the head beside the arm re-aimed: the view's head station (0: home) and the head's
+    # angles as recorded (rad; None: not recorded)
+    station: int = 0
+    head: tuple[float, float, float] | None = None
 
 
 @dataclass
@@ -150,11 +156,33 @@ def hand_eye(model: KinematicModel, meas: robot.Measurements):
     """Stage 1 with the arm model ``model``: OpenCV's closed forms on the training views'
     board poses, the best of them refined on pixels. Returns the closed forms and the
     refined hand-eye (X, W)."""
-    F = handeye.flange_poses([model.fk(q) for q in meas.q], meas.fixed)
-    closed = handeye.closed_form(F, meas.C)
-    refined = handeye.refine_pixels(F, meas.corners, meas.obj, meas.K, meas.dist,
-                                    handeye.best_closed_form(closed), C=meas.C)
+    home = _home_views(meas)
+    F = handeye.flange_poses([model.fk(meas.q[k]) for k in home], meas.fixed)
+    C = [meas.C[k] for k in home]
+    closed = handeye.closed_form(F, C)
+    refined = handeye.refine_pixels(F, [meas.corners[k] for k in home], meas.obj, meas.K,
+                                    meas.dist, handeye.best_closed_form(closed), C=C)
     return closed, refined
+
+
+def _home_views(meas: robot.Measurements) -> list[int]:
+    """The views the hand-eye stage uses: every one, or with the head re-aimed between
+    views those taken at home (the sweeps' at least), when at least ``MIN_HOME_VIEWS``;
+    else every view (the closed forms with each seen from home as the head geometry
+    predicts, ``home_C``)."""
+    if not meas.station_count:
+        return list(range(len(meas.q)))
+    home = [k for k, s in enumerate(meas.stations.index) if s == 0]
+    return home if len(home) >= MIN_HOME_VIEWS else list(range(len(meas.q)))
+
+
+def home_C(meas: robot.Measurements) -> list[np.ndarray]:
+    """Each view's board pose seen from the camera at home: ``D_s C_k`` with each station's
+    predicted pose (``robot_stations``); ``meas.C`` when the head stayed at home."""
+    if not meas.station_count:
+        return meas.C
+    D = [np.eye(4), *meas.stations.predicted]
+    return [D[s] @ C for s, C in zip(meas.stations.index, meas.C, strict=True)]
 
 
 def single_methods(sweeps: dict[int, robot.Sweep], X, W, nominal: KinematicModel,
@@ -188,7 +216,7 @@ def joint_refinement(meas: robot.Measurements, start: KinematicModel, X,
     training view, from ``start`` (the link-by-link model, when it ran) with X and W
     averaged over the views, and from each of ``other_starts``; the lowest cost wins."""
     W = handeye.average_W(handeye.flange_poses([start.fk(q) for q in meas.q], meas.fixed),
-                          meas.C, X)
+                          home_C(meas), X)
     return robot.refine(start, X, W, meas, extra_starts=other_starts)
 
 
@@ -218,7 +246,7 @@ def outlier_views(ref: robot.RefineResult, meas: robot.Measurements) -> dict[int
 
 def view_rms(ref: robot.RefineResult, meas: robot.Measurements) -> np.ndarray:
     """Each training view's RMS corner residual (px) at the refined model."""
-    r = robot.residuals(ref.model, ref.X, ref.W, meas)
+    r = robot.residuals(ref.model, ref.X, ref.W, meas, stations=ref.stations or None)
     ends = np.cumsum(robot.rows_per_view(meas))[:-1]
     return np.array([np.sqrt(2 * np.mean(v ** 2)) for v in np.split(r, ends)])
 
@@ -231,7 +259,8 @@ def outlier_corners(ref: robot.RefineResult, meas: robot.Measurements
     Empty for pose measurements (no corners)."""
     if meas.corners is None:
         return {}
-    r = robot.residuals(ref.model, ref.X, ref.W, meas).reshape(-1, 2)
+    r = robot.residuals(ref.model, ref.X, ref.W, meas,
+                        stations=ref.stations or None).reshape(-1, 2)
     miss = np.linalg.norm(r, axis=1)
     limit = max(CORNER_FACTOR * float(np.median(miss)), CORNER_MIN_PX)
     out, start = {}, 0
@@ -255,8 +284,7 @@ def free_camera(ref: robot.RefineResult, meas: robot.Measurements,
         note = (f"the refinement with the camera free ended worse ({free.rms:.3f} px RMS) "
                 f"than with it held ({ref.rms:.3f} px); the camera is held as given")
         return ref, None, note, held
-    held = [BoardView(v.label, v.kind, v.joint, v.q, v.corners,
-                      estimate_pose(meas.obj, v.corners, cam.K, cam.dist).T_cam_target)
+    held = [replace(v, C=estimate_pose(meas.obj, v.corners, cam.K, cam.dist).T_cam_target)
             for v in held]
     return free, cam, None, held
 
@@ -320,7 +348,7 @@ def _again_without(views: list[BoardView], train: list[BoardView], rejected: dic
         except SolveError:
             rejected[k] = float(rms[k])
             continue
-        replaced[id(view)] = BoardView(view.label, view.kind, view.joint, view.q, kept, C)
+        replaced[id(view)] = replace(view, corners=kept, C=C)
     dropped = {id(train[k]) for k in rejected}
     again = solve_robot([replaced.get(id(v), v) for v in views if id(v) not in dropped],
                         reject_outliers=False, **solve_args)
@@ -331,11 +359,51 @@ def _again_without(views: list[BoardView], train: list[BoardView], rejected: dic
     return again
 
 
+def station_measurements(train: list[BoardView], head: HeadGeometry | None,
+                         encoder_sigma_rad: tuple[float, float, float] | None
+                         ) -> robot_stations.Stations | None:
+    """The training views' head stations for the refinement (``robot_stations``): each
+    station's head angles as recorded (the mean over its views), its pose from home as
+    ``head`` predicts it from the home views' angles, and the prior's information. None
+    when every view is at home; a ``SolveError`` when views were taken elsewhere with
+    no head geometry, or without their angles recorded."""
+    away = sorted({v.station for v in train if v.station})
+    if not away:
+        return None
+    if head is None:
+        raise SolveError(f"robot-kinematics: views at head stations {away} but no head "
+                         "geometry to see them from home (the intrinsics in use came "
+                         "without head_geometry)")
+
+    def angles(station: int) -> tuple[float, float, float]:
+        read = [v.head for v in train if v.station == station and v.head is not None]
+        if not read:
+            return (0.0, 0.0, 0.0) if station == 0 else _no_angles(station)
+        return tuple(float(a) for a in np.mean(np.array(read, float), axis=0))
+
+    home = angles(0)
+    number = {s: k + 1 for k, s in enumerate(away)}
+    out = robot_stations.Stations(np.array([number.get(v.station, 0) for v in train]))
+    for s in away:
+        D, info = robot_stations.predicted_station(head, home, angles(s), encoder_sigma_rad)
+        out.angles.append(angles(s))
+        out.predicted.append(D)
+        out.information.append(info)
+    return out
+
+
+def _no_angles(station: int):
+    raise SolveError(f"robot-kinematics: the captures at head station {station} recorded "
+                     "no head angles")
+
+
 @with_one_blas_thread
 def solve_robot(views: list[BoardView], nominal: KinematicModel, obj: np.ndarray,
                 K: np.ndarray, dist: np.ndarray, prior_sigma: dict[str, float] | None,
                 refine_camera: bool = True, reject_outliers: bool = True,
-                controller: KinematicModel | None = None, fixed: bool = False
+                controller: KinematicModel | None = None, fixed: bool = False,
+                head: HeadGeometry | None = None,
+                encoder_sigma_rad: tuple[float, float, float] | None = None
                 ) -> RobotSolution:
     """Stages 1-6 above on the board views. ``prior_sigma``: 1-sigma of the intrinsics
     ``K`` (their prior weight when ``refine_camera``). With ``reject_outliers``, training
@@ -344,13 +412,18 @@ def solve_robot(views: list[BoardView], nominal: KinematicModel, obj: np.ndarray
     arm's own (factory) model, when it reports one: a start of the joint refinement, and
     held out like the nominal model. ``fixed``: the camera stands beside the arm and the
     flange holds the board (X = T_base_cam, W = T_flange_target; no link-by-link or
-    axis-based start)."""
+    axis-based start); with ``head``, its calibrated geometry, training views taken with
+    the head re-aimed (``BoardView.station``) are seen from their station, each station's
+    pose refined from the geometry's prediction (``station_measurements``;
+    ``encoder_sigma_rad``: the head's readings' sigma, None: exact)."""
     timings: dict[str, float] = {}
     stage = stage_timer(timings)
     train, held = split_views(views)
     meas = robot.Measurements([v.q for v in train], C=[v.C for v in train],
                               corners=[v.corners for v in train], obj=obj, K=K, dist=dist,
-                              fixed=fixed)
+                              fixed=fixed,
+                              stations=station_measurements(train, head, encoder_sigma_rad)
+                              if fixed else None)
     with stage("hand-eye (nominal arm)"):
         closed, he = hand_eye(nominal, meas)
     he_controller = None
@@ -365,7 +438,7 @@ def solve_robot(views: list[BoardView], nominal: KinematicModel, obj: np.ndarray
         first = lbl.model if lbl is not None else nominal
         named = {"link-by-link" if lbl is not None else "nominal (W averaged)": (
             first, he.X, handeye.average_W(handeye.flange_poses(
-                [first.fk(q) for q in meas.q], fixed), meas.C, he.X))}
+                [first.fk(q) for q in meas.q], fixed), home_C(meas), he.X))}
         named["nominal"] = (nominal, he.X, he.W)
         if axis is not None:
             named["axis-based"] = (axis.model, axis.X, axis.W)
@@ -379,7 +452,7 @@ def solve_robot(views: list[BoardView], nominal: KinematicModel, obj: np.ndarray
                               nominal=nominal,
                               obj=obj, K=K, dist=dist, prior_sigma=prior_sigma,
                               refine_camera=refine_camera, controller=controller,
-                              fixed=fixed)
+                              fixed=fixed, head=head, encoder_sigma_rad=encoder_sigma_rad)
     with stage("plain D-H"):  # its rank deficiency, at the refined solution
         dh_sv = robot.jacobian_singular_values(ref.model, ref.X, ref.W, meas,
                                                robot.dh_mask(nominal))

@@ -8,8 +8,9 @@ from typing import Any
 
 import numpy as np
 
+from rigctl.calib import head_model
 from rigctl.config import RigConfig
-from rigctl.errors import ConfigError
+from rigctl.errors import ConfigError, SolveError
 from rigctl.geometry.camera import camera_matrix
 from rigctl.records import RecordIndex, RunDirectory
 
@@ -18,11 +19,11 @@ from .camera_settings import check_settings
 
 def intrinsics_from(config: RigConfig, given: dict | None,
                     allow_settings_change: bool = False) -> dict[str, Any]:
-    """``given`` (fx, fy, cx, cy, distortion, optionally sigma and settings) or the result
-    of the latest accepted (or succeeded) ``active-camera`` run of this rig, with its
-    1-sigma and the camera settings it was calibrated at (``check_settings`` refuses them
-    for another size or focus). Read when a run is planned, never while solving
-    (``Procedure.resolve_inputs``)."""
+    """``given`` (fx, fy, cx, cy, distortion, optionally sigma, settings and head_geometry)
+    or the result of the latest accepted (or succeeded) ``active-camera`` run of this rig,
+    with its 1-sigma, the camera settings it was calibrated at (``check_settings`` refuses
+    them for another size or focus) and the head's geometry. Read when a run is planned,
+    never while solving (``Procedure.resolve_inputs``)."""
     return check_settings(_intrinsics(config, given), config, allow_settings_change)
 
 
@@ -37,6 +38,8 @@ def _intrinsics(config: RigConfig, given: dict | None) -> dict[str, Any]:
             out["sigma"] = {k: float(given["sigma"][k]) for k in ("fx", "fy", "cx", "cy")}
         if given.get("settings"):
             out["settings"] = dict(given["settings"])
+        if given.get("head_geometry") is not None:
+            out["head_geometry"] = _checked_head(given["head_geometry"], "intrinsics parameter")
         return out
     row = RecordIndex(config.database_url()).latest("active-camera", config.name)
     if row is None:
@@ -49,7 +52,25 @@ def _intrinsics(config: RigConfig, given: dict | None) -> dict[str, Any]:
         out["sigma"] = {k: float(result["sigma"][k]) for k in ("fx", "fy", "cx", "cy")}
     if result.get("camera_settings"):
         out["settings"] = result["camera_settings"]
+    if isinstance(result.get("head_geometry"), dict):
+        out["head_geometry"] = result["head_geometry"]
     return out
+
+
+def _checked_head(entry, where: str) -> dict:
+    """A given ``head_geometry`` (as an active-camera result records it), checked."""
+    try:
+        head_model.from_result({"head_geometry": entry}, where)
+    except SolveError as exc:
+        raise ConfigError(str(exc)) from exc
+    return dict(entry)
+
+
+def head_geometry(intr: dict) -> head_model.HeadGeometry | None:
+    """The head's calibrated geometry that came with resolved intrinsics (an active-camera
+    result's ``head_geometry``), or None."""
+    entry = intr.get("head_geometry")
+    return None if entry is None else head_model.from_result(intr, "intrinsics")
 
 
 def default_prior_sigma(intr: dict) -> dict[str, float]:

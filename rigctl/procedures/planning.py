@@ -604,19 +604,23 @@ CHARUCO_MIN_CORNERS = 12
 
 
 def board_visible(config: RigConfig, model: KinematicModel, q, K: np.ndarray,
-                  margin: float = 0.03) -> bool:
+                  margin: float = 0.03, station: np.ndarray | None = None) -> bool:
     """Does the camera at joints q (arm ``model``) see every board corner, inside a
     margin? A ChArUco board needs only ``CHARUCO_MIN_SHARE`` of them (and
-    ``CHARUCO_MIN_CORNERS``)."""
-    return bool(boards_visible(config, model, np.asarray(q, float)[None], K, margin)[0])
+    ``CHARUCO_MIN_CORNERS``). ``station``: the camera of a head beside the arm re-aimed,
+    seen from the camera at home (``robot_stations``)."""
+    return bool(boards_visible(config, model, np.asarray(q, float)[None], K, margin,
+                               station)[0])
 
 
 def boards_visible(config: RigConfig, model: KinematicModel, Q: np.ndarray, K: np.ndarray,
-                   margin: float = 0.03) -> np.ndarray:
+                   margin: float = 0.03, station: np.ndarray | None = None) -> np.ndarray:
     """``board_visible`` at each configuration of ``Q`` (N, 6), at once: (N,) bools."""
     tg = config.target
     X, W = nominal_frames(config)
     T_cam_target = robot.cam_target_batch(model, X, W, Q, eye_to_hand(config))
+    if station is not None:
+        T_cam_target = inv_T(station) @ T_cam_target
     ok = np.ones(len(Q), bool)
     if eye_to_hand(config):
         ok &= faces_camera_batch(config, T_cam_target)

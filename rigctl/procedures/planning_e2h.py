@@ -8,8 +8,8 @@ image), at the viewing distance, the board facing the camera (its normal within
 ``max_tilt_deg`` of the ray) and spun freely about it. The flange pose that puts the
 board there is solved for joints (several IK seeds), kept when inside the soft limits,
 clear of the table (``planning.clearance_m``) and with the board in view
-(``planning.board_visible``). The head stays at home: re-aiming it would need its
-calibrated geometry (active-camera's), which these plans do not use yet.
+(``planning.board_visible``). From a head station (the head re-aimed, ``head_stations``)
+the same, with the camera there.
 """
 
 from __future__ import annotations
@@ -40,8 +40,15 @@ from .planning import (
     reach_sphere,
 )
 
-HEAD_STILL_NOTE = ("head beside the arm: the head stays at home for every view (re-aiming it "
-                   "needs its calibrated pan/tilt geometry, which this plan does not use)")
+HEAD_STILL_NOTE = "head beside the arm: the head stays at home for every view"
+NO_HEAD_GEOMETRY_NOTE = (f"{HEAD_STILL_NOTE} (re-aiming it needs the head's calibrated "
+                         "geometry, which the intrinsics in use came without: run "
+                         "active-camera on this rig first, or give the intrinsics parameter "
+                         "its head_geometry)")
+HEAD_STATIONS_NOTE = ("head beside the arm: the training views are taken from head stations "
+                      "(home, pan and tilt each way), the head's calibrated geometry "
+                      "predicting each station's pose (refined with the arm); the sweeps "
+                      "and held-out views at home")
 # the share of the image (about its centre) the board centre's rays are drawn from
 RAY_SHARE = 0.6
 DISTANCES = (1.0, 1.2, 0.85, 1.45)  # times the viewing distance, tried in turn
@@ -78,15 +85,19 @@ def _board_in_camera(rng: np.random.Generator, ray: np.ndarray, distance: float,
 
 def board_views(config: RigConfig, n: int, distance_m: float, max_tilt_deg: float,
                 seed: int, K: np.ndarray, model: KinematicModel | None = None,
-                attempts_per_view: int = 8) -> tuple[list[np.ndarray], list[str]]:
+                attempts_per_view: int = 8, station: np.ndarray | None = None
+                ) -> tuple[list[np.ndarray], list[str]]:
     """Up to ``n`` joint configurations that hold the board in the fixed camera's view
     (module note), at ``distance_m`` (never nearer than the board fits the image with
     ``K``, ``planning.fit_distance``) or, when too few are reachable there, at the other
     ``DISTANCES``. Returns them and notes; fewer than ``MIN_VIEWS`` is a ``SolveError``
-    naming what to change."""
+    naming what to change. ``station``: the head re-aimed, the camera there seen from the
+    camera at home (``head_stations``)."""
     arm = config.devices.arm
     model = arm_model(config, model)
     T_base_cam, T_target_flange = nominal_base_cam(config), inv_T(nominal_flange_target(config))
+    if station is not None:
+        T_base_cam = T_base_cam @ station
     centre = board_centre(config)
     size = (config.devices.camera.width, config.devices.camera.height)
     limits = arm.joint_limits_rad()
@@ -110,7 +121,7 @@ def board_views(config: RigConfig, n: int, distance_m: float, max_tilt_deg: floa
                                      ([previous] if previous is not None else []) + seeds,
                                      limits)
             if q is None or clearance_m(config, model, q) < MIN_CLEARANCE_M or \
-                    not board_visible(config, model, q, K):
+                    not board_visible(config, model, q, K, station=station):
                 continue
             poses.append(q)
             previous = q
@@ -123,7 +134,8 @@ def board_views(config: RigConfig, n: int, distance_m: float, max_tilt_deg: floa
         f"board views: planned at {used:.2f} m from the camera instead of {distance_m:.2f} m "
         f"({len(poses)} of {n} views)"]
     if len(poses) < MIN_VIEWS:
-        raise SolveError(f"board views: only {len(poses)} of {n} views hold the board in the "
+        raise SolveError(f"board views{'' if station is None else ' (head re-aimed)'}: only "
+                         f"{len(poses)} of {n} views hold the board in the "
                          f"fixed camera's view at {start * min(DISTANCES):.2f}-"
                          f"{start * max(DISTANCES):.2f} m within the soft limits; check "
                          "devices.head.fixed_pose (the camera must look at the arm's "
@@ -138,37 +150,99 @@ def informative_board_views(config: RigConfig, params, K: np.ndarray, planned_q:
     ``board_views`` candidates at 0.85, 1 and 1.2 times ``params.view_distance_m``,
     together with the views already planned (``planned_q``), for the eye-to-hand model
     (``T_base_cam``, ``T_flange_target`` and, with ``links``, the arm's identifiable link
-    parameters); ordered for short travel."""
+    parameters); ordered for short travel. The head stays at home
+    (``informative_station_views`` re-aims it)."""
+    poses, _, notes = informative_station_views(config, params, K, planned_q, n, seed,
+                                                model, links)
+    return poses, notes
+
+
+def informative_station_views(config: RigConfig, params, K: np.ndarray, planned_q: list,
+                              n: int, seed: int, model: KinematicModel | None = None,
+                              links: bool = True, stations: list[np.ndarray] | None = None
+                              ) -> tuple[list[np.ndarray], list[int], list[str]]:
+    """``informative_board_views`` from the head's ``stations`` (each camera seen from the
+    camera at home, the first at home; None: home only): candidates from every station
+    whose views are reachable, the D-optimal choice among all of them (each candidate's
+    Jacobian with the camera at its station; the stations' own pose parameters are left
+    out of the criterion). Returns the views grouped by station (home first, each group
+    ordered for short travel), each view's station, and notes."""
     model = arm_model(config, model)
+    stations = [np.eye(4)] if stations is None else stations
     X, W = nominal_base_cam(config), nominal_flange_target(config)
-    candidates, notes = [], []
-    for k, factor in enumerate((1.0, 0.85, 1.2)):
-        try:
-            more, _ = board_views(config, 3 * n, params.view_distance_m * factor,
-                                  params.max_tilt_deg, seed + 17 * k, K, model)
-        except SolveError:
-            continue
-        candidates += more
+    candidates, owner, notes = [], [], []
+    for s, station in enumerate(stations):
+        found = 0
+        for k, factor in enumerate((1.0, 0.85, 1.2)):
+            try:
+                more, _ = board_views(config, 3 * n, params.view_distance_m * factor,
+                                      params.max_tilt_deg, seed + 17 * k + 101 * s, K, model,
+                                      station=None if s == 0 else station)
+            except SolveError:
+                continue
+            candidates += more
+            owner += [s] * len(more)
+            found += len(more)
+        if s and not found:
+            notes.append(f"head station {s}: no reachable view holds the board in view there; "
+                         "left out")
     if len(candidates) < n:
         poses, more = board_views(config, n, params.view_distance_m, params.max_tilt_deg,
                                   seed, K, model)
-        return poses, [f"pose selection: only {len(candidates)} candidate views; using "
-                       "random views", *more]
+        return poses, [0] * len(poses), [f"pose selection: only {len(candidates)} candidate "
+                                         "views; using random views", *more]
     from rigctl.calib import robot
 
     mask = None if links else robot.frames_only_mask(model)
     obj = target_points(config.target)
-
-    def jacobians(qs):
-        return pose_selection.view_jacobians(model, X, W, qs, mask, obj=obj, K=K, fixed=True)
-
-    J_cand = jacobians(candidates)
-    J_fixed = jacobians(planned_q).reshape(-1, J_cand.shape[2]) if planned_q else None
+    owner_arr = np.array(owner)
+    J_cand = None
+    for s in sorted(set(owner)):
+        idx = np.flatnonzero(owner_arr == s)
+        J_s = pose_selection.view_jacobians(model, X @ stations[s], W,
+                                            [candidates[i] for i in idx], mask, obj=obj, K=K,
+                                            fixed=True)
+        if J_cand is None:
+            J_cand = np.zeros((len(candidates), *J_s.shape[1:]))
+        J_cand[idx] = J_s
+    J_fixed = pose_selection.view_jacobians(model, X, W, planned_q, mask, obj=obj, K=K,
+                                            fixed=True).reshape(-1, J_cand.shape[2]) \
+        if planned_q else None
     chosen = pose_selection.select_informative(J_cand, n, J_fixed)
     rows = J_cand[chosen].reshape(-1, J_cand.shape[2])
     cond = pose_selection.scaled_condition(rows if J_fixed is None else np.r_[J_fixed, rows])
+    used = sorted({owner[i] for i in chosen})
+    where = "" if len(stations) == 1 else \
+        f" from {len(used)} of {len(stations)} head stations"
     notes.append(f"pose selection: {n} of {len(candidates)} candidate board views "
-                 f"(D-optimal); predicted condition number {cond:.0f}")
-    poses = [candidates[i] for i in chosen]
-    start = planned_q[-1] if planned_q else poses[0]
-    return [poses[i] for i in pose_selection.order_by_travel(poses, start)], notes
+                 f"(D-optimal){where}; predicted condition number {cond:.0f}")
+    poses, station_of = [], []
+    start = planned_q[-1] if planned_q else candidates[chosen[0]]
+    for s in used:
+        group = [candidates[i] for i in chosen if owner[i] == s]
+        order = pose_selection.order_by_travel(group, start)
+        poses += [group[i] for i in order]
+        station_of += [s] * len(group)
+        start = poses[-1]
+    return poses, station_of, notes
+
+
+# A head station turns the head by this share of the camera's field of view, at most
+# STATION_MAX_DEG: the views there overlap the home view's edge and reach past it
+STATION_SHARE = 0.5
+STATION_MAX_DEG = (25.0, 20.0)  # pan, tilt
+
+
+def head_stations(config: RigConfig, K: np.ndarray) -> list[tuple[float, float, float]]:
+    """The head's angles (rad) at each station: home, then pan right and left, tilt up and
+    down by ``STATION_SHARE`` of the field of view (at most ``STATION_MAX_DEG``), each
+    kept within the head's soft limits."""
+    cam, limits = config.devices.camera, config.devices.head.limits
+    half_fov = (math.atan(cam.width / (2 * K[0, 0])), math.atan(cam.height / (2 * K[1, 1])))
+    pan, tilt = (min(math.degrees(STATION_SHARE * 2 * h), top)
+                 for h, top in zip(half_fov, STATION_MAX_DEG, strict=True))
+    out = [(0.0, 0.0, 0.0)]
+    for p, t in ((pan, 0.0), (-pan, 0.0), (0.0, tilt), (0.0, -tilt)):
+        if limits.pan[0] <= p <= limits.pan[1] and limits.tilt[0] <= t <= limits.tilt[1]:
+            out.append((math.radians(p), math.radians(t), 0.0))
+    return out

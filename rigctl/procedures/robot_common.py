@@ -14,11 +14,13 @@ from rigctl.calib.extrinsic import estimate_pose, stray_corners
 from rigctl.config import RigConfig
 from rigctl.errors import SolveError
 from rigctl.geometry.kinematics import KinematicModel, nominal_ur
+from rigctl.geometry.transforms import inv_T
 
 from .base import CaptureStep, MoveArmJoint, MoveArmJoints, Settle
-from .intrinsics import camera_model, intrinsics_from
+from .intrinsics import camera_model, head_geometry, intrinsics_from
 from .planning import (
     controller_dh_model,
+    eye_to_hand,
     load_pose_file,
     nominal_cam_target,
     planning_arm,
@@ -71,9 +73,11 @@ def board_observations(ctx, intr: dict) -> list[dict]:
                         "note": found.note})
             continue
         q = np.asarray(capture.meta["arm"]["q"], float)
+        head = _head_angles(capture.meta)
         if not is_charuco(tg):  # a ChArUco corner's id leaves no turn of the board open
-            corners = orient_to_prediction(corners, _predicted_corners(ctx.config, q, obj, K),
-                                           tg.rows, tg.cols)
+            predicted = _predicted_corners(ctx.config, q, obj, K,
+                                           _station(ctx.config, intr, head))
+            corners = orient_to_prediction(corners, predicted, tg.rows, tg.cols)
         try:
             pose = estimate_pose(obj, corners, K, dist)
             corners, pose, stray = _without_stray_corners(obj, corners, K, dist, pose)
@@ -89,8 +93,29 @@ def board_observations(ctx, intr: dict) -> list[dict]:
         out.append({"label": capture.meta["label"], "kind": extra.get("kind"),
                     "index": capture.index, "joint": extra.get("joint"), "found": True,
                     "q": q, "corners": corners, "stray_corners": stray.tolist(),
-                    "C": pose.T_cam_target, "rms_px": pose.rms_px, "pnp": pose.method})
+                    "C": pose.T_cam_target, "rms_px": pose.rms_px, "pnp": pose.method,
+                    "station": int(extra.get("station") or 0), "head": head})
     return out
+
+
+def _head_angles(meta: dict) -> tuple[float, float, float] | None:
+    """The head's angles (rad) a capture recorded, or None."""
+    head = meta.get("head")
+    if not isinstance(head, dict):
+        return None
+    try:
+        return tuple(float(head[k]) for k in ("pan", "tilt", "roll"))
+    except (KeyError, TypeError, ValueError):
+        return None
+
+
+def _station(config: RigConfig, intr: dict, head) -> np.ndarray | None:
+    """With the head beside the arm and its geometry known, the camera at the recorded
+    head angles seen from the camera at home (``head_model``); else None (home)."""
+    if head is None or not eye_to_hand(config):
+        return None
+    geometry = head_geometry(intr)
+    return None if geometry is None else geometry.T_home_cam(head)
 
 
 def _without_stray_corners(obj, corners, K, dist, pose):
@@ -108,10 +133,14 @@ def _without_stray_corners(obj, corners, K, dist, pose):
     return kept, estimate_pose(obj, kept, K, dist), stray
 
 
-def _predicted_corners(config: RigConfig, q, obj: np.ndarray, K: np.ndarray) -> np.ndarray:
+def _predicted_corners(config: RigConfig, q, obj: np.ndarray, K: np.ndarray,
+                       station: np.ndarray | None = None) -> np.ndarray:
     """Where the nominal arm, head mount and target pose put the board's corners (pixels,
-    no distortion): enough to tell a symmetric board's half and quarter turns apart."""
+    no distortion): enough to tell a symmetric board's half and quarter turns apart.
+    ``station``: the camera of a re-aimed head beside the arm, seen from home."""
     T_cam_target = nominal_cam_target(config, nominal_ur(config.devices.arm.model), q)
+    if station is not None:
+        T_cam_target = inv_T(station) @ T_cam_target
     cam = (T_cam_target[:3, :3] @ obj.T).T + T_cam_target[:3, 3]
     px = (K @ cam.T).T
     return px[:, :2] / px[:, 2:3]

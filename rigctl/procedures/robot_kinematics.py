@@ -35,6 +35,7 @@ import numpy as np
 from pydantic import Field
 
 from rigctl.calib import robot
+from rigctl.calib.active_angles import head_encoder_sigmas
 from rigctl.calib.board import target_points
 from rigctl.calib.intrinsics_check import board_intrinsics
 from rigctl.calib.robot_pipeline import (
@@ -45,8 +46,10 @@ from rigctl.calib.robot_pipeline import (
 )
 from rigctl.errors import SolveError
 from rigctl.geometry.kinematics import nominal_ur
+from rigctl.geometry.transforms import R_to_rotvec
 from rigctl.teach import teach_plan
 
+from .active_camera import servo_models
 from .base import (
     MoveArmJoints,
     MoveHead,
@@ -55,7 +58,7 @@ from .base import (
     Procedure,
     SolveContext,
 )
-from .intrinsics import camera_model, default_prior_sigma
+from .intrinsics import camera_model, default_prior_sigma, head_geometry
 from .planning import (
     CLOSER,
     aligned_spin,
@@ -76,7 +79,7 @@ from .planning import (
     poses_out_of_view,
     visible_views,
 )
-from .planning_e2h import HEAD_STILL_NOTE
+from .planning_e2h import HEAD_STATIONS_NOTE, HEAD_STILL_NOTE
 from .robot_common import (
     arm_view_inputs,
     board_observations,
@@ -123,6 +126,9 @@ class RobotKinematicsParams(Params):
     poses_file: str | None = Field(None, min_length=1, max_length=4096)
     # the operator's poses taken by hand: free drive, capture on each press (rigctl.teach)
     teach: bool = False
+    # the head beside the arm: training views from several head stations when the
+    # intrinsics in use came with the head's calibrated geometry; off: the head stays home
+    head_stations: bool = True
 
 
 BASE_LEANS_DEG = (15.0, 30.0, 45.0)  # sweep-base leans tried when no straight view is reachable
@@ -309,15 +315,18 @@ class RobotKinematics(Procedure):
         obj = target_points(tg)
         with ctx.stage("board poses"):
             obs = board_observations(ctx, intr)
-        views = [BoardView(o["label"], o["kind"], o["joint"], o["q"], o["corners"], o["C"])
-                 for o in obs if o["found"]]
+        views = [BoardView(o["label"], o["kind"], o["joint"], o["q"], o["corners"], o["C"],
+                           o.get("station", 0), o.get("head")) for o in obs if o["found"]]
         controller, robot_hash = controller_model(ctx)
         if not ctx.params.use_controller_model:
             controller = None  # its hash is still recorded: the drift check compares it
         fixed = eye_to_hand(ctx.config)
         sol = solve_robot(views, nominal_ur(ctx.config.devices.arm.model), obj, K, dist,
                           intr.get("sigma") or default_prior_sigma(intr),
-                          ctx.params.refine_camera, controller=controller, fixed=fixed)
+                          ctx.params.refine_camera, controller=controller, fixed=fixed,
+                          head=head_geometry(intr) if fixed else None,
+                          encoder_sigma_rad=head_encoder_sigmas(
+                              servo_models(ctx.captures(), ctx.config)) if fixed else None)
         if sol.ref.rms > MAX_RESIDUAL_PX:
             # a refinement stuck in a wrong minimum still "converges"; its residual says so
             # (unseen random world 4015: 20.7 px, the exported model 12 mm off the truth)
@@ -340,8 +349,12 @@ class RobotKinematics(Procedure):
             exported["factory"]["links"] = controller.links()
         summary, extra = _summary(sol), {}
         if fixed:
-            summary["note"] = HEAD_STILL_NOTE
-            extra["notes"] = [HEAD_STILL_NOTE]
+            stations = head_stations_report(sol)
+            note = HEAD_STATIONS_NOTE if stations else HEAD_STILL_NOTE
+            summary["note"] = note
+            extra["notes"] = [note]
+            if stations:
+                extra["head_stations"] = stations
         if (ctx.params.poses_file or ctx.params.teach) and not fixed:
             with ctx.stage("pose set"):
                 extra = _pose_set(ctx, sol, K, summary)
@@ -431,6 +444,30 @@ def _summary(sol: RobotSolution) -> dict[str, Any]:
             "condition_number": ref.condition,
             "condition_number_kinematic": ref.condition_kinematic,
             "residual_rms_px": ref.rms, "sweep_span_deg": sol.sweep_span_deg}
+
+
+def head_stations_report(sol: RobotSolution) -> list[dict[str, Any]]:
+    """Each head station after home, when the head was re-aimed: its recorded angles
+    (deg), its training views, its refined pose from home (``T_home_station``), where the
+    head geometry predicted it (rotation deg and translation mm apart) and the refined
+    pose's 1-sigma (deg, mm)."""
+    stations, ref = sol.meas.stations, sol.ref
+    if stations is None or not stations.count:
+        return []
+    sigma = dict(zip(ref.names, ref.sigma.tolist(), strict=True))
+    out = []
+    for s, (D, D_pred) in enumerate(zip(ref.stations, stations.predicted, strict=True)):
+        rot = np.linalg.norm(R_to_rotvec(D[:3, :3] @ D_pred[:3, :3].T))
+        name = f"station{s + 1}"
+        out.append({"angles_deg": np.degrees(stations.angles[s]).tolist(),
+                    "views": int(np.sum(stations.index == s + 1)),
+                    "T_home_station": D.tolist(),
+                    "from_prediction": {"deg": float(np.degrees(rot)),
+                                        "mm": 1000 * float(np.linalg.norm(D[:3, 3]
+                                                                          - D_pred[:3, 3]))},
+                    "sigma": {"deg": [float(np.degrees(sigma[f"{name}.r{c}"])) for c in "xyz"],
+                              "mm": [1000 * sigma[f"{name}.{c}"] for c in "xyz"]}})
+    return out
 
 
 def _position_sigma_mm(sol: RobotSolution) -> dict[str, float]:
