@@ -175,3 +175,24 @@ def test_the_camera_refinement_keeps_the_stations():
                                    [robot.target_cam(truth, T_BASE_CAM, T_FLANGE_TARGET, q,
                                                      True) for q in qs], fixed=True)
     assert 1000 * float(np.sqrt(np.mean(pos ** 2))) < 1.0  # 0.71 mm, the camera free too
+
+
+@pytest.mark.parametrize("home_views", [12, 3])
+def test_the_hand_eye_start_sees_every_view_from_home(home_views):
+    """The hand-eye stage (the joint refinement's start): on the views at home when there
+    are enough, else on every view, each seen from home as the head geometry predicts."""
+    from rigctl.calib.extrinsic import estimate_pose
+    from rigctl.calib.robot_pipeline import hand_eye
+
+    nominal, truth, meas, _ = _run(5)
+    keep = [k for k, s in enumerate(meas.stations.index) if s != 0 or k < home_views]
+    stations = robot_stations.Stations(meas.stations.index[keep], meas.stations.angles,
+                                       meas.stations.predicted, meas.stations.information)
+    corners = [meas.corners[k] for k in keep]
+    C = [estimate_pose(OBJ, c, K, np.zeros(5)).T_cam_target for c in corners]
+    sub = robot.Measurements([meas.q[k] for k in keep], C=C, corners=corners, obj=OBJ, K=K,
+                             dist=np.zeros(5), fixed=True, stations=stations)
+    _, he = hand_eye(truth, sub)
+    X_error = np.linalg.norm(he.X[:3, 3] - T_BASE_CAM[:3, 3])
+    rot = np.linalg.norm(R_to_rotvec(he.X[:3, :3] @ T_BASE_CAM[:3, :3].T))
+    assert 1000 * X_error < 3.0 and np.degrees(rot) < 0.2, (1000 * X_error, np.degrees(rot))

@@ -154,26 +154,33 @@ def split_views(views: list[BoardView]) -> tuple[list[BoardView], list[BoardView
 
 def hand_eye(model: KinematicModel, meas: robot.Measurements):
     """Stage 1 with the arm model ``model``: OpenCV's closed forms on the training views'
-    board poses, the best of them refined on pixels. Returns the closed forms and the
+    board poses, the best of them refined on pixels (with the head re-aimed between
+    views: on the views at home, ``_home_views``). Returns the closed forms and the
     refined hand-eye (X, W)."""
+    C_home = home_C(meas)
     home = _home_views(meas)
+    if home is None:  # too few views at home: every view, seen from home, on its pose
+        F = handeye.flange_poses([model.fk(q) for q in meas.q], meas.fixed)
+        closed = handeye.closed_form(F, C_home)
+        return closed, handeye.refine_poses(F, C_home, handeye.best_closed_form(closed))
     F = handeye.flange_poses([model.fk(meas.q[k]) for k in home], meas.fixed)
-    C = [meas.C[k] for k in home]
+    C = [C_home[k] for k in home]
     closed = handeye.closed_form(F, C)
     refined = handeye.refine_pixels(F, [meas.corners[k] for k in home], meas.obj, meas.K,
                                     meas.dist, handeye.best_closed_form(closed), C=C)
     return closed, refined
 
 
-def _home_views(meas: robot.Measurements) -> list[int]:
-    """The views the hand-eye stage uses: every one, or with the head re-aimed between
-    views those taken at home (the sweeps' at least), when at least ``MIN_HOME_VIEWS``;
-    else every view (the closed forms with each seen from home as the head geometry
-    predicts, ``home_C``)."""
+def _home_views(meas: robot.Measurements) -> list[int] | None:
+    """The views the hand-eye stage refines on pixels: every one, or with the head
+    re-aimed between views those taken at home (the sweeps' at least); None when fewer
+    than ``MIN_HOME_VIEWS`` were (then ``hand_eye`` takes every view seen from home as
+    the head geometry predicts, ``home_C``, on poses: a start for the joint refinement,
+    which refines the stations)."""
     if not meas.station_count:
         return list(range(len(meas.q)))
     home = [k for k, s in enumerate(meas.stations.index) if s == 0]
-    return home if len(home) >= MIN_HOME_VIEWS else list(range(len(meas.q)))
+    return home if len(home) >= MIN_HOME_VIEWS else None
 
 
 def home_C(meas: robot.Measurements) -> list[np.ndarray]:
