@@ -11,19 +11,13 @@ import numpy as np
 import pytest
 
 from rigctl.calib import robot, robot_stations
-from rigctl.calib.board import board_points
 from rigctl.calib.head_model import HeadGeometry
-from rigctl.geometry.camera import camera_matrix
 from rigctl.geometry.kinematics import nominal_ur
-from rigctl.geometry.transforms import R_to_rotvec, inv_T, look_at, make_T, rotvec_to_R
+from rigctl.geometry.transforms import R_to_rotvec, inv_T, make_T
+from tests.test_eye_to_hand_math import OBJ, T_BASE_CAM, T_FLANGE_TARGET, K
 
 pytestmark = pytest.mark.timeout(300)
 
-K = camera_matrix(900.0, 905.0, 640.0, 360.0)
-OBJ = board_points(6, 8, 0.025)
-T_BASE_CAM = look_at(np.array([-1.1, 0.35, 0.65]), np.array([-0.45, 0.0, 0.3]),
-                     np.array([0.0, 0.0, -1.0]))
-T_FLANGE_TARGET = make_T(rotvec_to_R([np.pi, 0.02, -0.03]), [-0.09, 0.07, 0.03])
 # the true head: mounted 0.4 deg off, roll axis tilted, the camera 2.5 mm off the axes
 HEAD_TRUE = HeadGeometry(mount_rotvec=np.radians([0.3, -0.4, 0.2]),
                          roll_tilts=np.radians([0.3, -0.2]),
@@ -184,7 +178,7 @@ def test_the_hand_eye_start_sees_every_view_from_home(home_views):
     from rigctl.calib.extrinsic import estimate_pose
     from rigctl.calib.robot_pipeline import hand_eye
 
-    nominal, truth, meas, _ = _run(5)
+    _, truth, meas, _ = _run(5)
     keep = [k for k, s in enumerate(meas.stations.index) if s != 0 or k < home_views]
     stations = robot_stations.Stations(meas.stations.index[keep], meas.stations.angles,
                                        meas.stations.predicted, meas.stations.information)
