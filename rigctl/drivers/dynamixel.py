@@ -449,15 +449,21 @@ class DynamixelHead(Head):
         file's baud but answering at another is a rig-file error (exit 2)."""
         try:
             model, _, error = self._call("ping", dxl_id, self.packet.ping, dxl_id)
-        except DeviceError:
+        except DeviceError as exc:
             found = self._baud_of(dxl_id)
-            if found is None:
-                raise
+            if found is None or self._answers(dxl_id):
+                # silent at the rig file's baud, then answering at it after all: the
+                # silence was the bus's or the host's (a stall), not the baud's
+                raise exc from None
             raise ConfigError(
                 f"devices.head.baud: {self.cfg.baud}, but servo {dxl_id} ({axis}) on "
                 f"{self.cfg.port} does not answer at that baud; it answers at {found} baud "
                 "(set devices.head.baud, or change the servo's Baud Rate)") from None
         return model, error
+
+    def _answers(self, dxl_id: int) -> bool:
+        """Does ``dxl_id`` answer one ping at the rig file's baud now?"""
+        return self.packet.ping(self.port, dxl_id)[1] == sdk.COMM_SUCCESS
 
     def _baud_of(self, dxl_id: int) -> int | None:
         """The standard baud rate ``dxl_id`` answers a ping at (None: none); the port is
