@@ -73,10 +73,11 @@ class HeadGeometry:
     def rotation_params(self) -> np.ndarray:
         return np.r_[self.mount_rotvec, self.roll_tilts]
 
-    def rotation_from_home(self, angles, params: np.ndarray | None = None) -> np.ndarray:
-        """``R = C(0)^T C(a)``: the camera at ``angles`` in the frame of the camera at home
-        (thesis Lemma 3.1, eq. 3.3)."""
-        return self.orientation(HOME, params).T @ self.orientation(angles, params)
+    def rotation_from_home(self, angles, params: np.ndarray | None = None,
+                           home=HOME) -> np.ndarray:
+        """``R = C(home)^T C(a)``: the camera at ``angles`` in the frame of the camera at
+        ``home`` (all angles zero unless given; thesis Lemma 3.1, eq. 3.3)."""
+        return self.orientation(home, params).T @ self.orientation(angles, params)
 
     def T_home_cam(self, angles) -> np.ndarray:
         """``[R | (R - I) o]``: the camera at ``angles`` in the frame of the camera at
@@ -84,13 +85,18 @@ class HeadGeometry:
         R = self.rotation_from_home(angles)
         return make_T(R, (R - np.eye(3)) @ self.offset_m)
 
+    def rotation_covariance_at(self, angles, home=HOME) -> np.ndarray:
+        """The 3x3 covariance (rad^2, about the ``home`` camera's axes) of
+        ``rotation_from_home(angles, home=home)`` from the rotation parameters' covariance
+        (first order)."""
+        J = self._rotation_jacobian(angles, home=home)
+        return J @ self.rotation_covariance @ J.T
+
     def rotation_sigma_rad(self, angles) -> np.ndarray:
         """The 1-sigma (rad) of ``rotation_from_home(angles)`` about the home camera's x, y
         and z axes, from the rotation parameters' covariance (first order, central
         differences of ``log(R0^T R(x))``)."""
-        J = self._rotation_jacobian(angles)
-        cov = J @ self.rotation_covariance @ J.T
-        return np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        return np.sqrt(np.clip(np.diag(self.rotation_covariance_at(angles)), 0.0, None))
 
     def rotation_error_z(self, angles, R_true: np.ndarray) -> np.ndarray:
         """This geometry's rotation error at ``angles`` against ``R_true`` (the rotation
@@ -99,21 +105,20 @@ class HeadGeometry:
         freedom when the covariance is honest)."""
         R = self.rotation_from_home(angles)
         error = R_to_rotvec(R @ R_true.T)
-        J = self._rotation_jacobian(angles)
-        cov = J @ self.rotation_covariance @ J.T
+        cov = self.rotation_covariance_at(angles)
         sigma = np.sqrt(np.clip(np.diag(cov), 1e-30, None))
         mahalanobis = float(np.sqrt(error @ np.linalg.pinv(cov, rcond=1e-12) @ error))
         return np.r_[error / sigma, mahalanobis]
 
-    def _rotation_jacobian(self, angles, step: float = 1e-7) -> np.ndarray:
+    def _rotation_jacobian(self, angles, step: float = 1e-7, home=HOME) -> np.ndarray:
         x0 = self.rotation_params()
-        R0 = self.rotation_from_home(angles)
+        R0 = self.rotation_from_home(angles, home=home)
         J = np.empty((3, 5))
         for i in range(5):
             e = np.zeros(5)
             e[i] = step
-            plus = R_to_rotvec(self.rotation_from_home(angles, x0 + e) @ R0.T)
-            minus = R_to_rotvec(self.rotation_from_home(angles, x0 - e) @ R0.T)
+            plus = R_to_rotvec(self.rotation_from_home(angles, x0 + e, home) @ R0.T)
+            minus = R_to_rotvec(self.rotation_from_home(angles, x0 - e, home) @ R0.T)
             J[:, i] = (plus - minus) / (2 * step)
         return J
 

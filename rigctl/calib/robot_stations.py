@@ -96,7 +96,7 @@ def predicted_station(geometry: HeadGeometry, home: tuple, angles: tuple,
     prior's information matrix (module note)."""
     T0, T1 = geometry.T_home_cam(home), geometry.T_home_cam(angles)
     D = inv_T(T0) @ T1
-    rot_cov = _rotation_covariance(geometry, home, angles)
+    rot_cov = geometry.rotation_covariance_at(angles, home=home)
     if encoder_sigma_rad is not None:
         J = _angle_jacobian(geometry, home, angles, D)
         rot_cov = rot_cov + J @ np.diag(np.tile(np.square(encoder_sigma_rad), 2)) @ J.T
@@ -110,25 +110,6 @@ def predicted_station(geometry: HeadGeometry, home: tuple, angles: tuple,
     return D, np.linalg.inv(cov)
 
 
-def _relative(geometry: HeadGeometry, home, angles, params=None) -> np.ndarray:
-    R0 = geometry.rotation_from_home(home, params)
-    return R0.T @ geometry.rotation_from_home(angles, params)
-
-
-def _rotation_covariance(geometry: HeadGeometry, home, angles, step: float = 1e-7
-                         ) -> np.ndarray:
-    """The covariance of the station's rotation from the head geometry's parameters."""
-    x0 = geometry.rotation_params()
-    R = _relative(geometry, home, angles)
-    J = np.empty((3, 5))
-    for i in range(5):
-        e = np.zeros(5)
-        e[i] = step
-        J[:, i] = (R_to_rotvec(_relative(geometry, home, angles, x0 + e) @ R.T)
-                   - R_to_rotvec(_relative(geometry, home, angles, x0 - e) @ R.T)) / (2 * step)
-    return J @ geometry.rotation_covariance @ J.T
-
-
 def _angle_jacobian(geometry: HeadGeometry, home, angles, D, step: float = 1e-7
                     ) -> np.ndarray:
     """d log(D(a0, a) D^T) / d (a0, a): the station's rotation against the six readings."""
@@ -138,7 +119,7 @@ def _angle_jacobian(geometry: HeadGeometry, home, angles, D, step: float = 1e-7
         e = np.zeros(6)
         e[i] = step
         plus, minus = both + e, both - e
-        Rp = _relative(geometry, tuple(plus[:3]), tuple(plus[3:]))
-        Rm = _relative(geometry, tuple(minus[:3]), tuple(minus[3:]))
+        Rp = geometry.rotation_from_home(tuple(plus[3:]), home=tuple(plus[:3]))
+        Rm = geometry.rotation_from_home(tuple(minus[3:]), home=tuple(minus[:3]))
         J[:, i] = (R_to_rotvec(Rp @ D[:3, :3].T) - R_to_rotvec(Rm @ D[:3, :3].T)) / (2 * step)
     return J

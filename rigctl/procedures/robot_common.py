@@ -58,6 +58,9 @@ def board_observations(ctx, intr: dict) -> list[dict]:
     tg = ctx.config.target
     obj = target_points(tg)
     K, dist = camera_model(intr)
+    # with the head beside the arm and its geometry known, a capture's camera is seen
+    # from home at its recorded head angles (``head_model``)
+    geometry = head_geometry(intr) if eye_to_hand(ctx.config) else None
     out = []
     for capture in ctx.captures():
         if capture.image_path is None or "arm" not in capture.meta:
@@ -75,8 +78,8 @@ def board_observations(ctx, intr: dict) -> list[dict]:
         q = np.asarray(capture.meta["arm"]["q"], float)
         head = _head_angles(capture.meta)
         if not is_charuco(tg):  # a ChArUco corner's id leaves no turn of the board open
-            predicted = _predicted_corners(ctx.config, q, obj, K,
-                                           _station(ctx.config, intr, head))
+            station = None if head is None or geometry is None else geometry.T_home_cam(head)
+            predicted = _predicted_corners(ctx.config, q, obj, K, station)
             corners = orient_to_prediction(corners, predicted, tg.rows, tg.cols)
         try:
             pose = estimate_pose(obj, corners, K, dist)
@@ -107,15 +110,6 @@ def _head_angles(meta: dict) -> tuple[float, float, float] | None:
         return tuple(float(head[k]) for k in ("pan", "tilt", "roll"))
     except (KeyError, TypeError, ValueError):
         return None
-
-
-def _station(config: RigConfig, intr: dict, head) -> np.ndarray | None:
-    """With the head beside the arm and its geometry known, the camera at the recorded
-    head angles seen from the camera at home (``head_model``); else None (home)."""
-    if head is None or not eye_to_hand(config):
-        return None
-    geometry = head_geometry(intr)
-    return None if geometry is None else geometry.T_home_cam(head)
 
 
 def _without_stray_corners(obj, corners, K, dist, pose):
