@@ -44,6 +44,7 @@ from rich.progress import (
 from rigctl import procedures, suspenders, teach
 from rigctl import resume as resuming
 from rigctl.calib.blas_threads import one_blas_thread
+from rigctl.calib.solve_process import start_if_useful
 from rigctl.config import RigConfig, parse_rig
 from rigctl.drivers.camera import changed_share, mean_change
 from rigctl.errors import AbortedError, ConfigError, DeviceError, RigError, SafetyError
@@ -293,6 +294,8 @@ class Runner(ResumeMixin):
         operator_stop = False
         timings: dict[str, float] = {}
         ctx = SolveContext(run, self.config, params, inputs)
+        if procedure.uses_solve_process:  # its interpreter starts while the rig moves
+            ctx.solve_process = start_if_useful()
         started = time.monotonic()
         try:
             if resumed is not None:
@@ -329,7 +332,7 @@ class Runner(ResumeMixin):
         finally:
             if status != "succeeded":
                 self._stop_and_record(rig, run, reason)
-            self._end_capture_work()
+            self._end_capture_work(ctx)
             resuming.end_segment(run, status, reason, error)
             self._index_update(run, run_id, status=status, reason=reason, ended_at=utcnow(),
                                result_summary=summarize(result) if result else None)
@@ -353,14 +356,18 @@ class Runner(ResumeMixin):
         if self._prefetch is not None:
             ctx.prefetched = self._prefetch.finish()
 
-    def _end_capture_work(self) -> None:
+    def _end_capture_work(self, ctx: SolveContext) -> None:
         """When the run ends, however: the board detections submitted are finished (their
-        files are part of the record), the procedure's capture work is dropped."""
+        files are part of the record), the procedure's capture work is dropped and the
+        solve's second process stopped (by PID)."""
         if self._board is not None:
             self._board.finish()
         if self._prefetch is not None:
             self._prefetch.cancel()
             self._prefetch = None
+        if ctx.solve_process is not None:
+            ctx.solve_process.close()
+            ctx.solve_process = None
 
     def _safe_stop(self, rig: Rig, reason: str | None) -> None:
         """Stop every touched device, then close each (which applies its park policy)."""

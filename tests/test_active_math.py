@@ -529,14 +529,16 @@ def test_starts_the_coarse_stage_cannot_refine_are_refined_on_all_points(monkeyp
     assert abs(best.cx - CX) < 0.5 and abs(best.cy - CY) < 0.5
 
     monkeypatch.undo()
-    plain = active_pipeline.refine
+    from rigctl.calib import active_refine
+
+    plain = active_refine.refine
 
     def warm_starts_fail(motions, start, **kwargs):
         if "x_all" in start:
             raise SolveError("refinement diverged: injected")
         return plain(motions, start, **kwargs)
 
-    monkeypatch.setattr(active_pipeline, "refine", warm_starts_fail)
+    monkeypatch.setattr(active_refine, "refine", warm_starts_fail)  # ``timed_refine``'s
     timings: dict[str, float] = {}
     best, report = active_pipeline._refine_from_starts(motions, starts, {}, timings)
     assert report["near"]["error"] == "refinement diverged: injected"

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -34,10 +35,12 @@ from rigctl.calib.active_refine import (
     _undistort,
     param_names,
     refine,
+    timed_refine,
 )
 from rigctl.calib.active_tracking import SHIFT, WIDE_WINDOW, Tracker, roll_tiers, tier_key, tiers
 from rigctl.calib.blas_threads import with_one_blas_thread
-from rigctl.calib.threads import map_in_threads
+from rigctl.calib.solve_process import SolveProcess, start_if_useful
+from rigctl.calib.threads import map_in_threads, serial_here
 from rigctl.errors import SolveError
 from rigctl.timing import stage_timer
 from rigctl.vision.tracking import track_in_range
@@ -243,7 +246,8 @@ def _coarse(motions: list[Motion], factor: int) -> list[Motion]:
 
 
 def _refine_from_starts(motions, starts: dict[str, dict], kwargs: dict,
-                        timings: dict[str, float] | None = None) -> tuple[RefineResult, dict]:
+                        timings: dict[str, float] | None = None,
+                        helper: SolveProcess | None = None) -> tuple[RefineResult, dict]:
     """The refinement from the best of ``starts``. The first start is refined on every
     ``COARSE_FACTOR``-th point (``_coarse``, no covariance); the others, side by side
     with it, are first scouted: refined on every ``SCOUT_FACTOR``-th point in
@@ -270,11 +274,15 @@ def _refine_from_starts(motions, starts: dict[str, dict], kwargs: dict,
     from where it was (``fallback``), as before the coarse stage; if that fails too, its
     first error is raised. The refinements of each stage run side by side in up to
     ``FINAL_THREADS`` threads (``calib.threads``: serial with ``RIGCTL_SOLVE_THREADS=1``;
-    each is independent and spends its time in numpy, which releases the interpreter)."""
+    each is independent and spends its time in numpy, which releases the interpreter),
+    or, with a ``helper`` process, the first here and the others there
+    (``_refine_each``); the first start's refinement on all points then begins here as
+    soon as its coarse one ends, while the helper still scouts (it is always refined on
+    all points: the first basin is its own). The same numbers either way."""
     timings = {} if timings is None else timings
     report: dict[str, dict] = {name: {"centre": [start["cx"], start["cy"]]}
                                for name, start in starts.items()}
-    coarse, errors = _coarse_stage(motions, starts, kwargs, timings, report)
+    coarse, errors, early = _coarse_stage(motions, starts, kwargs, timings, report, helper)
     basins: dict[str, dict] = {}
     for name, start in starts.items():  # in their order: the same basins on a re-solve
         if "basin_of" in report[name]:
@@ -291,14 +299,16 @@ def _refine_from_starts(motions, starts: dict[str, dict], kwargs: dict,
         if same is not None:
             report[name]["basin_of"] = same
         else:
-            basins[name] = {**_where_ended(r), "x_all": r.x_all, "angle_delta": r.angle_delta}
-    full, errors = _refine_each({name: (motions, kwargs) for name in basins}, basins,
-                                "final refinement from", timings)
+            basins[name] = _basin_start(r)
+    rest = {name: start for name, start in basins.items() if name not in early}
+    later, errors = _refine_each({name: (motions, kwargs) for name in rest}, rest,
+                                 "final refinement from", timings, helper)
+    full = _with_early(basins, later, errors, early, timings)
     for name, exc in errors.items():
         report[name]["error"] = str(exc)
     if not full:  # as before the coarse stage: every start on all points from where it was
         full, errors = _refine_each({name: (motions, kwargs) for name in starts}, starts,
-                                    "fallback refinement from", timings)
+                                    "fallback refinement from", timings, helper)
         for name, exc in errors.items():
             report[name]["fallback_error"] = str(exc)
         for name in full:
@@ -316,20 +326,42 @@ def _refine_from_starts(motions, starts: dict[str, dict], kwargs: dict,
     return full[best], report
 
 
+def _with_early(basins: dict, later: dict[str, RefineResult], errors: dict[str, SolveError],
+                early: dict[str, tuple], timings: dict[str, float]) -> dict[str, RefineResult]:
+    """The refinements on all points, in the basins' order: those taken after the
+    coarse stage (``later``) and those taken during it (``early``: outcome and seconds,
+    a ``SolveError`` into ``errors``)."""
+    for name, (outcome, seconds) in early.items():
+        timings[f"final refinement from {name}"] = seconds
+        if isinstance(outcome, SolveError):
+            errors[name] = outcome
+        else:
+            later[name] = outcome
+    return {name: later[name] for name in basins if name in later}
+
+
 def _coarse_stage(motions, starts: dict[str, dict], kwargs: dict, timings: dict[str, float],
-                  report: dict[str, dict]
-                  ) -> tuple[dict[str, RefineResult], dict[str, SolveError]]:
+                  report: dict[str, dict], helper: SolveProcess | None = None
+                  ) -> tuple[dict[str, RefineResult], dict[str, SolveError], dict]:
     """``_refine_from_starts``' coarse refinements: the first start's, the others'
     scouts, and the coarse refinements of those whose scout ended elsewhere (the
     scouts' outcome into ``report``). The results and errors by name; a start scouted
-    into the first start's basin has neither."""
+    into the first start's basin has neither. Third, with a ``helper``: the first
+    start's refinement on all points from its coarse end (``timed_refine``'s outcome and
+    seconds, by its name), taken here while the helper scouts."""
     quiet = {**kwargs, "uncertainty": False}
     first = next(iter(starts))
     coarse_motions = _coarse(motions, COARSE_FACTOR)
+    early: dict[str, tuple] = {}
+
+    def refine_first_on_all(r: RefineResult) -> None:
+        early[first] = timed_refine(motions, _basin_start(r), kwargs)
+
     coarse, errors = _refine_each(
         {name: (coarse_motions, quiet) if name == first else
          (_coarse(motions, SCOUT_FACTOR), {**quiet, "outer_iterations": SCOUT_ROUNDS})
-         for name in starts}, starts, "coarse refinement from", timings)
+         for name in starts}, starts, "coarse refinement from", timings, helper,
+        refine_first_on_all if helper is not None else None)
     confirm: dict[str, dict] = {}
     for name, start in starts.items():
         if name == first:
@@ -346,10 +378,16 @@ def _coarse_stage(motions, starts: dict[str, dict], kwargs: dict, timings: dict[
             confirm[name] = start
     confirmed, confirm_errors = _refine_each(
         {name: (coarse_motions, quiet) for name in confirm}, confirm,
-        "coarse refinement (after scouting) from", timings)
+        "coarse refinement (after scouting) from", timings, helper)
     coarse.update(confirmed)
     errors.update(confirm_errors)
-    return coarse, errors
+    return coarse, errors, early
+
+
+def _basin_start(r: RefineResult) -> dict:
+    """A basin's start for its refinement on all points: where its coarse one ended,
+    with every parameter (``x_all``) and the captures' angle offsets."""
+    return {**_where_ended(r), "x_all": r.x_all, "angle_delta": r.angle_delta}
 
 
 def _where_ended(r: RefineResult) -> dict:
@@ -359,26 +397,41 @@ def _where_ended(r: RefineResult) -> dict:
 
 
 def _refine_each(jobs: dict[str, tuple[list, dict]], starts: dict[str, dict], label: str,
-                 timings: dict[str, float]
+                 timings: dict[str, float], helper: SolveProcess | None = None,
+                 local_first: Callable[[RefineResult], None] | None = None
                  ) -> tuple[dict[str, RefineResult], dict[str, SolveError]]:
     """``refine`` of each start's motions with its keyword arguments (``jobs``, by name)
-    from that start, side by side in up to ``FINAL_THREADS`` threads (``map_in_threads``):
-    the results and the errors, by name (each start's seconds into ``timings``)."""
+    from that start: the results and the errors, by name (each start's seconds into
+    ``timings``). With a ``helper`` process and more than one start, the first is
+    refined here, serially, and the others there, one after another (``solve_process``:
+    side by side for real); then ``local_first``, if given, is called here with the
+    first start's result while the helper still works. Else side by side in up to
+    ``FINAL_THREADS`` threads (``map_in_threads``). Either way the same numbers."""
     def refine_from(name: str) -> tuple[RefineResult | SolveError, float]:
-        job_motions, job_kwargs = jobs[name]
-        started = time.perf_counter()
-        try:
-            return refine(job_motions, starts[name], **job_kwargs), \
-                time.perf_counter() - started
-        except SolveError as exc:
-            return exc, time.perf_counter() - started
+        return timed_refine(jobs[name][0], starts[name], jobs[name][1])
 
     if not starts:
         return {}, {}
-    done = dict(zip(starts, map_in_threads(refine_from, starts, FINAL_THREADS), strict=True))
+    names = list(starts)
+    if helper is not None and len(names) > 1:
+        futures = {name: helper.submit(timed_refine, jobs[name][0], starts[name],
+                                       jobs[name][1]) for name in names[1:]}
+        with serial_here():
+            done = {names[0]: refine_from(names[0])}
+            if local_first is not None and isinstance(done[names[0]][0], RefineResult):
+                local_first(done[names[0]][0])
+        for name, future in futures.items():
+            done[name] = helper.run(future, timed_refine, jobs[name][0], starts[name],
+                                    jobs[name][1])
+    else:
+        done = dict(zip(names, map_in_threads(refine_from, names, FINAL_THREADS),
+                        strict=True))
+        if local_first is not None and isinstance(done[names[0]][0], RefineResult):
+            local_first(done[names[0]][0])
     results: dict[str, RefineResult] = {}
     errors: dict[str, SolveError] = {}
-    for name, (outcome, seconds) in done.items():
+    for name in names:
+        outcome, seconds = done[name]
         timings[f"{label} {name}"] = seconds
         if isinstance(outcome, SolveError):
             errors[name] = outcome
@@ -635,13 +688,27 @@ def _with_second_station(motions: list[Motion], prior: DepthPrior | None,
 @with_one_blas_thread
 def solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, float, float]],
                  settings: ActiveSettings | None = None,
-                 emaps: dict | None = None) -> ActiveSolution:
+                 emaps: dict | None = None, helper: SolveProcess | None = None,
+                 start_helper: bool = True) -> ActiveSolution:
     """Intrinsics from images taken at known head angles (radians; labels ``ref``,
     ``pan+``, ``pan-``, ``tilt+``, ``tilt-``, ``roll...``, ``SHIFT``; those with
     ``STATION_PREFIX`` are a second station's, ``second_station``): thesis chapter 3 with
     the refinement beyond it. ``emaps``: edge maps already taken of some images, by
-    label (``vision.contours.edge_map``; the same as taken here). Raises ``SolveError``
-    with the stage that failed."""
+    label (``vision.contours.edge_map``; the same as taken here). ``helper``: a
+    ``calib.solve_process`` for the final refinements' starts; without one, one is
+    started here (when ``start_helper`` and the solve may use two threads) and stopped
+    at the end. Raises ``SolveError`` with the stage that failed."""
+    own = start_if_useful() if helper is None and start_helper else None
+    try:
+        return _solve_active(images, angles, settings, emaps, helper or own)
+    finally:
+        if own is not None:
+            own.close()
+
+
+def _solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, float, float]],
+                  settings: ActiveSettings | None, emaps: dict | None,
+                  helper: SolveProcess | None) -> ActiveSolution:
     settings = settings or ActiveSettings()
     emaps = emaps or {}
     emaps_far = {k.removeprefix(STATION_PREFIX): v for k, v in emaps.items()
@@ -713,7 +780,7 @@ def solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, f
         motions, _starts(start, K_pans, K0),
         dict(n_dist=_distortion_terms(settings, depths), parallax_sigma=settings.parallax_sigma,
              depths=prior, offset_sigma_m=settings.nodal_offset_mm / 1000.0,
-             angle_sigma=settings.encoder_sigma_rad), timings)
+             angle_sigma=settings.encoder_sigma_rad), timings, helper)
     strategies["refined"] = refined.as_dict()
     result = _result(tr, refined, depths, settings, strategies, second)
     return ActiveSolution(result, refined, tr.contours, tr.matches, order, timings)

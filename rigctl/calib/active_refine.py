@@ -108,6 +108,11 @@ class Motion:
             self._tree = cKDTree(self.moved_points)
         return self._tree
 
+    def __getstate__(self) -> dict:
+        """Pickled without its k-d tree (sent to a ``calib.solve_process``, which builds
+        it again where a refinement needs it: the same tree of the same points)."""
+        return {**self.__dict__, "_tree": None}
+
 
 def _unpack(x: np.ndarray, n_dist: int):
     fx, fy, cx, cy = x[:4]
@@ -773,6 +778,18 @@ class _Problem:
         if self.eliminating:  # the captures' offsets move to their best
             self.angles.delta += self.eliminated(fit.x, assoc, targets).step
         return fit
+
+
+def timed_refine(motions: list[Motion], initial: dict, kwargs: dict
+                 ) -> tuple[RefineResult | SolveError, float]:
+    """``refine(motions, initial, **kwargs)`` and its seconds; a ``SolveError`` is
+    returned, not raised (a job of ``calib.solve_process`` or of a thread, whose caller
+    weighs every start's outcome)."""
+    started = time.perf_counter()
+    try:
+        return refine(motions, initial, **kwargs), time.perf_counter() - started
+    except SolveError as exc:
+        return exc, time.perf_counter() - started
 
 
 def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,

@@ -11,8 +11,9 @@ from __future__ import annotations
 
 import os
 import threading
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from typing import TypeVar
 
 from rigctl.errors import ConfigError
@@ -47,6 +48,18 @@ def threads_here() -> int:
     """How many threads work started here may use: ``solve_threads()``, or one inside a
     thread of ``map_in_threads`` (its siblings already use the other cores)."""
     return getattr(_local, "threads", None) or solve_threads()
+
+
+@contextmanager
+def serial_here() -> Iterator[None]:
+    """Inside it, work started in this thread is serial (``threads_here()`` is 1): the
+    other cores are busy (e.g. a ``calib.solve_process`` computes beside it)."""
+    before = getattr(_local, "threads", None)
+    _local.threads = 1
+    try:
+        yield
+    finally:
+        _local.threads = before
 
 
 def map_in_threads(fn: Callable[[T], R], items: Iterable[T],

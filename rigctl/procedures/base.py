@@ -137,6 +137,10 @@ class SolveContext:
     # image, by capture index, done while the rig moved on (empty offline: the solve
     # does that work itself, with the same outcome)
     prefetched: dict[int, Any] = field(default_factory=dict)
+    # in a live run of a procedure with ``uses_solve_process``, the second process for
+    # its solve (``calib.solve_process``), started while the rig moved; None offline (the
+    # solve starts its own)
+    solve_process: Any = None
 
     def stage(self, name: str):
         """Time one stage of the solve (``rigctl bench solve`` prints them)."""
@@ -189,6 +193,9 @@ class Procedure:
     # the solve reads the checkerboard in its captures: the runner detects it in each
     # capture while the rig moves on, so that solving waits less after the motion
     detects_board: ClassVar[bool] = False
+    # the solve hands independent refinements to a second process
+    # (``calib.solve_process``): the runner starts it while the rig moves
+    uses_solve_process: ClassVar[bool] = False
 
     def resolve_inputs(self, params: Params, config: RigConfig) -> dict[str, Any]:
         """Inputs from outside the run (earlier calibrations), resolved once when the run

@@ -1,0 +1,104 @@
+"""``rigctl.calib.solve_process``: a solve's refinements in a second Python process give
+the numbers of the same refinements here, bit for bit, and the process is stopped by PID.
+Pure math (a synthetic head scene) in a real child process: no mocks."""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+
+import numpy as np
+import pytest
+
+from rigctl.calib import active_pipeline
+from rigctl.calib.active_refine import RefineResult, timed_refine
+from rigctl.calib.solve_process import SolveProcess
+from rigctl.errors import SolveError
+from tests.test_active_math import CX, CY, FX, _basin_case
+
+
+@pytest.fixture
+def helper():
+    """A solve process, stopped and reaped by PID after the test."""
+    process = SolveProcess()
+    try:
+        yield process
+    finally:
+        process.close()
+        assert process.proc.poll() is not None
+        with pytest.raises(ProcessLookupError):
+            os.kill(process.pid, 0)
+
+
+def _same(a: RefineResult, b: RefineResult) -> None:
+    assert np.array_equal(a.x_all, b.x_all)
+    assert np.array_equal(np.asarray(a.covariance), np.asarray(b.covariance))
+    assert a.robust_cost == b.robust_cost and a.rms_px == b.rms_px
+
+
+def test_a_refinement_there_is_the_same_to_the_last_bit(helper):
+    motions, starts = _basin_case()
+    start = starts["near"]
+    future = helper.submit(timed_refine, motions, start, {})
+    there, seconds = helper.run(future, timed_refine, motions, start, {})
+    here, _ = timed_refine(motions, start, {})
+    assert seconds > 0
+    _same(there, here)
+    # and it is the truth's refinement, not any agreeing pair of numbers
+    assert abs(here.cx - CX) < 0.5 and abs(here.cy - CY) < 0.5
+    assert here.fx == pytest.approx(FX, rel=2e-3)
+
+
+@pytest.mark.parametrize("one_basin", [True, False])
+def test_the_final_refinements_starts_with_a_helper_end_where_they_end_without(
+        helper, monkeypatch, one_basin):
+    """The pipeline's starts (``_refine_from_starts``): the first here, the others there,
+    the first's refinement on all points taken while the helper scouts; with starts in
+    one basin, and in two (every stage through the helper)."""
+    if not one_basin:
+        monkeypatch.setattr(active_pipeline, "SAME_END_PX", -1.0)
+    motions, starts = _basin_case()
+    timings_here: dict[str, float] = {}
+    timings_there: dict[str, float] = {}
+    alone, report_alone = active_pipeline._refine_from_starts(motions, starts, {},
+                                                              timings_here)
+    shared, report_shared = active_pipeline._refine_from_starts(motions, starts, {},
+                                                                timings_there, helper)
+    _same(shared, alone)
+    assert report_shared == report_alone
+    assert set(timings_there) == set(timings_here)
+    assert ("final refinement from far" in timings_there) is not one_basin
+    assert abs(shared.cx - CX) < 0.5 and abs(shared.cy - CY) < 0.5
+
+
+def test_a_solve_error_there_comes_back_as_that_error(helper):
+    motions, starts = _basin_case()
+    few = [active_pipeline.replace(m, ref_points=m.ref_points[:1], moved_points=
+                                   m.moved_points[:1]) for m in motions]
+    future = helper.submit(timed_refine, few, starts["near"], {})
+    there, _ = helper.run(future, timed_refine, few, starts["near"], {})
+    here, _ = timed_refine(few, starts["near"], {})
+    assert isinstance(there, SolveError) and isinstance(here, SolveError)
+    assert str(there) == str(here) and "too few" in str(here)
+
+
+def test_a_killed_process_hands_its_job_back_to_the_parent(helper, caplog):
+    motions, starts = _basin_case()
+    os.kill(helper.pid, signal.SIGKILL)
+    helper.proc.wait(30)
+    with caplog.at_level(logging.WARNING, logger="rigctl.calib.solve_process"):
+        future = helper.submit(timed_refine, motions, starts["near"], {})
+        there, _ = helper.run(future, timed_refine, motions, starts["near"], {})
+    assert f"solve process {helper.pid}" in caplog.text and "computing its job here" \
+        in caplog.text
+    _same(there, timed_refine(motions, starts["near"], {})[0])
+    # every later job is computed here at once
+    again = helper.submit(timed_refine, motions, starts["near"], {})
+    with pytest.raises(Exception, match="ended"):
+        again.result(timeout=0)
+
+
+def test_only_the_listed_jobs_are_taken(helper):
+    with pytest.raises(ValueError, match="not a job it takes"):
+        helper.submit(os.getpid)
