@@ -315,6 +315,7 @@ class Runner(ResumeMixin):
                 result = procedure.solve(ctx)
             ctx.prefetched = {}  # the solve is done with them (hundreds of MB of edge maps)
             timings["solve_s"] = time.monotonic() - solve_started
+            _log_solve_stages(ctx.timings_s)
             run.write_result(result)
             status = "succeeded"
         except (AbortedError, KeyboardInterrupt) as exc:
@@ -659,6 +660,14 @@ def _whoami() -> str:
         return getpass.getuser()
     except Exception:
         return "unknown"
+
+
+def _log_solve_stages(stages: dict[str, float]) -> None:
+    """The solve's stages and their seconds, in run.log (as ``rigctl bench solve`` times
+    them offline): where a slow solve spent its time on the rig itself."""
+    if stages:
+        log.info("solve stages: %s", "; ".join(f"{name} {sec:.2f} s"
+                                              for name, sec in stages.items()))
 
 
 def _run_deferred(ctx: SolveContext) -> float:

@@ -10,7 +10,14 @@ import numpy as np
 import pytest
 
 from rigctl.bench.active_worlds import world_trial
-from rigctl.calib.active_depth import camera_shift_joints, contour_shift, fit_depths, rigid_shifts
+from rigctl.calib.active_depth import (
+    camera_shift_joints,
+    contour_shift,
+    fit_depths,
+    rigid_shifts,
+    shift_jacobian,
+    shift_residuals,
+)
 from rigctl.errors import SolveError
 from rigctl.geometry.kinematics import nominal_ur
 from rigctl.geometry.transforms import xyz_rpy_to_T
@@ -36,6 +43,24 @@ def test_inverse_depths_and_the_move_come_back_from_opencv_projections():
     assert np.all(np.isnan(fit.inv_depth[:2])) and np.isnan(fit.inv_depth[14])
     assert np.allclose(fit.t_cam, move, atol=1e-8)
     assert fit.filled()[0] == pytest.approx(np.median(1 / depth))
+
+
+def test_the_depth_fits_jacobian_is_the_derivative_of_its_residuals():
+    """Against central differences at a point off the solution (turned, tilted move)."""
+    rng = np.random.default_rng(8)
+    centres = rng.uniform(-0.5, 0.5, (9, 2))
+    shifts = rng.normal(0.0, 0.01, (9, 2))
+    p = np.r_[2.4, -0.3, rng.uniform(0.2, 4.0, 9)]
+    J = shift_jacobian(p, centres, 0.012)
+    numeric = np.empty_like(J)
+    for i in range(len(p)):
+        h = 1e-6 * max(1.0, abs(p[i]))
+        step = np.zeros(len(p))
+        step[i] = h
+        numeric[:, i] = (shift_residuals(p + step, centres, shifts, 0.012)
+                         - shift_residuals(p - step, centres, shifts, 0.012)) / (2 * h)
+    assert np.abs(J - numeric).max() < 1e-9 * max(1.0, np.abs(J).max())
+    assert np.count_nonzero(J[:, 2:]) == 2 * 9  # a contour's rows: its own depth only
 
 
 def test_too_few_contours_for_depths_is_an_error_that_says_so():
