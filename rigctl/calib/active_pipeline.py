@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -346,41 +345,105 @@ def _coarse_stage(motions, starts: dict[str, dict], kwargs: dict, timings: dict[
     """``_refine_from_starts``' coarse refinements: the first start's, the others'
     scouts, and the coarse refinements of those whose scout ended elsewhere (the
     scouts' outcome into ``report``). The results and errors by name; a start scouted
-    into the first start's basin has neither. Third, with a ``helper``: the first
-    start's refinement on all points from its coarse end (``timed_refine``'s outcome and
-    seconds, by its name), taken here while the helper scouts."""
+    into the first start's basin has neither. Third, with a ``helper`` and more than
+    one start (``_coarse_stage_shared``): the first start's refinement on all points
+    from its coarse end (``timed_refine``'s outcome and seconds, by its name)."""
+    if helper is not None and len(starts) > 1:
+        return _coarse_stage_shared(motions, starts, kwargs, timings, report, helper)
     quiet = {**kwargs, "uncertainty": False}
     first = next(iter(starts))
     coarse_motions = _coarse(motions, COARSE_FACTOR)
-    early: dict[str, tuple] = {}
-
-    def refine_first_on_all(r: RefineResult) -> None:
-        early[first] = timed_refine(motions, _basin_start(r), kwargs)
-
     coarse, errors = _refine_each(
         {name: (coarse_motions, quiet) if name == first else
          (_coarse(motions, SCOUT_FACTOR), {**quiet, "outer_iterations": SCOUT_ROUNDS})
-         for name in starts}, starts, "coarse refinement from", timings, helper,
-        refine_first_on_all if helper is not None else None)
+         for name in starts}, starts, "coarse refinement from", timings, helper)
     confirm: dict[str, dict] = {}
     for name, start in starts.items():
         if name == first:
             continue
-        r = coarse.pop(name, None)
-        if r is None:
-            report[name]["scout_error"] = str(errors.pop(name))
-            confirm[name] = start
-        elif first in coarse and \
-                math.dist((r.cx, r.cy), (coarse[first].cx, coarse[first].cy)) <= SAME_END_PX:
-            report[name].update(scouted_to=[r.cx, r.cy], basin_of=first)
-        else:  # refined on the coarse points from where it was, as if never scouted
-            report[name]["scouted_to"] = [r.cx, r.cy]
+        scout = coarse.pop(name) if name in coarse else errors.pop(name)
+        if _scouted_elsewhere(name, scout, first, coarse.get(first), report):
             confirm[name] = start
     confirmed, confirm_errors = _refine_each(
         {name: (coarse_motions, quiet) for name in confirm}, confirm,
         "coarse refinement (after scouting) from", timings, helper)
     coarse.update(confirmed)
     errors.update(confirm_errors)
+    return coarse, errors, {}
+
+
+def _scouted_elsewhere(name: str, scout: RefineResult | SolveError, first: str,
+                       first_coarse: RefineResult | None, report: dict[str, dict]) -> bool:
+    """Whether start ``name`` must be refined on the coarse points (from where it was, as
+    if never scouted): its scout failed or ended more than ``SAME_END_PX`` from the
+    coarse end of the first start (``first``; ``first_coarse`` None: that failed). The
+    outcome into ``report``."""
+    if isinstance(scout, SolveError):
+        report[name]["scout_error"] = str(scout)
+        return True
+    if first_coarse is not None and \
+            math.dist((scout.cx, scout.cy), (first_coarse.cx, first_coarse.cy)) <= SAME_END_PX:
+        report[name].update(scouted_to=[scout.cx, scout.cy], basin_of=first)
+        return False
+    report[name]["scouted_to"] = [scout.cx, scout.cy]
+    return True
+
+
+def _coarse_stage_shared(motions, starts: dict[str, dict], kwargs: dict,
+                         timings: dict[str, float], report: dict[str, dict],
+                         helper: SolveProcess
+                         ) -> tuple[dict[str, RefineResult], dict[str, SolveError], dict]:
+    """``_coarse_stage`` with a helper process: the other starts' scouts there while the
+    first start's coarse refinement runs here; each scout then decided on (those done
+    first at once, so that a start to be refined on the coarse points goes to the
+    helper at once), and the first start's refinement on all points taken here while
+    the helper works. The same stages, outcomes and report as without the helper."""
+    quiet = {**kwargs, "uncertainty": False}
+    scout_kwargs = {**quiet, "outer_iterations": SCOUT_ROUNDS}
+    names = list(starts)
+    first = names[0]
+    coarse_motions = _coarse(motions, COARSE_FACTOR)
+    scout_motions = _coarse(motions, SCOUT_FACTOR)
+    scouts = {name: helper.submit(timed_refine, scout_motions, starts[name], scout_kwargs)
+              for name in names[1:]}
+    with serial_here():
+        first_coarse, seconds = timed_refine(coarse_motions, starts[first], quiet)
+    timings[f"coarse refinement from {first}"] = seconds
+    coarse: dict[str, RefineResult] = {}
+    errors: dict[str, SolveError] = {}
+    if isinstance(first_coarse, SolveError):
+        errors[first] = first_coarse
+    else:
+        coarse[first] = first_coarse
+    confirming: dict[str, Any] = {}
+
+    def decide(name: str) -> None:
+        scout, sec = helper.run(scouts[name], timed_refine, scout_motions, starts[name],
+                                scout_kwargs)
+        timings[f"coarse refinement from {name}"] = sec
+        if _scouted_elsewhere(name, scout, first, coarse.get(first), report):
+            confirming[name] = helper.submit(timed_refine, coarse_motions, starts[name],
+                                             quiet)
+
+    for name in names[1:]:
+        if scouts[name].done():
+            decide(name)
+    early: dict[str, tuple] = {}
+    if first in coarse:
+        with serial_here():
+            early[first] = timed_refine(motions, _basin_start(coarse[first]), kwargs)
+    for name in names[1:]:
+        if f"coarse refinement from {name}" not in timings:
+            decide(name)
+    for name in names[1:]:
+        if name in confirming:
+            outcome, sec = helper.run(confirming[name], timed_refine, coarse_motions,
+                                      starts[name], quiet)
+            timings[f"coarse refinement (after scouting) from {name}"] = sec
+            if isinstance(outcome, SolveError):
+                errors[name] = outcome
+            else:
+                coarse[name] = outcome
     return coarse, errors, early
 
 
@@ -397,15 +460,13 @@ def _where_ended(r: RefineResult) -> dict:
 
 
 def _refine_each(jobs: dict[str, tuple[list, dict]], starts: dict[str, dict], label: str,
-                 timings: dict[str, float], helper: SolveProcess | None = None,
-                 local_first: Callable[[RefineResult], None] | None = None
+                 timings: dict[str, float], helper: SolveProcess | None = None
                  ) -> tuple[dict[str, RefineResult], dict[str, SolveError]]:
     """``refine`` of each start's motions with its keyword arguments (``jobs``, by name)
     from that start: the results and the errors, by name (each start's seconds into
     ``timings``). With a ``helper`` process and more than one start, the first is
     refined here, serially, and the others there, one after another (``solve_process``:
-    side by side for real); then ``local_first``, if given, is called here with the
-    first start's result while the helper still works. Else side by side in up to
+    side by side for real). Else side by side in up to
     ``FINAL_THREADS`` threads (``map_in_threads``). Either way the same numbers."""
     def refine_from(name: str) -> tuple[RefineResult | SolveError, float]:
         return timed_refine(jobs[name][0], starts[name], jobs[name][1])
@@ -418,16 +479,12 @@ def _refine_each(jobs: dict[str, tuple[list, dict]], starts: dict[str, dict], la
                                        jobs[name][1]) for name in names[1:]}
         with serial_here():
             done = {names[0]: refine_from(names[0])}
-            if local_first is not None and isinstance(done[names[0]][0], RefineResult):
-                local_first(done[names[0]][0])
         for name, future in futures.items():
             done[name] = helper.run(future, timed_refine, jobs[name][0], starts[name],
                                     jobs[name][1])
     else:
         done = dict(zip(names, map_in_threads(refine_from, names, FINAL_THREADS),
                         strict=True))
-        if local_first is not None and isinstance(done[names[0]][0], RefineResult):
-            local_first(done[names[0]][0])
     results: dict[str, RefineResult] = {}
     errors: dict[str, SolveError] = {}
     for name in names:
