@@ -12,7 +12,7 @@ pickled back over its stdout. The child computes with one thread (``RIGCTL_SOLVE
 and BLAS), so a job's numbers are those of the same call in the parent, bit for bit (the
 solve's threads never change a number, ``calib.threads``). The child imports numpy and
 scipy as it starts (about 0.4 s); a run starts it while the rig moves, an offline
-re-solve as it begins.
+re-solve as its rolls' tiers begin (``active_pipeline._Helper``).
 
 The child only ever speeds a solve up: a job whose process has ended, or that failed
 there other than with a ``SolveError``, is computed again in the parent (``run``). The

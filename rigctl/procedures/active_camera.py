@@ -24,7 +24,6 @@ from pydantic import Field
 
 from rigctl.calib.active_angles import head_encoder_sigmas
 from rigctl.calib.active_pipeline import SHIFT, STATION_PREFIX, ActiveSettings, solve_active
-from rigctl.calib.solve_process import SolveProcess, start_if_useful
 from rigctl.calib.threads import map_in_threads
 from rigctl.errors import SolveError
 
@@ -162,16 +161,6 @@ class ActiveCamera(Procedure):
 
     def solve(self, ctx: SolveContext) -> dict[str, Any]:
         """Thesis chapter 3 on the run's captures (``rigctl.calib.active_pipeline``)."""
-        # a live run started the solve's second process while the rig moved; a re-solve
-        # starts it now, so that its interpreter is ready when the refinements begin
-        own = None if ctx.solve_process is not None else start_if_useful()
-        try:
-            return self._solve(ctx, ctx.solve_process or own)
-        finally:
-            if own is not None:
-                own.close()
-
-    def _solve(self, ctx: SolveContext, helper: SolveProcess | None) -> dict[str, Any]:
         params: ActiveCameraParams = ctx.params
         with ctx.stage("load images"):
             caps = {c.meta["label"]: c for c in ctx.captures() if c.image_path is not None}
@@ -200,7 +189,9 @@ class ActiveCamera(Procedure):
                                   encoder_sigma_rad=head_encoder_sigmas(
                                       servo_models(caps.values(), ctx.config)))
         with ctx.stage("pipeline"):
-            solution = solve_active(images, angles, settings, emaps, helper, start_helper=False)
+            # a live run started the solve's second process while the rig moved; a
+            # re-solve starts one as the rolls' tiers begin
+            solution = solve_active(images, angles, settings, emaps, ctx.solve_process)
         ctx.timings_s.update({f"pipeline: {k}": v for k, v in solution.timings_s.items()})
         # the size and focus these intrinsics hold for (checked by procedures using them)
         solution.result["camera_settings"] = settings_of_run(ctx.run)
