@@ -26,6 +26,7 @@ from rigctl.calib.active_angles import head_encoder_sigmas
 from rigctl.calib.active_pipeline import SHIFT, STATION_PREFIX, ActiveSettings, solve_active
 from rigctl.calib.threads import map_in_threads
 from rigctl.errors import SolveError
+from rigctl.procedures.plot_import import import_matplotlib_in_background
 
 from .base import (
     CaptureStep,
@@ -162,6 +163,7 @@ class ActiveCamera(Procedure):
     def solve(self, ctx: SolveContext) -> dict[str, Any]:
         """Thesis chapter 3 on the run's captures (``rigctl.calib.active_pipeline``)."""
         params: ActiveCameraParams = ctx.params
+        import_matplotlib_in_background()  # for the plots after the result
         with ctx.stage("load images"):
             caps = {c.meta["label"]: c for c in ctx.captures() if c.image_path is not None}
             # in a live run, the images and their edge maps taken while the rig moved on
