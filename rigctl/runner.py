@@ -281,11 +281,12 @@ class Runner(ResumeMixin):
         if procedure.detects_board and self.config.target:
             target = self.config.target
             self._board = CaptureWorker(
-                lambda index, image: run.capture(index).save_board_corners(target, image),
+                lambda index, image, meta: run.capture(index).save_board_corners(target,
+                                                                                image),
                 "board detection")
         work = procedure.capture_work(params)
         if work is not None:
-            self._prefetch = CaptureWorker(lambda index, image: work(image),
+            self._prefetch = CaptureWorker(lambda index, image, meta: work(image, meta),
                                            "work while moving")
         self._emit(type="started", run_id=run_id, procedure=procedure.name,
                    total=len(plan.steps))
@@ -574,9 +575,9 @@ class Runner(ResumeMixin):
             meta["arm_commanded"] = state["arm_commanded"]
         run.write_capture(state["capture"], image, meta)
         if image is not None and self._board is not None:
-            self._board.submit(state["capture"], image)
+            self._board.submit(state["capture"], image, meta)
         if image is not None and self._prefetch is not None:
-            self._prefetch.submit(state["capture"], image)
+            self._prefetch.submit(state["capture"], image, meta)
         state["capture"] += 1
         if health is not None:  # a servo at its temperature limit or in alert pauses
             try:
@@ -597,25 +598,26 @@ STEP_HANDLERS[teach.TeachStep] = teach.teach_step  # free drive (rigctl.teach)
 
 
 class CaptureWorker:
-    """Work on each capture's image (``work(index, image)``) on one worker thread while
+    """Work on each capture's image (``work(index, image, meta)``, its metadata as
+    recorded) on one worker thread, in the captures' order, while
     the rig moves on (OpenCV and numpy release the GIL). A failure there is logged (under
     ``what``) and that capture has no outcome: the solve then does the work itself.
     Used for the board's detection (whose outcome is its ``NNN.board.json``, part of the
     record) and for a procedure's ``capture_work`` (whose outcomes the solve takes)."""
 
-    def __init__(self, work: Callable[[int, Any], Any], what: str) -> None:
+    def __init__(self, work: Callable[[int, Any, dict], Any], what: str) -> None:
         from concurrent.futures import ThreadPoolExecutor
 
         self.work, self.what = work, what
         self.outcomes: dict[int, Any] = {}
         self.pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix=what.split()[0])
 
-    def submit(self, index: int, image) -> None:
-        self.pool.submit(self._do, index, image)
+    def submit(self, index: int, image, meta: dict) -> None:
+        self.pool.submit(self._do, index, image, meta)
 
-    def _do(self, index: int, image) -> None:
+    def _do(self, index: int, image, meta: dict) -> None:
         try:
-            self.outcomes[index] = self.work(index, image)
+            self.outcomes[index] = self.work(index, image, meta)
         except Exception as exc:
             log.warning("%s in capture %03d: %s", self.what, index, exc)
 

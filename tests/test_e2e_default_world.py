@@ -85,8 +85,14 @@ def test_active_camera_on_default_world(camera_run):
     assert len(list(Path(run_dirs[0], "captures").glob("*.png"))) == 33
     # every capture's edge map was taken while the head moved on (the re-solve in
     # test_robot_kinematics_end_to_end takes them from the PNGs, to the same result)
+    log_text = (run_dirs[0] / "run.log").read_text()
     assert "active-camera: 33 of 33 captures' edge maps taken while the rig moved" in \
-        (run_dirs[0] / "run.log").read_text()
+        log_text
+    # and the stages up to the rolls while the head rolled, which the solve used (the
+    # re-solve takes them itself, to the same result)
+    assert "the stages up to the rolls taken while the rig rolls" in log_text
+    assert "are not used" not in log_text
+    assert "while moving: tracking: wide" in log_text  # the solve's stages, in the log
     depths = out["tracking"]["scene_depth"]
     assert depths["contours_measured"] >= 6
     assert np.linalg.norm(depths["move_in_camera_mm"]) == pytest.approx(10.0, rel=0.01)

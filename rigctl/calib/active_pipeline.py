@@ -17,6 +17,7 @@ Stages (thesis chapter 3, automated):
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from dataclasses import dataclass, field, replace
@@ -43,6 +44,8 @@ from rigctl.calib.threads import map_in_threads, serial_here
 from rigctl.errors import SolveError
 from rigctl.timing import stage_timer
 from rigctl.vision.tracking import track_in_range
+
+log = logging.getLogger(__name__)
 
 NEAREST_SCENE_M = 0.25  # the shift capture's search window covers contours this close
 SHIFT_CROSS = 0.15  # and reaches this far across the move, per pixel along it
@@ -746,7 +749,8 @@ def _with_second_station(motions: list[Motion], prior: DepthPrior | None,
 def solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, float, float]],
                  settings: ActiveSettings | None = None,
                  emaps: dict | None = None, helper: SolveProcess | None = None,
-                 start_helper: bool = True) -> ActiveSolution:
+                 start_helper: bool = True, ahead: PanTiltStage | None = None
+                 ) -> ActiveSolution:
     """Intrinsics from images taken at known head angles (radians; labels ``ref``,
     ``pan+``, ``pan-``, ``tilt+``, ``tilt-``, ``roll...``, ``SHIFT``; those with
     ``STATION_PREFIX`` are a second station's, ``second_station``): thesis chapter 3 with
@@ -754,11 +758,13 @@ def solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, f
     label (``vision.contours.edge_map``; the same as taken here). ``helper``: a
     ``calib.solve_process`` for the final refinements' starts; without one, one is
     started here when the rolls' tiers begin (when ``start_helper`` and the solve may use
-    two threads) and stopped at the end. Raises ``SolveError`` with the stage that
-    failed."""
+    two threads) and stopped at the end. ``ahead``: ``pan_tilt_stage`` of the captures
+    before the rolls, taken while the rig rolled; used when it fits these captures
+    (``PanTiltStage.fits``), else taken again here. Raises ``SolveError`` with the stage
+    that failed."""
     holder = _Helper(helper, start_helper)
     try:
-        return _solve_active(images, angles, settings, emaps, holder)
+        return _solve_active(images, angles, settings, emaps, holder, ahead)
     finally:
         holder.close()
 
@@ -785,14 +791,52 @@ class _Helper:
             self._own.close()
 
 
-def _solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, float, float]],
-                  settings: ActiveSettings | None, emaps: dict | None,
-                  helper: _Helper) -> ActiveSolution:
-    settings = settings or ActiveSettings()
-    emaps = emaps or {}
-    emaps_far = {k.removeprefix(STATION_PREFIX): v for k, v in emaps.items()
-                 if k.startswith(STATION_PREFIX)}
-    images, angles, images_far, angles_far = split_stations(images, angles)
+@dataclass
+class PanTiltStage:
+    """The solve's first stages, which need only the reference, the scene-depth capture
+    (``SHIFT``) and the pan and tilt captures (``pan_tilt_stage``): the tracker, the first
+    K, the refinement that predicted the wide tier (or the first K), the scene's depths,
+    the labels tracked, and the inputs they came from (to check that a solve of all the
+    captures would have taken the same)."""
+
+    tracker: Tracker
+    K0: dict
+    K1: dict | RefineResult
+    depths: SceneDepths | None
+    done: list[str]
+    images: dict[str, np.ndarray]
+    angles: dict[str, tuple[float, float, float]]
+    settings: ActiveSettings
+    timings: dict[str, float]
+
+    def fits(self, images: dict, angles: dict, settings: ActiveSettings) -> str | None:
+        """Why a solve of ``images`` (one station's) would not start from this stage, or
+        None: it must hold the same captures before the rolls (the same image objects,
+        the same angles) and the same settings but the encoders' sigmas (used only by the
+        final refinement)."""
+        before = [label for label in images if not label.startswith("roll")]
+        if before != list(self.images):
+            return f"the captures before the rolls differ ({len(before)} against " \
+                   f"{len(self.images)})"
+        if any(images[label] is not self.images[label] or
+               tuple(angles[label]) != tuple(self.angles[label]) for label in before):
+            return "a capture before the rolls differs"
+        if replace(settings, encoder_sigma_rad=None) != \
+                replace(self.settings, encoder_sigma_rad=None):
+            return "the settings differ"
+        return None
+
+
+@with_one_blas_thread
+def pan_tilt_stage(images: dict[str, np.ndarray],
+                   angles: dict[str, tuple[float, float, float]],
+                   settings: ActiveSettings, emaps: dict | None = None) -> PanTiltStage:
+    """The solve's stages up to the rolls (one station's captures, ``split_stations``):
+    contours and the first K, the small pans and tilts tracked, the refinement that
+    predicts the wide ones, the scene's depths and the wide ones tracked. A live run takes
+    it on the captures before the first roll while the rig rolls (``solve_active``'s
+    ``ahead``); it is the same computation either way, to the same numbers. Raises
+    ``SolveError`` as ``solve_active`` would."""
     if "ref" not in images:
         raise SolveError("active-camera: no reference capture recorded")
     missing = [m for m in ("pan+", "tilt+") if m not in images]
@@ -804,42 +848,85 @@ def _solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, 
         tr = Tracker(images, angles, settings.window, settings.min_points,
                      settings.assumed_centre, emaps)
         K0 = tr.first_K()
-
-    small, wide, roll_groups, order = _tiers(images, tr)
+    small, wide, _ = tiers(images)
     with stage("tracking: small pans and tilts"):
         tr.track_all(small, K0, 12.0)
     # each tier is tracked by prediction from the model refined on the tiers before it;
     # those refinements only predict: a quarter of the points do
     K1: dict | RefineResult = dict(K0)
-    K_pans: dict | RefineResult | None = None  # the refinement on every pan and tilt
     done = list(small)
     depths = None
-    for tier in (wide, *roll_groups):
-        if not tier:
-            continue
+    if wide:
+        K1, depths = _predicting_tier(tr, "K_for_wide", done, K0, K1, depths, settings,
+                                      images, stage)
+        with stage("tracking: wide"):
+            tr.track_all(wide, K1, TIER_WINDOW_PX, 0.0)
+        done += wide
+    kept = {label: images[label] for label in images if not label.startswith("roll")}
+    return PanTiltStage(tr, K0, K1, depths, done, kept,
+                        {label: angles[label] for label in kept}, settings, timings)
+
+
+def _predicting_tier(tr: Tracker, key: str, done: list[str], K0: dict,
+                     K1: dict | RefineResult, depths: SceneDepths | None,
+                     settings: ActiveSettings, images: dict, stage
+                     ) -> tuple[dict | RefineResult, SceneDepths | None]:
+    """The refinement on the tiers ``done`` that predicts the next (``key``), and the
+    scene's depths once the pans' K is known (measured once, used from then on)."""
+    before = [m for m in (tr.motion(lb, PREDICTION_STRIDE) for lb in done) if m]
+    if len(before) < 2:
+        return K1, depths
+    with stage(f"predicting refinement: {key}"):
+        K1 = _predicting_refinement(
+            before, K0 if isinstance(K1, dict) else _camera_start(K1), settings, depths)
+    if depths is None:
+        with stage("depths"):
+            depths = _measured_depths(tr, K1, settings, images)
+        if depths is not None:
+            with stage(f"predicting refinement: {key} with depths"):
+                K1 = _predicting_refinement(before, _camera_start(K1), settings, depths)
+    tr.report[key] = {"fx": K1.fx, "fy": K1.fy, "cx": K1.cx, "cy": K1.cy,
+                      "distortion": [K1.k1, K1.k2, K1.p1, K1.p2, K1.k3]}
+    return K1, depths
+
+
+def _first_stages(images: dict, angles: dict, settings: ActiveSettings, emaps: dict,
+                  ahead: PanTiltStage | None) -> tuple[PanTiltStage, dict[str, float]]:
+    """``ahead`` when it fits these captures (its stages' seconds as taken while the rig
+    moved), else ``pan_tilt_stage`` of them now; and the solve's timings so far."""
+    why = "none taken" if ahead is None else ahead.fits(images, angles, settings)
+    if why is None:
+        ahead.tracker.add_captures(images, angles, emaps)
+        return ahead, {f"while moving: {k}": v for k, v in ahead.timings.items()}
+    if ahead is not None:
+        log.info("active-camera: the stages taken while the rig moved are not used: %s",
+                 why)
+    first = pan_tilt_stage(images, angles, settings, emaps)
+    return first, dict(first.timings)
+
+
+def _solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, float, float]],
+                  settings: ActiveSettings | None, emaps: dict | None,
+                  helper: _Helper, ahead: PanTiltStage | None = None) -> ActiveSolution:
+    settings = settings or ActiveSettings()
+    emaps = emaps or {}
+    emaps_far = {k.removeprefix(STATION_PREFIX): v for k, v in emaps.items()
+                 if k.startswith(STATION_PREFIX)}
+    images, angles, images_far, angles_far = split_stations(images, angles)
+    first, timings = _first_stages(images, angles, settings, emaps, ahead)
+    stage = stage_timer(timings)
+    tr, K0, K1, depths, done = first.tracker, first.K0, first.K1, first.depths, \
+        list(first.done)
+    _, wide, roll_groups, order = _tiers(images, tr)
+    K_pans: dict | RefineResult | None = None  # the refinement on every pan and tilt
+    for tier in roll_groups:
         key = tier_key(tier, wide, roll_groups)
-        if tier is not wide:
-            helper.start()
-        before = [m for m in (tr.motion(lb, PREDICTION_STRIDE) for lb in done) if m]
-        if len(before) >= 2:
-            with stage(f"predicting refinement: {key}"):
-                K1 = _predicting_refinement(
-                    before, K0 if isinstance(K1, dict) else _camera_start(K1), settings,
-                    depths)
-            if depths is None:  # measured once the pans' K is known, used from then on
-                with stage("depths"):
-                    depths = _measured_depths(tr, K1, settings, images)
-                if depths is not None:
-                    with stage(f"predicting refinement: {key} with depths"):
-                        K1 = _predicting_refinement(before, _camera_start(K1), settings,
-                                                    depths)
-            tr.report[key] = {"fx": K1.fx, "fy": K1.fy, "cx": K1.cx, "cy": K1.cy,
-                              "distortion": [K1.k1, K1.k2, K1.p1, K1.p2, K1.k3]}
-        if roll_groups and tier is roll_groups[0]:
+        helper.start()
+        K1, depths = _predicting_tier(tr, key, done, K0, K1, depths, settings, images, stage)
+        if tier is roll_groups[0]:
             K_pans = K1
         with stage(f"tracking: {key.removeprefix('K_for_')}"):
-            tr.track_all(tier, K1, TIER_WINDOW_PX,
-                         ROLL_JOINT_WINDOW_PX if tier is not wide else 0.0)
+            tr.track_all(tier, K1, TIER_WINDOW_PX, ROLL_JOINT_WINDOW_PX)
         done += tier
     K_pans = K1 if K_pans is None else K_pans
 

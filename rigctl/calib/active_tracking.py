@@ -90,6 +90,21 @@ class Tracker:
         self.matches: dict[str, list] = {}
         self.report.update({"contours": len(self.contours), "motions": {}})
 
+    def add_captures(self, images: dict, angles: dict,
+                     emaps: dict[str, EdgeMap] | None = None) -> None:
+        """Captures taken after the tracker was made (a live run makes it on the captures
+        before the rolls, ``active_pipeline.pan_tilt_stage``): their angles and edge
+        maps (``emaps``' where given, else taken here), as if they had been given at
+        first."""
+        new = [k for k in images if k not in self.emaps]
+        known = {k: v for k, v in (emaps or {}).items() if k in new}
+        missing = [k for k in new if k not in known]
+        known.update(zip(missing, map_in_threads(edge_map, [images[k] for k in missing]),
+                         strict=True))
+        self.emaps.update((k, known[k]) for k in new)
+        self.angles = {**self.angles, **{k: angles[k] for k in new}}
+        self.rel.update((k, tuple(np.subtract(angles[k], self.angles["ref"]))) for k in new)
+
     def first_K(self) -> dict:
         """The thesis's shift search through pan+ and tilt+, then Strategy B."""
         w = self.size[0]

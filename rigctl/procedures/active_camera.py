@@ -23,7 +23,13 @@ import numpy as np
 from pydantic import Field
 
 from rigctl.calib.active_angles import head_encoder_sigmas
-from rigctl.calib.active_pipeline import SHIFT, STATION_PREFIX, ActiveSettings, solve_active
+from rigctl.calib.active_pipeline import (
+    SHIFT,
+    STATION_PREFIX,
+    ActiveSettings,
+    pan_tilt_stage,
+    solve_active,
+)
 from rigctl.calib.threads import map_in_threads
 from rigctl.errors import SolveError
 from rigctl.procedures.plot_import import import_matplotlib_in_background
@@ -155,8 +161,10 @@ class ActiveCamera(Procedure):
         return steps
 
     def capture_work(self, params: ActiveCameraParams):
-        """Each capture's edge map, taken while the head moves on to the next pose."""
-        return image_and_edge_map
+        """Each capture's edge map, taken while the head moves on to the next pose; and
+        the solve's stages up to the rolls, taken while the head rolls
+        (``WorkWhileMoving``)."""
+        return WorkWhileMoving(params)
 
     uses_solve_process = True
 
@@ -176,24 +184,22 @@ class ActiveCamera(Procedure):
                                                       to_load), strict=True))
             images = {label: prefetched[label][0] if label in prefetched else loaded[label]
                       for label in caps}
-            emaps = {label: emap for label, (_, emap) in prefetched.items()}
+            emaps = {label: outcome[1] for label, outcome in prefetched.items()}
+            ahead = next((outcome[2] for outcome in prefetched.values() if len(outcome) > 2),
+                         None)
         if ctx.prefetched:
             log.info("active-camera: %d of %d captures' edge maps taken while the rig "
                      "moved", len(prefetched), len(caps))
         angles = {k: tuple(c.meta["head"][a] for a in ("pan", "tilt", "roll"))
                   for k, c in caps.items()}
-        settings = ActiveSettings(window=params.window, min_points=params.min_points,
-                                  distortion_terms=params.distortion_terms,
-                                  assumed_centre=params.assumed_centre,
-                                  nodal_offset_mm=params.nodal_offset_mm,
-                                  scene_depth_m=params.scene_depth_m,
-                                  shift_m=params.shift_mm / 1000.0,
-                                  encoder_sigma_rad=head_encoder_sigmas(
-                                      servo_models(caps.values(), ctx.config)))
+        settings = _settings(params, head_encoder_sigmas(servo_models(caps.values(),
+                                                                      ctx.config)))
         with ctx.stage("pipeline"):
-            # a live run started the solve's second process while the rig moved; a
-            # re-solve starts one as the rolls' tiers begin
-            solution = solve_active(images, angles, settings, emaps, ctx.solve_process)
+            # a live run started the solve's second process while the rig moved, and took
+            # the stages up to the rolls while it rolled; a re-solve starts the process as
+            # the rolls' tiers begin, and takes every stage
+            solution = solve_active(images, angles, settings, emaps, ctx.solve_process,
+                                    ahead=ahead)
         ctx.timings_s.update({f"pipeline: {k}": v for k, v in solution.timings_s.items()})
         # the size and focus these intrinsics hold for (checked by procedures using them)
         solution.result["camera_settings"] = settings_of_run(ctx.run)
@@ -202,6 +208,57 @@ class ActiveCamera(Procedure):
         ctx.defer("plots", lambda: _plots(ctx, images, solution.contours, solution.matches,
                                           solution.refined, solution.order))
         return solution.result
+
+
+def _settings(params: ActiveCameraParams, encoder_sigma_rad) -> ActiveSettings:
+    """The solve's settings: the procedure's parameters without the motion plan, and the
+    head's encoder sigmas (rad; None: the recorded angles are exact)."""
+    return ActiveSettings(window=params.window, min_points=params.min_points,
+                          distortion_terms=params.distortion_terms,
+                          assumed_centre=params.assumed_centre,
+                          nodal_offset_mm=params.nodal_offset_mm,
+                          scene_depth_m=params.scene_depth_m,
+                          shift_m=params.shift_mm / 1000.0,
+                          encoder_sigma_rad=encoder_sigma_rad)
+
+
+class WorkWhileMoving:
+    """A live run's work on each capture as it comes in (``capture_work``): its edge map
+    (``image_and_edge_map``), and, when the first roll comes in, the solve's stages up to
+    the rolls on the captures before it (``active_pipeline.pan_tilt_stage``), which then
+    run while the head rolls (about 10 s of the demo's motion). That outcome goes with
+    the first roll's; the solve uses it when it fits the recorded captures
+    (``PanTiltStage.fits``) and takes the stages itself otherwise, to the same numbers. A
+    ``SolveError`` there is left for the solve to raise."""
+
+    def __init__(self, params: ActiveCameraParams) -> None:
+        self.params = params
+        self.images: dict[str, np.ndarray] = {}
+        self.angles: dict[str, tuple[float, float, float]] = {}
+        self.emaps: dict[str, Any] = {}
+        self.started = False
+
+    def __call__(self, image: np.ndarray, meta: dict) -> tuple:
+        image, emap = image_and_edge_map(image)
+        label, head = meta.get("label"), meta.get("head")
+        if self.started or not label or head is None or label.startswith(STATION_PREFIX):
+            return image, emap
+        if not label.startswith("roll"):
+            self.images[label], self.emaps[label] = image, emap
+            self.angles[label] = tuple(head[a] for a in ("pan", "tilt", "roll"))
+            return image, emap
+        self.started = True
+        try:
+            # the encoders' sigmas only enter the final refinement: checked there
+            ahead = pan_tilt_stage(self.images, self.angles, _settings(self.params, None),
+                                   self.emaps)
+        except SolveError as exc:
+            log.info("active-camera: the stages up to the rolls, taken while the rig "
+                     "rolls, failed (%s); the solve takes them again", exc)
+            return image, emap
+        log.info("active-camera: the stages up to the rolls taken while the rig rolls "
+                 "(%.1f s)", sum(ahead.timings.values()))
+        return image, emap, ahead
 
 
 def image_and_edge_map(image: np.ndarray) -> tuple[np.ndarray, Any]:

@@ -238,12 +238,15 @@ class Procedure:
     def plan(self, params: Any, config: RigConfig) -> list[Step]:
         raise NotImplementedError
 
-    def capture_work(self, params: Any) -> Callable[[Any], Any] | None:
-        """Work on one capture's image that the solve would do anyway and that needs no
-        other capture (e.g. its edge map): in a live run the runner does it on each image
-        while the rig moves on, and the solve finds the outcomes in
-        ``SolveContext.prefetched``. None: no such work. The outcome must be what the
-        solve computes from the recorded image, so a re-solve gives the same result."""
+    def capture_work(self, params: Any) -> Callable[[Any, dict], Any] | None:
+        """Work the solve would do anyway, on each capture's image and its metadata as
+        recorded (e.g. its edge map), called in the captures' order: in a live run the
+        runner does it on one worker thread while the rig moves on, and the solve finds
+        the outcomes in ``SolveContext.prefetched``. The function is made anew for each
+        run and may keep what earlier captures gave (active-camera takes its first stages
+        on the captures before the rolls). None: no such work. An outcome must be what
+        the solve computes from the recorded captures, so a re-solve gives the same
+        result."""
         return None
 
     def solve(self, ctx: SolveContext) -> dict[str, Any]:

@@ -1,0 +1,101 @@
+"""The active-camera solve's stages up to the rolls taken ahead, on the captures before
+the first roll, as a live run takes them while the head rolls
+(``active_pipeline.pan_tilt_stage``): the solve from them is the solve from scratch, to
+the last bit; a stage that does not fit the captures is taken again. A random world's
+own renderer draws the views (``rigctl.mocks.world``), as ``rigctl bench active-worlds``
+does."""
+
+from __future__ import annotations
+
+import json
+import logging
+
+import numpy as np
+import pytest
+
+from rigctl.bench.active_worlds import POSES_DEG, render_shift, render_views
+from rigctl.calib.active_angles import head_encoder_sigmas
+from rigctl.calib.active_pipeline import SHIFT, ActiveSettings, pan_tilt_stage, solve_active
+from rigctl.mocks.random_world import random_world
+from rigctl.mocks.world import World, WorldFile
+
+pytestmark = pytest.mark.heavy
+
+SEED = 26  # an ordinary 1000 px lens
+
+
+@pytest.fixture(scope="module")
+def views():
+    """The world, and its captures in the plan's order: the reference, the sideways move,
+    the pans and tilts, then the rolls."""
+    spec = WorldFile.model_validate(random_world(SEED))
+    world = World(spec)
+    images, angles = render_views(world, POSES_DEG, np.random.default_rng([SEED, 7]),
+                                  "hardware")
+    shift = render_shift(world, 0.010)
+    order = ["ref", SHIFT, *(k for k in images if k != "ref")]
+    images[SHIFT], angles[SHIFT] = shift
+    sigma = head_encoder_sigmas(dict(zip(("pan", "tilt", "roll"), spec.head.models,
+                                         strict=True)))
+    settings = ActiveSettings(shift_m=0.010, encoder_sigma_rad=sigma)
+    return ({k: images[k] for k in order}, {k: angles[k] for k in order}, settings,
+            world.spec.camera)
+
+
+def _before_rolls(images: dict, angles: dict):
+    kept = [k for k in images if not k.startswith("roll")]
+    return {k: images[k] for k in kept}, {k: angles[k] for k in kept}
+
+
+def _as_json(result: dict) -> str:
+    return json.dumps(result, sort_keys=True, default=str)
+
+
+@pytest.fixture(scope="module")
+def from_scratch(views):
+    images, angles, settings, _ = views
+    return solve_active(images, angles, settings, start_helper=False)
+
+
+@pytest.mark.timeout(600)
+def test_the_solve_from_the_stages_taken_ahead_is_the_solve_from_scratch(views,
+                                                                         from_scratch):
+    images, angles, settings, camera = views
+    # as the procedure takes it while the head rolls: no encoder sigmas yet (they only
+    # enter the final refinement)
+    ahead = pan_tilt_stage(*_before_rolls(images, angles),
+                           ActiveSettings(shift_m=0.010, encoder_sigma_rad=None))
+    assert ahead.done[-1] in ahead.images and "roll+45" not in ahead.tracker.emaps
+    solution = solve_active(images, angles, settings, start_helper=False, ahead=ahead)
+    assert _as_json(solution.result) == _as_json(from_scratch.result)
+    # the stages taken ahead are named as such; the solve took only the rest
+    assert "while moving: contours and first K" in solution.timings_s
+    assert "contours and first K" not in solution.timings_s
+    assert "tracking: wide" not in solution.timings_s and "tracking: rolls" in \
+        solution.timings_s
+    # and it is the world's camera, within its reported sigma
+    result = solution.result
+    for key in ("fx", "fy", "cx", "cy"):
+        assert abs(result[key] - getattr(camera, key)) < 4 * result["sigma"][key], key
+    assert abs(result["fx"] / camera.fx - 1) < 2e-3 and abs(result["cx"] - camera.cx) < 1.5
+
+
+@pytest.mark.timeout(600)
+def test_stages_taken_ahead_that_do_not_fit_are_taken_again(views, from_scratch, caplog):
+    images, angles, settings, _ = views
+    before_images, before_angles = _before_rolls(images, angles)
+    other_window = pan_tilt_stage(before_images, before_angles,
+                                  ActiveSettings(shift_m=0.010, window=0.5))
+    with caplog.at_level(logging.INFO, logger="rigctl.calib.active_pipeline"):
+        solution = solve_active(images, angles, settings, start_helper=False,
+                                ahead=other_window)
+    assert "not used: the settings differ" in caplog.text
+    assert "contours and first K" in solution.timings_s
+    assert _as_json(solution.result) == _as_json(from_scratch.result)
+    # an image other than the one the stage took (e.g. loaded again from its PNG)
+    copied = dict(images, **{"pan+": images["pan+"].copy()})
+    ahead = pan_tilt_stage(before_images, before_angles,
+                           ActiveSettings(shift_m=0.010))
+    assert ahead.fits(copied, angles, settings) == "a capture before the rolls differs"
+    missing = {k: v for k, v in images.items() if k != "tilt-25"}
+    assert "differ" in ahead.fits(missing, angles, settings)
