@@ -64,7 +64,8 @@ def test_the_solve_from_the_stages_taken_ahead_is_the_solve_from_scratch(views,
     # as the procedure takes it while the head rolls: no encoder sigmas yet (they only
     # enter the final refinement)
     ahead = pan_tilt_stage(*_before_rolls(images, angles),
-                           ActiveSettings(shift_m=0.010, encoder_sigma_rad=None))
+                           ActiveSettings(shift_m=0.010, encoder_sigma_rad=None),
+                           rolls_follow=True)
     assert ahead.done[-1] in ahead.images and "roll+45" not in ahead.tracker.emaps
     solution = solve_active(images, angles, settings, start_helper=False, ahead=ahead)
     assert _as_json(solution.result) == _as_json(from_scratch.result)
@@ -73,6 +74,8 @@ def test_the_solve_from_the_stages_taken_ahead_is_the_solve_from_scratch(views,
     assert "contours and first K" not in solution.timings_s
     assert "tracking: wide" not in solution.timings_s and "tracking: rolls" in \
         solution.timings_s
+    assert "while moving: predicting refinement: K_for_rolls" in solution.timings_s
+    assert "predicting refinement: K_for_rolls" not in solution.timings_s
     # and it is the world's camera, within its reported sigma
     result = solution.result
     for key in ("fx", "fy", "cx", "cy"):
@@ -85,7 +88,7 @@ def test_stages_taken_ahead_that_do_not_fit_are_taken_again(views, from_scratch,
     images, angles, settings, _ = views
     before_images, before_angles = _before_rolls(images, angles)
     other_window = pan_tilt_stage(before_images, before_angles,
-                                  ActiveSettings(shift_m=0.010, window=0.5))
+                                  ActiveSettings(shift_m=0.010, window=0.5), rolls_follow=True)
     with caplog.at_level(logging.INFO, logger="rigctl.calib.active_pipeline"):
         solution = solve_active(images, angles, settings, start_helper=False,
                                 ahead=other_window)
@@ -95,7 +98,9 @@ def test_stages_taken_ahead_that_do_not_fit_are_taken_again(views, from_scratch,
     # an image other than the one the stage took (e.g. loaded again from its PNG)
     copied = dict(images, **{"pan+": images["pan+"].copy()})
     ahead = pan_tilt_stage(before_images, before_angles,
-                           ActiveSettings(shift_m=0.010))
+                           ActiveSettings(shift_m=0.010), rolls_follow=True)
     assert ahead.fits(copied, angles, settings) == "a capture before the rolls differs"
     missing = {k: v for k, v in images.items() if k != "tilt-25"}
     assert "differ" in ahead.fits(missing, angles, settings)
+    no_rolls = {k: v for k, v in images.items() if not k.startswith("roll")}
+    assert ahead.fits(no_rolls, angles, settings) == "the rolls were not foreseen"

@@ -795,9 +795,10 @@ class _Helper:
 class PanTiltStage:
     """The solve's first stages, which need only the reference, the scene-depth capture
     (``SHIFT``) and the pan and tilt captures (``pan_tilt_stage``): the tracker, the first
-    K, the refinement that predicted the wide tier (or the first K), the scene's depths,
-    the labels tracked, and the inputs they came from (to check that a solve of all the
-    captures would have taken the same)."""
+    K, the last refinement (the one predicting the first rolls, ``K_for_rolls``, when
+    rolls follow; else the wide tier's, or the first K), the scene's depths, the labels
+    tracked, and the inputs they came from (to check that a solve of all the captures
+    would have taken the same)."""
 
     tracker: Tracker
     K0: dict
@@ -808,6 +809,7 @@ class PanTiltStage:
     angles: dict[str, tuple[float, float, float]]
     settings: ActiveSettings
     timings: dict[str, float]
+    rolls_predicted: bool = False  # K1 is the refinement predicting the first rolls
 
     def fits(self, images: dict, angles: dict, settings: ActiveSettings) -> str | None:
         """Why a solve of ``images`` (one station's) would not start from this stage, or
@@ -824,19 +826,23 @@ class PanTiltStage:
         if replace(settings, encoder_sigma_rad=None) != \
                 replace(self.settings, encoder_sigma_rad=None):
             return "the settings differ"
+        if self.rolls_predicted != any(label.startswith("roll") for label in images):
+            return "the rolls were not foreseen"
         return None
 
 
 @with_one_blas_thread
 def pan_tilt_stage(images: dict[str, np.ndarray],
                    angles: dict[str, tuple[float, float, float]],
-                   settings: ActiveSettings, emaps: dict | None = None) -> PanTiltStage:
+                   settings: ActiveSettings, emaps: dict | None = None,
+                   rolls_follow: bool | None = None) -> PanTiltStage:
     """The solve's stages up to the rolls (one station's captures, ``split_stations``):
     contours and the first K, the small pans and tilts tracked, the refinement that
-    predicts the wide ones, the scene's depths and the wide ones tracked. A live run takes
-    it on the captures before the first roll while the rig rolls (``solve_active``'s
-    ``ahead``); it is the same computation either way, to the same numbers. Raises
-    ``SolveError`` as ``solve_active`` would."""
+    predicts the wide ones, the scene's depths, the wide ones tracked and, when rolls
+    follow (``rolls_follow``; None: when ``images`` hold any), the refinement that
+    predicts the first rolls. A live run takes it on the captures before the first roll
+    while the rig rolls (``solve_active``'s ``ahead``); it is the same computation
+    either way, to the same numbers. Raises ``SolveError`` as ``solve_active`` would."""
     if "ref" not in images:
         raise SolveError("active-camera: no reference capture recorded")
     missing = [m for m in ("pan+", "tilt+") if m not in images]
@@ -862,9 +868,15 @@ def pan_tilt_stage(images: dict[str, np.ndarray],
         with stage("tracking: wide"):
             tr.track_all(wide, K1, TIER_WINDOW_PX, 0.0)
         done += wide
+    if rolls_follow is None:
+        rolls_follow = any(label.startswith("roll") for label in images)
+    if rolls_follow:  # ``tier_key`` of the first rolls' tier
+        K1, depths = _predicting_tier(tr, "K_for_rolls", done, K0, K1, depths, settings,
+                                      images, stage)
     kept = {label: images[label] for label in images if not label.startswith("roll")}
     return PanTiltStage(tr, K0, K1, depths, done, kept,
-                        {label: angles[label] for label in kept}, settings, timings)
+                        {label: angles[label] for label in kept}, settings, timings,
+                        rolls_follow)
 
 
 def _predicting_tier(tr: Tracker, key: str, done: list[str], K0: dict,
@@ -922,9 +934,11 @@ def _solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, 
     for tier in roll_groups:
         key = tier_key(tier, wide, roll_groups)
         helper.start()
-        K1, depths = _predicting_tier(tr, key, done, K0, K1, depths, settings, images, stage)
-        if tier is roll_groups[0]:
+        if tier is roll_groups[0]:  # its prediction came with the first stages
             K_pans = K1
+        else:
+            K1, depths = _predicting_tier(tr, key, done, K0, K1, depths, settings, images,
+                                          stage)
         with stage(f"tracking: {key.removeprefix('K_for_')}"):
             tr.track_all(tier, K1, TIER_WINDOW_PX, ROLL_JOINT_WINDOW_PX)
         done += tier

@@ -251,7 +251,7 @@ class WorkWhileMoving:
         try:
             # the encoders' sigmas only enter the final refinement: checked there
             ahead = pan_tilt_stage(self.images, self.angles, _settings(self.params, None),
-                                   self.emaps)
+                                   self.emaps, rolls_follow=True)
         except SolveError as exc:
             log.info("active-camera: the stages up to the rolls, taken while the rig "
                      "rolls, failed (%s); the solve takes them again", exc)
