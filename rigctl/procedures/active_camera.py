@@ -171,7 +171,6 @@ class ActiveCamera(Procedure):
     def solve(self, ctx: SolveContext) -> dict[str, Any]:
         """Thesis chapter 3 on the run's captures (``rigctl.calib.active_pipeline``)."""
         params: ActiveCameraParams = ctx.params
-        import_matplotlib_in_background()  # for the plots after the result
         with ctx.stage("load images"):
             caps = {c.meta["label"]: c for c in ctx.captures() if c.image_path is not None}
             # in a live run, the images and their edge maps taken while the rig moved on
@@ -229,7 +228,8 @@ class WorkWhileMoving:
     run while the head rolls (about 10 s of the demo's motion). That outcome goes with
     the first roll's; the solve uses it when it fits the recorded captures
     (``PanTiltStage.fits``) and takes the stages itself otherwise, to the same numbers. A
-    ``SolveError`` there is left for the solve to raise."""
+    ``SolveError`` there is left for the solve to raise. matplotlib, for the plots after
+    the result, is imported on a thread as the run begins (``plot_import``)."""
 
     def __init__(self, params: ActiveCameraParams) -> None:
         self.params = params
@@ -237,6 +237,7 @@ class WorkWhileMoving:
         self.angles: dict[str, tuple[float, float, float]] = {}
         self.emaps: dict[str, Any] = {}
         self.started = False
+        import_matplotlib_in_background()  # for the plots after the result
 
     def __call__(self, image: np.ndarray, meta: dict) -> tuple:
         image, emap = image_and_edge_map(image)

@@ -1,11 +1,12 @@
-"""matplotlib imported on a thread while a solve computes, for the plots drawn after it.
+"""matplotlib imported on a thread while a live run moves, for the plots after its solve.
 
-The plots are drawn after the result is recorded (``SolveContext.defer``), but a
-re-solve's process (``rigctl solve``) ends only when they are: importing matplotlib's
-figure and Agg backend there cost about 0.45 s of the 0.9 s the active-camera plots took.
-That import is Python executing modules; the solve's first stages spend their time in
-OpenCV and numpy calls that release the interpreter, so the import overlaps them nearly
-for free. Without the ``plots`` extra nothing happens here: the deferred plot reports the
+The plots are drawn after the result is recorded (``SolveContext.defer``), but the run
+holds the rig until they are: importing matplotlib's figure and Agg backend cost about
+0.45 s of the 0.9 s the active-camera plots took. A live run imports them while the rig
+moves (``ActiveCamera.capture_work``). A re-solve does not: the import is Python
+executing modules, and beside the solve's first stages it held the interpreter they
+needed (the demo's run re-solved: loading the images 0.12 -> 0.34 s, to the result no
+faster). Without the ``plots`` extra nothing happens here: the deferred plot reports the
 missing extra itself.
 """
 
