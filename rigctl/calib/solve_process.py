@@ -37,7 +37,7 @@ from queue import Queue
 from typing import Any
 
 from rigctl.calib.threads import THREADS_VARIABLE, solve_threads
-from rigctl.errors import SolveError
+from rigctl.errors import RigError, SolveError
 
 log = logging.getLogger(__name__)
 
@@ -157,7 +157,7 @@ class SolveProcess:
         self.close()
 
 
-class ChildGoneError(Exception):
+class ChildGoneError(RigError):
     """The solve process could not do a job (it ended, or the job failed there); the
     parent computes it itself (``SolveProcess.run``). Never leaves this module's users."""
 
