@@ -45,6 +45,16 @@ def pinhole_predictor(K: dict, rel_angles):
     return predict
 
 
+def _edge_maps(images: dict, emaps: dict | None) -> dict:
+    """Each image's edge map, by label: ``emaps``' where given (taken while the rig moved
+    on), the others taken here side by side."""
+    known = {k: v for k, v in (emaps or {}).items() if k in images}
+    missing = [k for k in images if k not in known]
+    known.update(zip(missing, map_in_threads(edge_map, [images[k] for k in missing]),
+                     strict=True))
+    return {k: known[k] for k in images}
+
+
 class Tracker:
     """Contours of the reference image followed through the other captures."""
 
@@ -54,11 +64,7 @@ class Tracker:
         """``emaps``: edge maps already taken of some of ``images`` (``edge_map``, by
         label; e.g. while the rig moved on); the others' are taken here."""
         self.angles = angles
-        known = {k: v for k, v in (emaps or {}).items() if k in images}
-        missing = [k for k in images if k not in known]
-        known.update(zip(missing, map_in_threads(edge_map, [images[k] for k in missing]),
-                         strict=True))
-        self.emaps = {k: known[k] for k in images}
+        self.emaps = _edge_maps(images, emaps)
         self.inv_depth: np.ndarray | None = None  # each contour's, once measured (1/m)
         h, w = images["ref"].shape[:2]
         self.size = (w, h)
@@ -97,11 +103,7 @@ class Tracker:
         maps (``emaps``' where given, else taken here), as if they had been given at
         first."""
         new = [k for k in images if k not in self.emaps]
-        known = {k: v for k, v in (emaps or {}).items() if k in new}
-        missing = [k for k in new if k not in known]
-        known.update(zip(missing, map_in_threads(edge_map, [images[k] for k in missing]),
-                         strict=True))
-        self.emaps.update((k, known[k]) for k in new)
+        self.emaps.update(_edge_maps({k: images[k] for k in new}, emaps))
         self.angles = {**self.angles, **{k: angles[k] for k in new}}
         self.rel.update((k, tuple(np.subtract(angles[k], self.angles["ref"]))) for k in new)
 

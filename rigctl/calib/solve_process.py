@@ -32,16 +32,15 @@ import sys
 import threading
 from collections.abc import Callable
 from concurrent.futures import Future
-from pathlib import Path
 from queue import Queue
 from typing import Any
 
 from rigctl.calib.threads import THREADS_VARIABLE, solve_threads
+from rigctl.childproc import ROOT
 from rigctl.errors import RigError, SolveError
 
 log = logging.getLogger(__name__)
 
-ROOT = Path(__file__).resolve().parents[2]
 # the functions a job may name: module, then name (nothing else is imported or called)
 JOBS = {("rigctl.calib.active_refine", "timed_refine")}
 HEADER = struct.Struct(">Q")  # each frame: its length, then a pickle
