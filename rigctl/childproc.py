@@ -81,10 +81,13 @@ class ChildProcess:
                 self.ended_before_stop = self.proc.returncode
                 self.ended_stderr = self.stderr_text()
         else:
-            os.kill(self.pid, signal.SIGTERM)
+            self.terminate()
             try:
                 self.proc.wait(timeout=timeout)
             except subprocess.TimeoutExpired:
+                print(f"{self.name} (pid {self.pid}, state {_proc_state(self.pid)}) did not "
+                      f"end within {timeout:.1f} s of SIGTERM; killing its group",
+                      file=sys.stderr, flush=True)
                 os.killpg(self.pid, signal.SIGKILL)
                 self.proc.wait(timeout=5)
         self._stop_called = True
@@ -96,6 +99,15 @@ class ChildProcess:
             self._stderr.close()
             self._stderr = None
         return self.proc.returncode
+
+    def terminate(self) -> None:
+        """SIGTERM, if it still runs; ``stop`` then waits for it (several children are
+        asked first and waited for after, so their shutdowns overlap)."""
+        if self.proc.poll() is None:
+            try:
+                os.kill(self.pid, signal.SIGTERM)
+            except ProcessLookupError:
+                pass
 
     def stderr_text(self) -> str:
         if self._stderr is None:
@@ -113,6 +125,27 @@ class ChildProcess:
 
     def __exit__(self, *exc) -> None:
         self.stop()
+
+
+def stop_all(children: list[ChildProcess], timeout: float = 8.0) -> None:
+    """Stop several children within ``timeout`` in all: each is sent SIGTERM first, then
+    each is waited for in turn with what is left of the time (at least a tenth of a
+    second), and killed when it has not ended by then."""
+    for child in children:
+        child.terminate()
+    deadline = time.monotonic() + timeout
+    for child in children:
+        child.stop(timeout=max(0.1, deadline - time.monotonic()))
+
+
+def _proc_state(pid: int) -> str:
+    """The process's state letter and kernel wait channel, for a log line."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        wchan = Path(f"/proc/{pid}/wchan").read_text().strip() or "-"
+    except OSError:
+        return "gone"
+    return f"{state}, waiting in {wchan}"
 
 
 def _kill_if_alive(pid: int) -> bool:

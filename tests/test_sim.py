@@ -152,6 +152,73 @@ def test_child_process_stop_stops_the_children_it_reported_in_other_sessions():
     wait_until(lambda: not _alive(child), what="the orphan to die")
 
 
+DEAF_TO_SIGTERM = """
+import json, os, signal, time
+signal.signal(signal.SIGTERM, lambda *_: None)
+print(json.dumps({"pid": os.getpid()}), flush=True)
+time.sleep(600)
+"""
+
+# ends on SIGTERM only once the other child has ended (its file written): it can end by
+# itself only when the other was asked to stop before its own wait ran out
+ENDS_AFTER_THE_OTHER = """
+import json, os, signal, sys, time
+from pathlib import Path
+asked = []
+signal.signal(signal.SIGTERM, lambda *_: asked.append(1))
+print(json.dumps({"pid": os.getpid()}), flush=True)
+while not (asked and Path(sys.argv[1]).exists()):
+    time.sleep(0.01)
+"""
+
+ENDS_ON_SIGTERM = """
+import json, os, signal, sys, time
+from pathlib import Path
+def end(*_):
+    Path(sys.argv[1]).write_text("ended")
+    sys.exit(0)
+signal.signal(signal.SIGTERM, end)
+print(json.dumps({"pid": os.getpid()}), flush=True)
+time.sleep(600)
+"""
+
+
+def test_stop_all_asks_every_child_before_waiting_for_any(tmp_path):
+    """`sim up` stops its stand-ins with stop_all: all are sent SIGTERM first, so a slow
+    one does not hold back the others' shutdown (one after the other, three slow
+    stand-ins outlasted the 20 s `SimulatedRig.stop` gives `sim up`)."""
+    from rigctl.childproc import ChildProcess, stop_all
+
+    marker = tmp_path / "second-ended"
+    first = ChildProcess(["-c", ENDS_AFTER_THE_OTHER, str(marker)], timeout=30)
+    second = ChildProcess(["-c", ENDS_ON_SIGTERM, str(marker)], timeout=30)
+    try:
+        stop_all([first, second], timeout=20.0)  # a hang guard: both end in milliseconds
+    finally:
+        first.kill()
+        second.kill()
+    assert marker.read_text() == "ended"
+    assert (first.proc.returncode, second.proc.returncode) == (0, 0)  # neither was killed
+
+
+def test_stop_all_kills_children_deaf_to_sigterm_and_names_them(capsys):
+    from rigctl.childproc import ChildProcess, stop_all
+
+    children = [ChildProcess(["-c", DEAF_TO_SIGTERM], timeout=30, name=f"deaf {i}")
+                for i in range(2)]
+    try:
+        stop_all(children, timeout=1.0)
+    finally:
+        for child in children:
+            child.kill()
+    assert [c.proc.returncode for c in children] == [-signal.SIGKILL] * 2
+    err = capsys.readouterr().err
+    for child in children:
+        assert not _alive(child.pid)
+        assert f"{child.name} (pid {child.pid}, state S" in err
+    assert err.count("did not end within") == 2
+
+
 def test_sim_truth_json():
     result = subprocess.run([sys.executable, "-m", "rigctl.cli", "sim", "truth", "--world",
                              str(ROOT / "rigctl/mocks/worlds/default.yaml"), "--json"],

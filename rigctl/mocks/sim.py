@@ -22,7 +22,7 @@ from pathlib import Path
 
 import yaml
 
-from rigctl.childproc import ChildProcess
+from rigctl.childproc import ChildProcess, stop_all
 from rigctl.errors import ConfigError, DeviceError
 from rigctl.mocks.world import load_world
 from rigctl.mocks.world import world_file as resolve_world
@@ -179,8 +179,9 @@ def up(world_file: str, rig_out: str, host: str = "127.0.0.1", records: str = "r
                     stop.set()
             stop.wait(0.5)
     finally:
-        for child in reversed(children):
-            child.stop()
+        # asked together, so that a slow one does not push the others past the caller's
+        # own wait (SimulatedRig waits 20 s before it kills `sim up`)
+        stop_all(list(reversed(children)), timeout=8.0)
         if own_dir:
             shutil.rmtree(workdir, ignore_errors=True)
         else:  # a given workdir is kept; only what the stand-ins made goes
