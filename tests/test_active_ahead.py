@@ -1,7 +1,8 @@
 """The active-camera solve's stages up to the rolls taken ahead, on the captures before
 the first roll, as a live run takes them while the head rolls
-(``active_pipeline.pan_tilt_stage``): the solve from them is the solve from scratch, to
-the last bit; a stage that does not fit the captures is taken again. A random world's
+(``active_pipeline.pan_tilt_stage``), and the rolls' tiers as their captures come in
+(``PanTiltStage.take_roll``): the solve from them is the solve from scratch, to the last
+bit; a stage that does not fit the captures is taken again. A random world's
 own renderer draws the views (``rigctl.mocks.world``), as ``rigctl bench active-worlds``
 does."""
 
@@ -16,8 +17,10 @@ import pytest
 from rigctl.bench.active_worlds import POSES_DEG, render_shift, render_views
 from rigctl.calib.active_angles import head_encoder_sigmas
 from rigctl.calib.active_pipeline import SHIFT, ActiveSettings, pan_tilt_stage, solve_active
+from rigctl.calib.active_tracking import roll_tiers
 from rigctl.mocks.random_world import random_world
 from rigctl.mocks.world import World, WorldFile
+from rigctl.procedures.active_camera import ActiveCameraParams
 
 pytestmark = pytest.mark.heavy
 
@@ -27,13 +30,15 @@ SEED = 26  # an ordinary 1000 px lens
 @pytest.fixture(scope="module")
 def views():
     """The world, and its captures in the plan's order: the reference, the sideways move,
-    the pans and tilts, then the rolls."""
+    the pans and tilts, then the rolls (in the procedure's order)."""
     spec = WorldFile.model_validate(random_world(SEED))
     world = World(spec)
     images, angles = render_views(world, POSES_DEG, np.random.default_rng([SEED, 7]),
                                   "hardware")
     shift = render_shift(world, 0.010)
-    order = ["ref", SHIFT, *(k for k in images if k != "ref")]
+    rolls = [f"roll{r:+g}" for r in ActiveCameraParams().rolls_deg]
+    assert sorted(rolls) == sorted(k for k in images if k.startswith("roll"))
+    order = ["ref", SHIFT, *(k for k in images if k != "ref" and k not in rolls), *rolls]
     images[SHIFT], angles[SHIFT] = shift
     sigma = head_encoder_sigmas(dict(zip(("pan", "tilt", "roll"), spec.head.models,
                                          strict=True)))
@@ -104,3 +109,60 @@ def test_stages_taken_ahead_that_do_not_fit_are_taken_again(views, from_scratch,
     assert "differ" in ahead.fits(missing, angles, settings)
     no_rolls = {k: v for k, v in images.items() if not k.startswith("roll")}
     assert ahead.fits(no_rolls, angles, settings) == "the rolls were not foreseen"
+
+
+def _ahead_with_rolls(images: dict, angles: dict, rolls: list[str]):
+    """The stages up to the rolls, planned with the rolls' nominal angles, then ``rolls``
+    taken as a live run takes them; how many tiers were tracked after each."""
+    ahead = pan_tilt_stage(*_before_rolls(images, angles),
+                           ActiveSettings(shift_m=0.010, encoder_sigma_rad=None),
+                           rolls_follow=True)
+    planned = [k for k in images if k.startswith("roll")]
+    ahead.roll_plan = roll_tiers(planned, {k: np.radians(POSES_DEG[k]) for k in planned})
+    tracked = []
+    for label in rolls:
+        ahead.take_roll(label, images[label], angles[label])
+        tracked.append(ahead.rolls_tracked)
+    return ahead, tracked
+
+
+def _roll_stages(timings: dict) -> list[str]:
+    """The stages of the rolls' tiers after the first tier's prediction."""
+    return [k for k in timings if "K_for_rolls_" in k or "tracking: rolls" in k]
+
+
+@pytest.mark.timeout(600)
+def test_rolls_taken_as_they_come_in_give_the_solve_from_scratch(views, from_scratch):
+    images, angles, settings, _ = views
+    rolls = [k for k in images if k.startswith("roll")]
+    ahead, tracked = _ahead_with_rolls(images, angles, rolls)
+    # +45, +90, +135, then -45, -90, -135, -180: each tier (+-45, +-90, +-135, -180) is
+    # tracked as its second roll comes in, the last with the last capture
+    assert [len(t) for t in ahead.roll_plan] == [2, 2, 2, 1]
+    assert tracked == [0, 0, 0, 1, 2, 3, 4] and ahead.failed is None
+    solution = solve_active(images, angles, settings, start_helper=False, ahead=ahead)
+    assert _as_json(solution.result) == _as_json(from_scratch.result)
+    # every roll stage was taken while the head rolled, none by the solve
+    assert all(k.startswith("while moving: ") for k in _roll_stages(solution.timings_s))
+    assert "while moving: tracking: rolls_-180" in solution.timings_s
+    assert "while moving: predicting refinement: K_for_rolls_-180" in solution.timings_s
+
+
+@pytest.mark.timeout(600)
+def test_the_solve_takes_only_the_roll_stages_left(views, from_scratch):
+    images, angles, settings, _ = views
+    rolls = [k for k in images if k.startswith("roll")]
+    ahead, tracked = _ahead_with_rolls(images, angles, rolls[:-1])  # -180 not yet in
+    assert tracked[-1] == 3 and ahead.rolls_predicted_tiers == 4
+    # a roll capture other than the one taken would not fit
+    copied = dict(images, **{rolls[0]: images[rolls[0]].copy()})
+    assert ahead.fits(copied, angles, settings) == "a roll capture differs"
+    other_plan = {k: v for k, v in images.items() if k != "roll-90"}
+    assert ahead.fits(other_plan, angles, settings) == \
+        "the rolls' tiers differ from the planned ones"
+    solution = solve_active(images, angles, settings, start_helper=False, ahead=ahead)
+    assert _as_json(solution.result) == _as_json(from_scratch.result)
+    # the last tier's prediction came while moving; its tracking is the solve's own
+    assert [k for k in _roll_stages(solution.timings_s)
+            if not k.startswith("while moving: ")] == ["tracking: rolls_-180"]
+    assert "while moving: predicting refinement: K_for_rolls_-180" in solution.timings_s

@@ -93,6 +93,9 @@ def test_active_camera_on_default_world(camera_run):
     assert "the stages up to the rolls taken while the rig rolls" in log_text
     assert "are not used" not in log_text
     assert "while moving: tracking: wide" in log_text  # the solve's stages, in the log
+    # each tier of rolls tracked as its captures came in, the last with the last capture
+    assert "roll tiers tracked while the rig rolls: 4 of 4" in log_text
+    assert "while moving: tracking: rolls_-180" in log_text
     depths = out["tracking"]["scene_depth"]
     assert depths["contours_measured"] >= 6
     assert np.linalg.norm(depths["move_in_camera_mm"]) == pytest.approx(10.0, rel=0.01)

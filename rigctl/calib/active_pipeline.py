@@ -810,12 +810,25 @@ class PanTiltStage:
     settings: ActiveSettings
     timings: dict[str, float]
     rolls_predicted: bool = False  # K1 is the refinement predicting the first rolls
+    # the rolls' stages taken as their captures came in (``take_roll``): the tiers as
+    # planned, the roll captures taken, how many tiers were tracked and how many
+    # predicted (the first tier's prediction is ``K_for_rolls``), the refinement that
+    # predicted the first tier (the pans' K, a start of the final refinement), and why
+    # the rolls' stages stopped, if they failed
+    roll_plan: list[list[str]] = field(default_factory=list)
+    roll_images: dict[str, np.ndarray] = field(default_factory=dict)
+    roll_angles: dict[str, tuple[float, float, float]] = field(default_factory=dict)
+    rolls_tracked: int = 0
+    rolls_predicted_tiers: int = 0
+    K_pans: dict | RefineResult | None = None
+    failed: str | None = None
 
     def fits(self, images: dict, angles: dict, settings: ActiveSettings) -> str | None:
         """Why a solve of ``images`` (one station's) would not start from this stage, or
         None: it must hold the same captures before the rolls (the same image objects,
         the same angles) and the same settings but the encoders' sigmas (used only by the
-        final refinement)."""
+        final refinement); with rolls taken ahead, the rolls' tiers must be the planned
+        ones and the rolls taken the recorded ones."""
         before = [label for label in images if not label.startswith("roll")]
         if before != list(self.images):
             return f"the captures before the rolls differ ({len(before)} against " \
@@ -826,9 +839,58 @@ class PanTiltStage:
         if replace(settings, encoder_sigma_rad=None) != \
                 replace(self.settings, encoder_sigma_rad=None):
             return "the settings differ"
-        if self.rolls_predicted != any(label.startswith("roll") for label in images):
+        rolls = [label for label in images if label.startswith("roll")]
+        if self.rolls_predicted != bool(rolls):
             return "the rolls were not foreseen"
+        if self.failed is not None:
+            return self.failed
+        if self.roll_images:  # the tracker holds them: they must be the recorded ones
+            rel = {lb: tuple(np.subtract(angles[lb], angles["ref"])) for lb in rolls}
+            if roll_tiers(rolls, rel) != self.roll_plan:
+                return "the rolls' tiers differ from the planned ones"
+            if any(lb not in images or images[lb] is not image or
+                   tuple(angles[lb]) != self.roll_angles[lb]
+                   for lb, image in self.roll_images.items()):
+                return "a roll capture differs"
         return None
+
+    def take_roll(self, label: str, image: np.ndarray, angle: tuple[float, float, float],
+                  emap=None) -> None:
+        """While the rig rolls: a roll capture as it comes in (a live run's, in the
+        captures' order). Each planned tier (``roll_plan``) is tracked as soon as its
+        captures are all in, and the refinement predicting the next tier is taken as
+        soon as the tier before it is tracked: the loop of ``_solve_active`` over the
+        rolls' tiers, the same computation to the same numbers, so that only the last
+        tier's tracking is left when the motion ends. A ``SolveError`` stops the rolls'
+        stages (``failed``); the solve then takes every stage itself."""
+        if self.failed is not None or not self.rolls_predicted:
+            return
+        self.roll_images[label], self.roll_angles[label] = image, tuple(angle)
+        self.tracker.add_captures({label: image}, {label: tuple(angle)},
+                                  None if emap is None else {label: emap})
+        stage = stage_timer(self.timings)
+        try:
+            while self.rolls_tracked < len(self.roll_plan):
+                i = self.rolls_tracked
+                tier = self.roll_plan[i]
+                key = tier_key(tier, [], self.roll_plan)
+                if i == 0:
+                    self.K_pans = self.K1
+                    self.rolls_predicted_tiers = max(self.rolls_predicted_tiers, 1)
+                elif self.rolls_predicted_tiers <= i:
+                    self.K1, self.depths = _predicting_tier(
+                        self.tracker, key, self.done, self.K0, self.K1, self.depths,
+                        self.settings, self.images, stage)
+                    self.rolls_predicted_tiers = i + 1
+                if any(lb not in self.roll_images for lb in tier):
+                    return
+                with stage(f"tracking: {key.removeprefix('K_for_')}"):
+                    self.tracker.track_all(tier, self.K1, TIER_WINDOW_PX,
+                                           ROLL_JOINT_WINDOW_PX)
+                self.done += tier
+                self.rolls_tracked += 1
+        except SolveError as exc:
+            self.failed = f"the rolls' stages failed while the rig rolled: {exc}"
 
 
 @with_one_blas_thread
@@ -930,13 +992,17 @@ def _solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, 
     tr, K0, K1, depths, done = first.tracker, first.K0, first.K1, first.depths, \
         list(first.done)
     _, wide, roll_groups, order = _tiers(images, tr)
-    K_pans: dict | RefineResult | None = None  # the refinement on every pan and tilt
-    for tier in roll_groups:
+    # the refinement on every pan and tilt; tiers tracked and predicted while the rig
+    # rolled (``PanTiltStage.take_roll``) are not taken again
+    K_pans: dict | RefineResult | None = first.K_pans
+    for i, tier in enumerate(roll_groups):
+        if i < first.rolls_tracked:
+            continue
         key = tier_key(tier, wide, roll_groups)
         helper.start()
-        if tier is roll_groups[0]:  # its prediction came with the first stages
+        if i == 0:  # its prediction came with the first stages
             K_pans = K1
-        else:
+        elif i >= first.rolls_predicted_tiers:
             K1, depths = _predicting_tier(tr, key, done, K0, K1, depths, settings, images,
                                           stage)
         with stage(f"tracking: {key.removeprefix('K_for_')}"):

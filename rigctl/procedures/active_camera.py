@@ -27,9 +27,11 @@ from rigctl.calib.active_pipeline import (
     SHIFT,
     STATION_PREFIX,
     ActiveSettings,
+    PanTiltStage,
     pan_tilt_stage,
     solve_active,
 )
+from rigctl.calib.active_tracking import roll_tiers
 from rigctl.calib.threads import map_in_threads
 from rigctl.errors import SolveError
 from rigctl.procedures.plot_import import import_matplotlib_in_background
@@ -81,9 +83,13 @@ class ActiveCameraParams(Params):
     # the centre from the tangential terms (a shift against a quadratic field), so every
     # 45 deg: six sets of 20 unseen worlds (bench active-worlds, seeds 5000-12019), centre
     # error p90 0.70-1.48 -> 0.74-1.17 px, worst 1.20-2.09 -> 1.13-2.00 px, against
-    # [90, -180, -90]; every 30 deg did no better.
+    # [90, -180, -90]; every 30 deg did no better. Up to +135, back to -45, then down
+    # to -180: each tier of rolls (+-45, +-90, ...; ``roll_tiers``) is complete as soon
+    # as its second roll is in, so a live run tracks it while the head rolls on
+    # (``PanTiltStage.take_roll``); the roll travels 630 deg, as the sweep +45 .. +135,
+    # -180 .. -45 did (position mode cannot pass through +-180).
     rolls_deg: list[float] = Field(
-        default_factory=lambda: [45.0, 90.0, 135.0, -180.0, -135.0, -90.0, -45.0])
+        default_factory=lambda: [45.0, 90.0, 135.0, -45.0, -90.0, -135.0, -180.0])
     settle_s: float = Field(0.3, ge=0)
     # The centre is told from how the image's own warps (perspective, tangential terms)
     # differ, which grows with the contours' distance from the centre: 0.8 -> 0.95 on 72
@@ -237,16 +243,26 @@ class WorkWhileMoving:
         self.angles: dict[str, tuple[float, float, float]] = {}
         self.emaps: dict[str, Any] = {}
         self.started = False
+        self.ahead: PanTiltStage | None = None
+        # the rolls' tiers as planned (the recorded angles group the same way, checked
+        # by ``PanTiltStage.fits``)
+        self.roll_plan = roll_tiers(
+            [label for label, *_ in head_poses(params) if label.startswith("roll")],
+            {label: (pan, tilt, roll) for label, pan, tilt, roll in head_poses(params)})
         import_matplotlib_in_background()  # for the plots after the result
 
     def __call__(self, image: np.ndarray, meta: dict) -> tuple:
         image, emap = image_and_edge_map(image)
         label, head = meta.get("label"), meta.get("head")
-        if self.started or not label or head is None or label.startswith(STATION_PREFIX):
+        if not label or head is None or label.startswith(STATION_PREFIX):
+            return image, emap
+        angle = tuple(head[a] for a in ("pan", "tilt", "roll"))
+        if self.started:  # a roll after the first: the rolls' stages go on
+            if self.ahead is not None and label.startswith("roll"):
+                self._take_roll(label, image, angle, emap)
             return image, emap
         if not label.startswith("roll"):
-            self.images[label], self.emaps[label] = image, emap
-            self.angles[label] = tuple(head[a] for a in ("pan", "tilt", "roll"))
+            self.images[label], self.emaps[label], self.angles[label] = image, emap, angle
             return image, emap
         self.started = True
         try:
@@ -259,7 +275,20 @@ class WorkWhileMoving:
             return image, emap
         log.info("active-camera: the stages up to the rolls taken while the rig rolls "
                  "(%.1f s)", sum(ahead.timings.values()))
+        self.ahead = ahead
+        ahead.roll_plan = self.roll_plan
+        self._take_roll(label, image, angle, emap)
         return image, emap, ahead
+
+    def _take_roll(self, label: str, image: np.ndarray, angle: tuple, emap) -> None:
+        """The rolls' stages that this roll capture completes (``take_roll``)."""
+        tracked = self.ahead.rolls_tracked
+        self.ahead.take_roll(label, image, angle, emap)
+        if self.ahead.failed is not None:
+            log.info("active-camera: %s; the solve takes them again", self.ahead.failed)
+        elif self.ahead.rolls_tracked > tracked:
+            log.info("active-camera: roll tiers tracked while the rig rolls: %d of %d",
+                     self.ahead.rolls_tracked, len(self.ahead.roll_plan))
 
 
 def image_and_edge_map(image: np.ndarray) -> tuple[np.ndarray, Any]:
