@@ -76,21 +76,39 @@ class ChildProcess:
         line lists under ``children`` (stand-ins in sessions of their own) that outlived
         it is killed too and named in ``orphans``. A child that had already ended leaves
         its exit status in ``ended_before_stop`` and its stderr in ``ended_stderr``."""
-        if self.proc.poll() is not None:
-            if not self._stop_called:
-                self.ended_before_stop = self.proc.returncode
-                self.ended_stderr = self.stderr_text()
-        else:
-            self.terminate()
-            try:
-                self.proc.wait(timeout=timeout)
-            except subprocess.TimeoutExpired:
-                print(f"{self.name} (pid {self.pid}, state {_proc_state(self.pid)}) did not "
-                      f"end within {timeout:.1f} s of SIGTERM; killing its group",
-                      file=sys.stderr, flush=True)
-                os.killpg(self.pid, signal.SIGKILL)
-                self.proc.wait(timeout=5)
+        stop_all([self], timeout)
+        return self.proc.returncode
+
+    def terminate(self) -> None:
+        """The first step of a stop: SIGTERM if it still runs, else its exit status kept
+        as ``ended_before_stop`` (once: a later call does nothing)."""
+        if self._stop_called:
+            return
         self._stop_called = True
+        self._terminated_at = time.monotonic()
+        if self.proc.poll() is not None:
+            self.ended_before_stop = self.proc.returncode
+            self.ended_stderr = self.stderr_text()
+            return
+        try:
+            os.kill(self.pid, signal.SIGTERM)
+        except ProcessLookupError:
+            pass
+
+    def _kill_group(self) -> None:
+        """SIGKILL to its group, named on stderr with its state and how long it had had."""
+        waited = time.monotonic() - self._terminated_at
+        print(f"{self.name} (pid {self.pid}, state {_proc_state(self.pid)}) did not end "
+              f"within {waited:.1f} s of SIGTERM; killing its group", file=sys.stderr,
+              flush=True)
+        try:
+            os.killpg(self.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+
+    def _release(self) -> None:
+        """After the stop: the listed children that outlived it killed (``orphans``), its
+        pipes closed."""
         self.orphans = [pid for pid in getattr(self, "ready", {}).get("children", [])
                         if _kill_if_alive(pid)]
         if self.proc.stdout:
@@ -98,16 +116,6 @@ class ChildProcess:
         if self._stderr is not None:
             self._stderr.close()
             self._stderr = None
-        return self.proc.returncode
-
-    def terminate(self) -> None:
-        """SIGTERM, if it still runs; ``stop`` then waits for it (several children are
-        asked first and waited for after, so their shutdowns overlap)."""
-        if self.proc.poll() is None:
-            try:
-                os.kill(self.pid, signal.SIGTERM)
-            except ProcessLookupError:
-                pass
 
     def stderr_text(self) -> str:
         if self._stderr is None:
@@ -127,15 +135,34 @@ class ChildProcess:
         self.stop()
 
 
-def stop_all(children: list[ChildProcess], timeout: float = 8.0) -> None:
+def stop_all(children: list[ChildProcess], timeout: float = 8.0,
+             reap_timeout: float = 5.0) -> None:
     """Stop several children within ``timeout`` in all: each is sent SIGTERM first, then
-    each is waited for in turn with what is left of the time (at least a tenth of a
-    second), and killed when it has not ended by then."""
+    waited for until the one deadline; those still running then are killed together
+    (SIGKILL to each group, named on stderr) and reaped, each within ``reap_timeout``.
+    Every child is released (``orphans`` killed, pipes closed) whatever happened to the
+    others; one that cannot be reaped even after SIGKILL is named on stderr and left to
+    init."""
     for child in children:
         child.terminate()
     deadline = time.monotonic() + timeout
     for child in children:
-        child.stop(timeout=max(0.1, deadline - time.monotonic()))
+        try:
+            child.proc.wait(timeout=max(0.0, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            pass
+    late = [child for child in children if child.proc.poll() is None]
+    for child in late:
+        child._kill_group()
+    for child in children:
+        try:
+            if child in late:
+                child.proc.wait(timeout=reap_timeout)
+        except subprocess.TimeoutExpired:
+            print(f"{child.name} (pid {child.pid}, state {_proc_state(child.pid)}) did not "
+                  f"end within {reap_timeout:.0f} s of SIGKILL", file=sys.stderr, flush=True)
+        finally:
+            child._release()
 
 
 def _proc_state(pid: int) -> str:

@@ -308,10 +308,12 @@ class Runner(ResumeMixin):
             problems = rig.close_all()
             if problems:
                 log.warning("after the run: %s", "; ".join(problems))
+            # the solve's time counts from here: the work on the captures still going on
+            # when the motion ended is part of it
+            solve_started = time.monotonic()
             self._finish_capture_work(ctx)
             self._emit(type="step", run_id=run_id, step="solve", index=len(plan.steps),
                        total=len(plan.steps))
-            solve_started = time.monotonic()
             with one_blas_thread():
                 result = procedure.solve(ctx)
             ctx.prefetched = {}  # the solve is done with them (hundreds of MB of edge maps)
@@ -352,11 +354,14 @@ class Runner(ResumeMixin):
 
     def _finish_capture_work(self, ctx: SolveContext) -> None:
         """After the motion: wait for the work on the captures done while the rig moved
-        (board detection, the procedure's ``capture_work``) and hand it to the solve."""
+        (board detection, the procedure's ``capture_work``) and hand it to the solve; the
+        wait is the solve's first stage (``waiting for the work while moving``)."""
+        started = time.monotonic()
         if self._board is not None:
             self._board.finish()
         if self._prefetch is not None:
             ctx.prefetched = self._prefetch.finish()
+            ctx.timings_s["waiting for the work while moving"] = time.monotonic() - started
 
     def _end_capture_work(self, ctx: SolveContext) -> None:
         """When the run ends, however: the board detections submitted are finished (their

@@ -96,6 +96,8 @@ def test_active_camera_on_default_world(camera_run):
     # each tier of rolls tracked as its captures came in, the last with the last capture
     assert "roll tiers tracked while the rig rolls: 4 of 4" in log_text
     assert "while moving: tracking: rolls_-180" in log_text
+    # the wait for that work after the motion is the solve's time, and named in its stages
+    assert "solve stages: waiting for the work while moving" in log_text
     depths = out["tracking"]["scene_depth"]
     assert depths["contours_measured"] >= 6
     assert np.linalg.norm(depths["move_in_camera_mm"]) == pytest.approx(10.0, rel=0.01)

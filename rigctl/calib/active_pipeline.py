@@ -759,7 +759,8 @@ def solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, f
     ``calib.solve_process`` for the final refinements' starts; without one, one is
     started here when the rolls' tiers begin (when ``start_helper`` and the solve may use
     two threads) and stopped at the end. ``ahead``: ``pan_tilt_stage`` of the captures
-    before the rolls, taken while the rig rolled; used when it fits these captures
+    before the rolls, taken while the rig rolled, with the rolls' tiers it took as their
+    captures came in (``PanTiltStage.take_roll``); used when it fits these captures
     (``PanTiltStage.fits``), else taken again here. Raises ``SolveError`` with the stage
     that failed."""
     holder = _Helper(helper, start_helper)
@@ -854,15 +855,17 @@ class PanTiltStage:
                 return "a roll capture differs"
         return None
 
+    @with_one_blas_thread  # as the solve: the same numbers, and no BLAS threads spinning
     def take_roll(self, label: str, image: np.ndarray, angle: tuple[float, float, float],
                   emap=None) -> None:
         """While the rig rolls: a roll capture as it comes in (a live run's, in the
         captures' order). Each planned tier (``roll_plan``) is tracked as soon as its
         captures are all in, and the refinement predicting the next tier is taken as
         soon as the tier before it is tracked: the loop of ``_solve_active`` over the
-        rolls' tiers, the same computation to the same numbers, so that only the last
-        tier's tracking is left when the motion ends. A ``SolveError`` stops the rolls'
-        stages (``failed``); the solve then takes every stage itself."""
+        rolls' tiers, the same computation to the same numbers, so that at most the last
+        tier's tracking is left when the motion ends. Any error stops the rolls' stages
+        (``failed``, with a half-taken stage in the tracker); the solve then takes every
+        stage itself, and raises a ``SolveError`` there."""
         if self.failed is not None or not self.rolls_predicted:
             return
         self.roll_images[label], self.roll_angles[label] = image, tuple(angle)
@@ -889,7 +892,7 @@ class PanTiltStage:
                                            ROLL_JOINT_WINDOW_PX)
                 self.done += tier
                 self.rolls_tracked += 1
-        except SolveError as exc:
+        except Exception as exc:  # any: the solve takes the stages again
             self.failed = f"the rolls' stages failed while the rig rolled: {exc}"
 
 

@@ -167,9 +167,9 @@ class ActiveCamera(Procedure):
         return steps
 
     def capture_work(self, params: ActiveCameraParams):
-        """Each capture's edge map, taken while the head moves on to the next pose; and
-        the solve's stages up to the rolls, taken while the head rolls
-        (``WorkWhileMoving``)."""
+        """Each capture's edge map, taken while the head moves on to the next pose; the
+        solve's stages up to the rolls, and then the rolls' tiers, taken while the head
+        rolls (``WorkWhileMoving``)."""
         return WorkWhileMoving(params)
 
     uses_solve_process = True
@@ -229,13 +229,15 @@ def _settings(params: ActiveCameraParams, encoder_sigma_rad) -> ActiveSettings:
 
 class WorkWhileMoving:
     """A live run's work on each capture as it comes in (``capture_work``): its edge map
-    (``image_and_edge_map``), and, when the first roll comes in, the solve's stages up to
-    the rolls on the captures before it (``active_pipeline.pan_tilt_stage``), which then
-    run while the head rolls (about 10 s of the demo's motion). That outcome goes with
-    the first roll's; the solve uses it when it fits the recorded captures
-    (``PanTiltStage.fits``) and takes the stages itself otherwise, to the same numbers. A
-    ``SolveError`` there is left for the solve to raise. matplotlib, for the plots after
-    the result, is imported on a thread as the run begins (``plot_import``)."""
+    (``image_and_edge_map``); when the first roll comes in, the solve's stages up to the
+    rolls on the captures before it (``active_pipeline.pan_tilt_stage``), which then run
+    while the head rolls (about 10 s of the demo's motion); and with each roll, the
+    rolls' tiers it completes (``PanTiltStage.take_roll``, tiers planned from
+    ``rolls_deg``). That outcome goes with the first roll's; the solve uses it when it
+    fits the recorded captures (``PanTiltStage.fits``) and takes the stages itself
+    otherwise, to the same numbers. A ``SolveError`` there is left for the solve to
+    raise. matplotlib, for the plots after the result, is imported on a thread as the
+    run begins (``plot_import``)."""
 
     def __init__(self, params: ActiveCameraParams) -> None:
         self.params = params
@@ -281,7 +283,10 @@ class WorkWhileMoving:
         return image, emap, ahead
 
     def _take_roll(self, label: str, image: np.ndarray, angle: tuple, emap) -> None:
-        """The rolls' stages that this roll capture completes (``take_roll``)."""
+        """The rolls' stages that this roll capture completes (``take_roll``); after a
+        failure there, none."""
+        if self.ahead.failed is not None:
+            return
         tracked = self.ahead.rolls_tracked
         self.ahead.take_roll(label, image, angle, emap)
         if self.ahead.failed is not None:
