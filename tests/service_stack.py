@@ -159,14 +159,28 @@ def wait_for(stack, run_id, statuses=("succeeded", "failed", "aborted"), timeout
     raise AssertionError(f"run {run_id} did not reach {statuses}")
 
 
+# The holder takes the lock as soon as the rig is free: a run already on it (a schedule
+# that fired first, on a busy machine: load check, 1 run in 3) is waited for, as long as
+# the rig stays busy, within this ceiling
+HOLDER_WAIT_S = 120
+
+
 class LockHolder:
     """Another process holding the rig's lock (as a CLI run on the rig would) until
-    ``release``; stopped by PID, also from ``with``."""
+    ``release``; stopped by PID, also from ``with``. It takes the lock once the rig is
+    free (``HOLDER_WAIT_S``)."""
 
     def __init__(self, lock_dir, rig_name: str, run_id: str = "run-held") -> None:
         code = ("import sys, time; from pathlib import Path; from rigctl.locks import RigLock;"
-                f"RigLock(Path({str(lock_dir)!r}), {rig_name!r}).acquire({run_id!r});"
-                "print('held', flush=True); time.sleep(600)")
+                "from rigctl.errors import BusyError;"
+                f"lock = RigLock(Path({str(lock_dir)!r}), {rig_name!r});"
+                f"deadline = time.monotonic() + {HOLDER_WAIT_S};"
+                "\nwhile True:"
+                f"\n    try: lock.acquire({run_id!r}); break"
+                "\n    except BusyError:"
+                "\n        if time.monotonic() > deadline: raise"
+                "\n        time.sleep(0.05)"
+                "\nprint('held', flush=True); time.sleep(600)")
         self.proc = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT,
                                      stdout=subprocess.PIPE, text=True)
         try:
