@@ -871,29 +871,41 @@ class PanTiltStage:
         self.roll_images[label], self.roll_angles[label] = image, tuple(angle)
         self.tracker.add_captures({label: image}, {label: tuple(angle)},
                                   None if emap is None else {label: emap})
-        stage = stage_timer(self.timings)
         try:
-            while self.rolls_tracked < len(self.roll_plan):
-                i = self.rolls_tracked
-                tier = self.roll_plan[i]
-                key = tier_key(tier, [], self.roll_plan)
-                if i == 0:
-                    self.K_pans = self.K1
-                    self.rolls_predicted_tiers = max(self.rolls_predicted_tiers, 1)
-                elif self.rolls_predicted_tiers <= i:
-                    self.K1, self.depths = _predicting_tier(
-                        self.tracker, key, self.done, self.K0, self.K1, self.depths,
-                        self.settings, self.images, stage)
-                    self.rolls_predicted_tiers = i + 1
-                if any(lb not in self.roll_images for lb in tier):
-                    return
-                with stage(f"tracking: {key.removeprefix('K_for_')}"):
-                    self.tracker.track_all(tier, self.K1, TIER_WINDOW_PX,
-                                           ROLL_JOINT_WINDOW_PX)
-                self.done += tier
-                self.rolls_tracked += 1
+            self.go_on_with_rolls(stage_timer(self.timings),
+                                  ready=lambda tier: all(lb in self.roll_images
+                                                         for lb in tier))
         except Exception as exc:  # any: the solve takes the stages again
             self.failed = f"the rolls' stages failed while the rig rolled: {exc}"
+
+    def go_on_with_rolls(self, stage, ready=lambda tier: True,
+                         before_tier=lambda: None) -> None:
+        """The loop over the rolls' tiers (``roll_plan``) from where it stands: the
+        refinement predicting each tier (the first tier's came with the first stages and
+        is the pans' K, ``K_pans``), then the tier tracked from it, unless ``ready`` says
+        its captures are not all in yet (then it stops there, the prediction taken).
+        ``before_tier`` is called as each tier's work begins; ``stage`` times each step.
+        The solve runs it on whatever was left (``_solve_active``), a live run on each
+        roll as it comes in (``take_roll``): the same computation either way."""
+        while self.rolls_tracked < len(self.roll_plan):
+            i = self.rolls_tracked
+            tier = self.roll_plan[i]
+            key = tier_key(tier, [], self.roll_plan)
+            before_tier()
+            if i == 0:
+                self.K_pans = self.K1
+                self.rolls_predicted_tiers = max(self.rolls_predicted_tiers, 1)
+            elif self.rolls_predicted_tiers <= i:
+                self.K1, self.depths = _predicting_tier(
+                    self.tracker, key, self.done, self.K0, self.K1, self.depths,
+                    self.settings, self.images, stage)
+                self.rolls_predicted_tiers = i + 1
+            if not ready(tier):
+                return
+            with stage(f"tracking: {key.removeprefix('K_for_')}"):
+                self.tracker.track_all(tier, self.K1, TIER_WINDOW_PX, ROLL_JOINT_WINDOW_PX)
+            self.done += tier
+            self.rolls_tracked += 1
 
 
 @with_one_blas_thread
@@ -992,26 +1004,13 @@ def _solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, 
     images, angles, images_far, angles_far = split_stations(images, angles)
     first, timings = _first_stages(images, angles, settings, emaps, ahead)
     stage = stage_timer(timings)
-    tr, K0, K1, depths, done = first.tracker, first.K0, first.K1, first.depths, \
-        list(first.done)
-    _, wide, roll_groups, order = _tiers(images, tr)
-    # the refinement on every pan and tilt; tiers tracked and predicted while the rig
-    # rolled (``PanTiltStage.take_roll``) are not taken again
-    K_pans: dict | RefineResult | None = first.K_pans
-    for i, tier in enumerate(roll_groups):
-        if i < first.rolls_tracked:
-            continue
-        key = tier_key(tier, wide, roll_groups)
-        helper.start()
-        if i == 0:  # its prediction came with the first stages
-            K_pans = K1
-        elif i >= first.rolls_predicted_tiers:
-            K1, depths = _predicting_tier(tr, key, done, K0, K1, depths, settings, images,
-                                          stage)
-        with stage(f"tracking: {key.removeprefix('K_for_')}"):
-            tr.track_all(tier, K1, TIER_WINDOW_PX, ROLL_JOINT_WINDOW_PX)
-        done += tier
-    K_pans = K1 if K_pans is None else K_pans
+    _, _, roll_groups, order = _tiers(images, first.tracker)
+    # the rolls' tiers, but those tracked and predicted while the rig rolled
+    # (``PanTiltStage.take_roll``; ``fits`` checked they are these tiers)
+    first.roll_plan = roll_groups
+    first.go_on_with_rolls(stage, before_tier=helper.start)
+    tr, K0, K1, depths = first.tracker, first.K0, first.K1, first.depths
+    K_pans = K1 if first.K_pans is None else first.K_pans  # the refinement on the pans
 
     if SHIFT in images and settings.shift_m > 0:  # again, with the K of every pose
         with stage("depths"):
