@@ -165,23 +165,27 @@ def stop_all(children: list[ChildProcess], timeout: float = 8.0,
             child._release()
 
 
+def _state_letter(pid: int) -> str | None:
+    """The process's state letter from /proc (``Z``: a zombie), or None when it is gone."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return None
+
+
 def _proc_state(pid: int) -> str:
     """The process's state letter and kernel wait channel, for a log line."""
+    state = _state_letter(pid)
     try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
         wchan = Path(f"/proc/{pid}/wchan").read_text().strip() or "-"
     except OSError:
-        return "gone"
-    return f"{state}, waiting in {wchan}"
+        wchan = "-"
+    return "gone" if state is None else f"{state}, waiting in {wchan}"
 
 
 def _kill_if_alive(pid: int) -> bool:
     """SIGKILL ``pid`` if it still runs (a zombie does not count); True if it did."""
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return False
-    if stat.rsplit(")", 1)[1].split()[0] == "Z":
+    if _state_letter(pid) in (None, "Z"):
         return False
     try:
         os.kill(pid, signal.SIGKILL)
