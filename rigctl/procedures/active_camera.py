@@ -248,9 +248,9 @@ class WorkWhileMoving:
         self.ahead: PanTiltStage | None = None
         # the rolls' tiers as planned (the recorded angles group the same way, checked
         # by ``PanTiltStage.fits``)
-        self.roll_plan = roll_tiers(
-            [label for label, *_ in head_poses(params) if label.startswith("roll")],
-            {label: (pan, tilt, roll) for label, pan, tilt, roll in head_poses(params)})
+        rolls = {label: (pan, tilt, roll) for label, pan, tilt, roll in head_poses(params)
+                 if label.startswith("roll")}
+        self.roll_plan = roll_tiers(list(rolls), rolls)
         import_matplotlib_in_background()  # for the plots after the result
 
     def __call__(self, image: np.ndarray, meta: dict) -> tuple:
