@@ -138,8 +138,30 @@ function setupPreview() {
 async function refreshLive() {
   for (const el of document.querySelectorAll("[data-live]")) {
     const response = await fetch(el.dataset.live);
-    if (response.ok) el.innerHTML = await response.text();
+    if (response.ok) swapChanged(el, await response.text());
   }
+}
+
+// Only the parts of a live fragment that changed are replaced (its sections, by id): a
+// replaced button is a new element, and a click whose press and release straddle the
+// swap is lost. The current run's progress changes at every step; the queue's abort
+// buttons beside it stay the same elements until the queue changes.
+function swapChanged(el, html) {
+  const fresh = document.createElement("template");
+  fresh.innerHTML = html;
+  const parts = [...fresh.content.children];
+  const old = [...el.children];
+  const bare = [...fresh.content.childNodes].some(
+    n => n.nodeType !== Node.ELEMENT_NODE && n.textContent.trim());
+  const sameLayout = !bare && parts.length > 0 && parts.length === old.length
+    && parts.every((part, i) => part.id && part.id === old[i].id);
+  if (!sameLayout) {
+    el.innerHTML = html;
+    return;
+  }
+  parts.forEach((part, i) => {
+    if (part.outerHTML !== old[i].outerHTML) old[i].replaceWith(part);
+  });
 }
 
 function onProgress(event) {
