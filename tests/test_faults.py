@@ -121,11 +121,12 @@ def test_a_lost_rtde_link_is_reported_by_its_cause(arm_proc, tmp_path, fault):  
     """In a child process: the stand-in drops its RTDE connections, or its stream falls
     silent past ur_rtde's read deadline (which then closes the sockets itself). After
     that, ur_rtde's control interface reconnects from its own thread, and that thread
-    has crashed the process (SIGSEGV) in about half of the trials here, whatever the
-    driver does meanwhile, and once under the load check hung it past 120 s (a known
-    doubt, see the closing notes). The driver's own report, naming the cause, must come
-    first; the child's steps tell where a hang stopped. Only a crash or a hang inside the
-    arm's teardown, after the report, is put down to that doubt."""
+    has crashed the process (SIGSEGV, or SIGABRT from the C library's "double free
+    detected") in about half of the trials here, whatever the driver does meanwhile, and
+    once under the load check hung it past 120 s (a known doubt, see the closing notes).
+    The driver's own report, naming the cause, must come first; the child's steps tell
+    where a hang stopped. Only a crash or a hang inside the arm's teardown, after the
+    report, is put down to that doubt."""
     command, stream_timeout_s, expected = LINK_FAULTS[fault]
     report = tmp_path / "steps.jsonl"
     child = subprocess.Popen([sys.executable, "-c", DROP_SCRIPT, arm_proc.ready["host"],
@@ -161,7 +162,7 @@ def test_a_lost_rtde_link_is_reported_by_its_cause(arm_proc, tmp_path, fault):  
         assert stopped_in and re.search(r"\.(disconnect|isConnected|stopScript)\(", stopped_in), \
             where
         pytest.xfail(f"ur_rtde hung in the arm's teardown, at {stopped_in!r}")
-    assert child.returncode == -signal.SIGSEGV, where
+    assert child.returncode in (-signal.SIGSEGV, -signal.SIGABRT), where
 
 
 @pytest.mark.parametrize("end", ["failed", "aborted"])
