@@ -8,7 +8,14 @@ from pathlib import Path
 from rigctl.childproc import ROOT, ChildProcess
 from rigctl.mocks.jsonlines import ask_once
 
-__all__ = ["ROOT", "MockProcess", "control"]
+__all__ = ["NO_CONTROLLER_HOST", "ROOT", "MockProcess", "control"]
+
+# The arm's address in a rig file whose tests plan without any controller: nothing listens
+# there. Not 127.0.0.1, where `rigctl sim up` (its default host) or a URSim may run beside
+# the suite (a UR5e there failed the planning tests of a ur3e rig: "the controller at
+# 127.0.0.1 reports ... UR5"), and outside the 127.20-250.x.x range the suite's simulated
+# controllers take (``rigctl.loopback.free_host``).
+NO_CONTROLLER_HOST = "127.1.0.1"
 
 
 class MockProcess(ChildProcess):

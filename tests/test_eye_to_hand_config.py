@@ -15,7 +15,7 @@ from rigctl.config import parse_rig
 from rigctl.errors import ConfigError
 from rigctl.mocks.random_world import random_world
 from rigctl.mocks.world import World, WorldFile, load_world
-from tests.mockproc import ROOT
+from tests.mockproc import NO_CONTROLLER_HOST, ROOT
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -75,7 +75,7 @@ def test_a_board_on_the_flange_moves_with_the_arm(tmp_path):
     world = load_world("eye_to_hand")
     truth = world.truth()
     assert np.allclose(truth["T_base_cam"], world.T_base_cam(world.home_q, (0, 0, 0)))
-    rig = parse_rig(yaml.safe_dump(rig_text(tmp_path / "w.yaml", "127.0.0.1", tmp_path,
+    rig = parse_rig(yaml.safe_dump(rig_text(tmp_path / "w.yaml", NO_CONTROLLER_HOST, tmp_path,
                                             "http://127.0.0.1:1/", "records", world)))
     (q0, q, *_), _ = board_views(rig, 4, 0.45, 30.0, 3, world.K)
     assert np.allclose(world.T_base_target_at(q),

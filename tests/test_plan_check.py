@@ -15,13 +15,14 @@ from rigctl.mocks.ur_kinematics import ArmModel, matrix_to_pose
 from rigctl.mocks.world import load_world
 from rigctl.procedures.base import MoveArmJoints, MoveArmLinear
 from rigctl.runner import check_plan
+from tests.mockproc import NO_CONTROLLER_HOST
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def config_with(joint_limits_deg=None):
     world = load_world(ROOT / "rigctl/mocks/worlds/default.yaml")
-    rig = rig_text(Path("world.yaml"), "127.0.0.1", Path("/nonexistent"),
+    rig = rig_text(Path("world.yaml"), NO_CONTROLLER_HOST, Path("/nonexistent"),
                    "http://127.0.0.1:9/", "records", world)
     if joint_limits_deg is not None:
         rig["devices"]["arm"]["joint_limits_deg"] = joint_limits_deg

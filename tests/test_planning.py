@@ -21,13 +21,14 @@ from rigctl.procedures.planning import (
     plan_target_views,
     spread_offsets,
 )
+from tests.mockproc import NO_CONTROLLER_HOST
 
 
 @pytest.fixture
 def config(tmp_path):
     """The rig file ``rigctl sim up`` writes for the default world (nothing started)."""
     world_path = WORLDS / "default.yaml"
-    rig = rig_text(world_path, "127.0.0.1", tmp_path, "http://127.0.0.1:9/stream",
+    rig = rig_text(world_path, NO_CONTROLLER_HOST, tmp_path, "http://127.0.0.1:9/stream",
                    str(tmp_path / "records"), load_world(world_path))
     (tmp_path / "rig.yaml").write_text(yaml.safe_dump(rig))
     return load_rig(tmp_path / "rig.yaml")

@@ -19,11 +19,12 @@ from rigctl.mocks.world import World, WorldFile
 from rigctl.procedures import get_procedure
 from rigctl.procedures.robot_kinematics import RobotKinematicsParams, _scaled_to_reach
 from rigctl.runner import check_plan
+from tests.mockproc import NO_CONTROLLER_HOST
 
 
 def rig_for(world_data: dict):
     world = World(WorldFile.model_validate(world_data))
-    rig = rig_text(Path("world.yaml"), "127.0.0.1", Path("/nonexistent"),
+    rig = rig_text(Path("world.yaml"), NO_CONTROLLER_HOST, Path("/nonexistent"),
                    "http://127.0.0.1:9/", "records", world)
     return parse_rig(yaml.safe_dump(rig))
 
