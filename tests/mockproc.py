@@ -8,7 +8,7 @@ from pathlib import Path
 from rigctl.childproc import ROOT, ChildProcess
 from rigctl.mocks.jsonlines import ask_once
 
-__all__ = ["NO_CONTROLLER_HOST", "ROOT", "MockProcess", "control"]
+__all__ = ["NO_CONTROLLER_HOST", "ROOT", "MockProcess", "control", "rig_without_devices"]
 
 # The arm's address in a rig file whose tests plan without any controller: nothing listens
 # there. Not 127.0.0.1, where `rigctl sim up` (its default host) or a URSim may run beside
@@ -16,6 +16,15 @@ __all__ = ["NO_CONTROLLER_HOST", "ROOT", "MockProcess", "control"]
 # 127.0.0.1 reports ... UR5"), and outside the 127.20-250.x.x range the suite's simulated
 # controllers take (``rigctl.loopback.free_host``).
 NO_CONTROLLER_HOST = "127.1.0.1"
+
+
+def rig_without_devices(world_path, folder, records, world) -> dict:
+    """The rig file ``rigctl sim up`` writes for ``world``, with nothing started: the arm
+    at ``NO_CONTROLLER_HOST``, the camera at a port nothing serves."""
+    from rigctl.mocks.sim import rig_text
+
+    return rig_text(world_path, NO_CONTROLLER_HOST, folder, "http://127.0.0.1:9/stream",
+                    records, world)
 
 
 class MockProcess(ChildProcess):

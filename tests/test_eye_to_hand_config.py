@@ -15,7 +15,7 @@ from rigctl.config import parse_rig
 from rigctl.errors import ConfigError
 from rigctl.mocks.random_world import random_world
 from rigctl.mocks.world import World, WorldFile, load_world
-from tests.mockproc import NO_CONTROLLER_HOST, ROOT
+from tests.mockproc import ROOT, rig_without_devices
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -69,14 +69,13 @@ def test_world_refuses_camera_and_board_both_on_the_flange():
 
 def test_a_board_on_the_flange_moves_with_the_arm(tmp_path):
     from rigctl.calib.board import detect_target
-    from rigctl.mocks.sim import rig_text
     from rigctl.procedures.planning_e2h import board_views
 
     world = load_world("eye_to_hand")
     truth = world.truth()
     assert np.allclose(truth["T_base_cam"], world.T_base_cam(world.home_q, (0, 0, 0)))
-    rig = parse_rig(yaml.safe_dump(rig_text(tmp_path / "w.yaml", NO_CONTROLLER_HOST, tmp_path,
-                                            "http://127.0.0.1:1/", "records", world)))
+    rig = parse_rig(yaml.safe_dump(rig_without_devices(tmp_path / "w.yaml", tmp_path,
+                                                       "records", world)))
     (q0, q, *_), _ = board_views(rig, 4, 0.45, 30.0, 3, world.K)
     assert np.allclose(world.T_base_target_at(q),
                        world.arm_true.flange(q) @ np.array(truth["T_flange_target"]))

@@ -10,20 +10,18 @@ import numpy as np
 import yaml
 
 from rigctl.config import parse_rig
-from rigctl.mocks.sim import rig_text
 from rigctl.mocks.ur_kinematics import ArmModel, matrix_to_pose
 from rigctl.mocks.world import load_world
 from rigctl.procedures.base import MoveArmJoints, MoveArmLinear
 from rigctl.runner import check_plan
-from tests.mockproc import NO_CONTROLLER_HOST
+from tests.mockproc import rig_without_devices
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def config_with(joint_limits_deg=None):
     world = load_world(ROOT / "rigctl/mocks/worlds/default.yaml")
-    rig = rig_text(Path("world.yaml"), NO_CONTROLLER_HOST, Path("/nonexistent"),
-                   "http://127.0.0.1:9/", "records", world)
+    rig = rig_without_devices(Path("world.yaml"), Path("/nonexistent"), "records", world)
     if joint_limits_deg is not None:
         rig["devices"]["arm"]["joint_limits_deg"] = joint_limits_deg
     return parse_rig(yaml.safe_dump(rig)), world

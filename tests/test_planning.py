@@ -11,7 +11,6 @@ import yaml
 
 from rigctl.config import load_rig
 from rigctl.geometry.kinematics import nominal_ur
-from rigctl.mocks.sim import rig_text
 from rigctl.mocks.world import WORLDS, load_world
 from rigctl.procedures.planning import (
     MIN_CLEARANCE_M,
@@ -21,15 +20,15 @@ from rigctl.procedures.planning import (
     plan_target_views,
     spread_offsets,
 )
-from tests.mockproc import NO_CONTROLLER_HOST
+from tests.mockproc import rig_without_devices
 
 
 @pytest.fixture
 def config(tmp_path):
     """The rig file ``rigctl sim up`` writes for the default world (nothing started)."""
     world_path = WORLDS / "default.yaml"
-    rig = rig_text(world_path, NO_CONTROLLER_HOST, tmp_path, "http://127.0.0.1:9/stream",
-                   str(tmp_path / "records"), load_world(world_path))
+    rig = rig_without_devices(world_path, tmp_path, str(tmp_path / "records"),
+                              load_world(world_path))
     (tmp_path / "rig.yaml").write_text(yaml.safe_dump(rig))
     return load_rig(tmp_path / "rig.yaml")
 

@@ -14,13 +14,12 @@ from rigctl.config import load_rig
 from rigctl.drivers.ur_primary import ControllerVersion, KinematicsInfo, PrimaryInfo
 from rigctl.errors import DeviceError
 from rigctl.geometry.kinematics import nominal_ur
-from rigctl.mocks.sim import rig_text
 from rigctl.mocks.ur_kinematics import ArmModel
 from rigctl.mocks.ur_primary import dh_table
 from rigctl.mocks.world import WORLDS, load_world
 from rigctl.procedures import get_procedure, planning
 from rigctl.procedures.planning import nominal_flange_cam, planning_arm, target_centre
-from tests.mockproc import NO_CONTROLLER_HOST
+from tests.mockproc import rig_without_devices
 
 VERSION = ControllerVersion("URControl", 5, 11, 1, 108318, "01-01-2024, 00:00:00")
 
@@ -73,8 +72,8 @@ def world_data():
 def rig_for(tmp_path, world_data):
     world_path = tmp_path / "world.yaml"
     world_path.write_text(yaml.safe_dump(world_data))
-    rig = rig_text(world_path, NO_CONTROLLER_HOST, tmp_path, "http://127.0.0.1:9/stream",
-                   str(tmp_path / "records"), load_world(world_path))
+    rig = rig_without_devices(world_path, tmp_path, str(tmp_path / "records"),
+                              load_world(world_path))
     (tmp_path / "rig.yaml").write_text(yaml.safe_dump(rig))
     return load_rig(tmp_path / "rig.yaml")
 

@@ -14,18 +14,16 @@ import yaml
 from rigctl.config import parse_rig
 from rigctl.errors import SolveError
 from rigctl.mocks.random_world import random_world
-from rigctl.mocks.sim import rig_text
 from rigctl.mocks.world import World, WorldFile
 from rigctl.procedures import get_procedure
 from rigctl.procedures.robot_kinematics import RobotKinematicsParams, _scaled_to_reach
 from rigctl.runner import check_plan
-from tests.mockproc import NO_CONTROLLER_HOST
+from tests.mockproc import rig_without_devices
 
 
 def rig_for(world_data: dict):
     world = World(WorldFile.model_validate(world_data))
-    rig = rig_text(Path("world.yaml"), NO_CONTROLLER_HOST, Path("/nonexistent"),
-                   "http://127.0.0.1:9/", "records", world)
+    rig = rig_without_devices(Path("world.yaml"), Path("/nonexistent"), "records", world)
     return parse_rig(yaml.safe_dump(rig))
 
 

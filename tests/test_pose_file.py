@@ -15,7 +15,6 @@ import yaml
 from rigctl.config import load_rig
 from rigctl.errors import ConfigError
 from rigctl.geometry.kinematics import nominal_ur
-from rigctl.mocks.sim import rig_text
 from rigctl.mocks.world import WORLDS, load_world
 from rigctl.procedures.base import CaptureStep, MoveArmJoints, Note
 from rigctl.procedures.planning import (
@@ -30,7 +29,7 @@ from rigctl.procedures.planning import (
 )
 from rigctl.records import RunDirectory
 from rigctl.runner import prepare_run
-from tests.mockproc import NO_CONTROLLER_HOST
+from tests.mockproc import rig_without_devices
 
 K = np.array([[900.0, 0, 652.3], [0, 905.0, 371.8], [0, 0, 1]])
 NOMINAL_INTRINSICS = {"fx": 900.0, "fy": 905.0, "cx": 652.3, "cy": 371.8}
@@ -41,8 +40,8 @@ def config(tmp_path_factory):
     """The rig file ``rigctl sim up`` writes for the default world (nothing started)."""
     tmp_path = tmp_path_factory.mktemp("pose-file-rig")
     world_path = WORLDS / "default.yaml"
-    rig = rig_text(world_path, NO_CONTROLLER_HOST, tmp_path, "http://127.0.0.1:9/stream",
-                   str(tmp_path / "records"), load_world(world_path))
+    rig = rig_without_devices(world_path, tmp_path, str(tmp_path / "records"),
+                              load_world(world_path))
     (tmp_path / "rig.yaml").write_text(yaml.safe_dump(rig))
     return load_rig(tmp_path / "rig.yaml")
 
