@@ -44,6 +44,9 @@ FIRST_GROWTH = 2.0
 # the least damping: below it a step is Gauss-Newton's to rounding, and a damping that
 # had shrunk to zero could not grow again after a rejected step
 MIN_DAMPING = 1e-15
+# rows per block of ``_normal_matrix``: a block of a 40-column Jacobian (2.6 MB) stays in
+# the cache between its weighting and its product
+NORMAL_BLOCK_ROWS = 8192
 
 
 @dataclass
@@ -77,6 +80,27 @@ def _loss_terms(f: np.ndarray, loss: str, f_scale: float
     d1 = 1.0 / root
     weight = d1 / (1.0 + z)  # rho' + 2 z rho'' = (1 + z)^(-3/2): always positive
     return cost, weight, d1 * f
+
+
+def _normal_matrix(J: np.ndarray, weight: np.ndarray | None) -> np.ndarray:
+    """``H = J^T W J`` (``W`` = diag(``weight``), None: the identity). Weighted, it is
+    summed over blocks of ``NORMAL_BLOCK_ROWS`` rows, each scaled by the root of its
+    weights and multiplied by its own transpose while in the cache: one weighted copy of
+    a 135,000 x 37 Jacobian and one product over it took 28 ms, the blocks 16 ms (one
+    BLAS thread; the same matrix to rounding)."""
+    if weight is None:
+        return J.T @ J
+    root = np.sqrt(weight)
+    columns = J.T  # a view; contiguous rows when J is column-major, as the refinement's
+    n_rows = J.shape[0]
+    block = np.empty((J.shape[1], min(NORMAL_BLOCK_ROWS, n_rows)))
+    H = np.zeros((J.shape[1], J.shape[1]))
+    for start in range(0, n_rows, NORMAL_BLOCK_ROWS):
+        stop = min(start + NORMAL_BLOCK_ROWS, n_rows)
+        part = block[:, :stop - start]
+        np.multiply(columns[:, start:stop], root[start:stop], out=part)
+        H += part @ part.T
+    return H
 
 
 class _Damping:
@@ -140,7 +164,7 @@ def levenberg_marquardt(fun: Callable[..., np.ndarray], jac: Callable[..., np.nd
     damping = _Damping()
     status = None
     while status is None:
-        H = J.T @ (J if weight is None else J * weight[:, None])
+        H = _normal_matrix(J, weight)
         g = J.T @ rf
         _check_finite(H, g, x)
         diag_max = np.maximum(diag_max, np.diag(H))
