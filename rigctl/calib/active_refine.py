@@ -235,7 +235,9 @@ def predict_many(motions: list[Motion], x: np.ndarray, n_dist: int,
 
 def _predict_all(motions, x, n_dist, refs=None, rho=None, cache=None, offsets=None
                  ) -> np.ndarray:
-    """``predict_many``'s pixels, concatenated over the motions."""
+    """``predict_many``'s pixels, concatenated over the motions; the rays moved and
+    projected in ``jacobian_chunks`` of whole motions, each in the cache while it is
+    worked on (every row alone: the same pixels as one pass)."""
     fx, fy, cx, cy, N, a, s, k = _unpack(x, n_dist)
     if refs is None:
         refs = np.concatenate([m.ref_points for m in motions])
@@ -243,20 +245,28 @@ def _predict_all(motions, x, n_dist, refs=None, rho=None, cache=None, offsets=No
         s = rho[:, None] * s
     und = cache.undistort(refs, fx, fy, cx, cy, k) if cache is not None else \
         _undistort(refs, fx, fy, cx, cy, k)
-    rays = np.column_stack([und, np.ones(len(refs))]) + s
-    moved, start = np.empty_like(rays), 0
     rotations = cache.rotations(motions, N, a, offsets) if cache is not None else \
         motion_rotations(motions, N, a, offsets)
-    for motion, R in zip(motions, rotations, strict=True):
-        end = start + len(motion.ref_points)
-        moved[start:end] = rays[start:end] @ R - (s[start:end] if s.ndim == 2 else s)
-        start = end
-    # A trial step may turn points behind the camera: keep the residuals finite (and
-    # large) so the optimiser backs off instead of failing.
-    xn = moved[:, :2] / np.maximum(moved[:, 2:3], 1e-3)
-    if n_dist:
-        xn = distort(xn, k)
-    return np.stack([fx * xn[:, 0] + cx, fy * xn[:, 1] + cy], axis=1)
+    counts = [len(motion.ref_points) for motion in motions]
+    bounds = np.cumsum([0, *counts])
+    pixels = np.empty((len(refs), 2))
+    for m0, m1 in jacobian_chunks(counts, 1):
+        c0, c1 = bounds[m0], bounds[m1]
+        s_chunk = s[c0:c1] if s.ndim == 2 else s
+        rays = np.column_stack([und[c0:c1], np.ones(c1 - c0)]) + s_chunk
+        moved = np.empty_like(rays)
+        for R, start, end in zip(rotations[m0:m1], bounds[m0:m1] - c0, bounds[m0 + 1:m1 + 1] - c0,
+                                 strict=True):
+            moved[start:end] = rays[start:end] @ R - (s_chunk[start:end] if s.ndim == 2
+                                                      else s)
+        # A trial step may turn points behind the camera: keep the residuals finite (and
+        # large) so the optimiser backs off instead of failing.
+        xn = moved[:, :2] / np.maximum(moved[:, 2:3], 1e-3)
+        if n_dist:
+            xn = distort(xn, k)
+        pixels[c0:c1, 0] = fx * xn[:, 0] + cx
+        pixels[c0:c1, 1] = fy * xn[:, 1] + cy
+    return pixels
 
 
 @dataclass

@@ -9,6 +9,7 @@ import math
 from typing import Any
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from rigctl.calib import active
 from rigctl.calib.active import ContourStats
@@ -94,6 +95,9 @@ class Tracker:
                              "need 3): point the camera at a scene with separate shapes")
         self.rel = {k: tuple(np.subtract(v, angles["ref"])) for k, v in angles.items()}
         self.matches: dict[str, list] = {}
+        # by label: the matches the moved curves were taken from, the curves' points and
+        # normals and their k-d tree (``motion``)
+        self._moved: dict[str, tuple] = {}
         self.report.update({"contours": len(self.contours), "motions": {}})
 
     def add_captures(self, images: dict, angles: dict,
@@ -229,17 +233,26 @@ class Tracker:
 
     def motion(self, label: str, stride: int = 1) -> Motion | None:
         """The tracked contours of ``label`` as one refinement motion: every
-        ``stride``-th reference point of each (the moved curves stay whole)."""
-        idx = [i for i, m in enumerate(self.matches[label]) if m.ok]
+        ``stride``-th reference point of each (the moved curves stay whole). The moved
+        curves and their k-d tree are made once per tracking of ``label``, and shared by
+        every refinement's motion of it (each predicting refinement built the trees of
+        all the tiers before it again)."""
+        matches = self.matches[label]
+        idx = [i for i, m in enumerate(matches) if m.ok]
         if not idx:
             return None
+        moved = self._moved.get(label)
+        if moved is None or moved[0] is not matches:
+            points = np.concatenate([matches[i].points for i in idx])
+            moved = (matches, points, np.concatenate([matches[i].normals for i in idx]),
+                     cKDTree(points))
+            self._moved[label] = moved
         refs = [self.contours[i].points[::stride] for i in idx]
         return Motion(self.angles["ref"], self.angles[label], np.concatenate(refs),
-                      np.concatenate([self.matches[label][i].points for i in idx]),
-                      np.concatenate([self.matches[label][i].normals for i in idx]),
-                      label=label,
+                      moved[1], moved[2], label=label,
                       groups=np.concatenate([np.full(len(r), i) for r, i in zip(refs, idx,
-                                                                              strict=True)]))
+                                                                              strict=True)]),
+                      _tree=moved[3])
 
     def stats(self, label: str, idx: list[int]) -> list[ContourStats]:
         if label == "ref":
