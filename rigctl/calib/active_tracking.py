@@ -18,7 +18,12 @@ from rigctl.calib.synthetic import intrinsics, rot_x, rot_y, rot_z
 from rigctl.calib.threads import map_in_threads
 from rigctl.errors import SolveError
 from rigctl.vision.contours import EdgeMap, edge_map, extract_contours
-from rigctl.vision.tracking import common_shift, track_by_prediction, track_by_shift
+from rigctl.vision.tracking import (
+    common_shift,
+    searchable,
+    track_by_prediction,
+    track_by_shift,
+)
 
 MOTIONS = ("pan+", "pan-", "tilt+", "tilt-")
 SHIFT = "shift"  # the capture after the arm moved the camera sideways (scene depths)
@@ -48,10 +53,12 @@ def pinhole_predictor(K: dict, rel_angles):
 
 def _edge_maps(images: dict, emaps: dict | None) -> dict:
     """Each image's edge map, by label: ``emaps``' where given (taken while the rig moved
-    on), the others taken here side by side."""
+    on), the others taken here side by side (``searchable``: with the maps a search in
+    them needs)."""
     known = {k: v for k, v in (emaps or {}).items() if k in images}
     missing = [k for k in images if k not in known]
-    known.update(zip(missing, map_in_threads(edge_map, [images[k] for k in missing]),
+    known.update(zip(missing, map_in_threads(lambda image: searchable(edge_map(image)),
+                                             [images[k] for k in missing]),
                      strict=True))
     return {k: known[k] for k in images}
 

@@ -297,11 +297,13 @@ class WorkWhileMoving:
 
 
 def image_and_edge_map(image: np.ndarray) -> tuple[np.ndarray, Any]:
-    """One capture's image and its edge map (``vision.contours.edge_map``): what the
-    solve takes of each capture before anything else (``ActiveCamera.capture_work``)."""
+    """One capture's image and its edge map (``vision.contours.edge_map``, with the maps
+    a search in it needs: ``vision.tracking.searchable``): what the solve takes of each
+    capture before anything else (``ActiveCamera.capture_work``)."""
     from rigctl.vision.contours import edge_map
+    from rigctl.vision.tracking import searchable
 
-    return image, edge_map(image)
+    return image, searchable(edge_map(image))
 
 
 def servo_models(captures, config) -> dict[str, str]:

@@ -110,6 +110,15 @@ def _near(emap: EdgeMap) -> np.ndarray:
     return emap._near
 
 
+def searchable(emap: EdgeMap) -> EdgeMap:
+    """``emap`` with what every search in it needs taken now, not at its first search:
+    its edges' distance transform and near-edge map (the same maps either way). Taken
+    with each capture's edge map, side by side or while the rig moves, instead of on
+    the solve's path (14 captures: 0.2 s of one core)."""
+    _near(emap)
+    return emap
+
+
 def _search_shifts(emap: EdgeMap, base: np.ndarray, xs: np.ndarray, ys: np.ndarray):
     """``_search`` over the integer shifts from xs[0] to xs[-1] and ys[0] to ys[-1], with
     the template's points rounded to whole pixels: one correlation of the template's
