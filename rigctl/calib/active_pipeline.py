@@ -198,7 +198,7 @@ def _predicting_refinement(motions, start: dict, settings: ActiveSettings,
                   outer_iterations=PREDICTION_ROUNDS,
                   depths=None if depths is None else depths.prior(),
                   offset_sigma_m=settings.nodal_offset_mm / 1000.0, uncertainty=False,
-                  least_squares_end=False)
+                  least_squares_end=False, robust_cost=False)
 
 
 def _measured_depths(tr: Tracker, K: RefineResult, settings: ActiveSettings, images: dict
@@ -358,7 +358,8 @@ def _coarse_stage(motions, starts: dict[str, dict], kwargs: dict, timings: dict[
     coarse_motions = _coarse(motions, COARSE_FACTOR)
     coarse, errors = _refine_each(
         {name: (coarse_motions, quiet) if name == first else
-         (_coarse(motions, SCOUT_FACTOR), {**quiet, "outer_iterations": SCOUT_ROUNDS})
+         (_coarse(motions, SCOUT_FACTOR), {**quiet, "outer_iterations": SCOUT_ROUNDS,
+                                        "robust_cost": False})
          for name in starts}, starts, "coarse refinement from", timings, helper)
     confirm: dict[str, dict] = {}
     for name, start in starts.items():
@@ -402,7 +403,7 @@ def _coarse_stage_shared(motions, starts: dict[str, dict], kwargs: dict,
     helper at once), and the first start's refinement on all points taken here while
     the helper works. The same stages, outcomes and report as without the helper."""
     quiet = {**kwargs, "uncertainty": False}
-    scout_kwargs = {**quiet, "outer_iterations": SCOUT_ROUNDS}
+    scout_kwargs = {**quiet, "outer_iterations": SCOUT_ROUNDS, "robust_cost": False}
     names = list(starts)
     first = names[0]
     coarse_motions = _coarse(motions, COARSE_FACTOR)

@@ -818,8 +818,8 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
            outlier_sigmas: float = 3.0, outer_iterations: int = 4,
            prior_deg: float = 5.0, parallax_sigma: float = 0.003,
            depths: DepthPrior | None = None, offset_sigma_m: float = 0.003,
-           angle_sigma=None, uncertainty: bool = True, least_squares_end: bool = True
-           ) -> RefineResult:
+           angle_sigma=None, uncertainty: bool = True, least_squares_end: bool = True,
+           robust_cost: bool = True) -> RefineResult:
     """Joint refinement of fx, fy, cx, cy, the mounting rotation and the roll axis (and
     ``n_dist`` distortion terms, ``DIST_SLOTS``) over all motions with the exact rotation
     model (thesis Lemma 3.1, eq. 3.3), from ``initial`` (fx, fy, cx, cy; e.g. Strategy
@@ -847,7 +847,10 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
     Without ``uncertainty`` (a refinement that only predicts the next tier) no
     covariance is computed: every sigma is NaN. Without ``least_squares_end`` the
     refinement ends on its last robust solve, without the plain least-squares solve on
-    the kept points after it (for a refinement that only predicts, or starts another)."""
+    the kept points after it (for a refinement that only predicts, or starts another).
+    Without ``robust_cost`` its ``robust_cost`` (an association and a pass over every
+    point, to rank refinements of the same motions from different starts) is left NaN,
+    for a refinement nothing ranks (one that predicts, or scouts where a start ends)."""
     if len(motions) < 2:
         raise SolveError("refinement: needs at least two motions")
     if sum(len(m.ref_points) for m in motions) < 20:
@@ -879,7 +882,8 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
     solves_s = time.perf_counter() - started
     result = _result(pb, final, r, assoc, parallax_sigma, uncertainty)
     result.timings_s = {"solves": solves_s, **result.timings_s}
-    result.robust_cost = _robust_cost(pb)
+    if robust_cost:
+        result.robust_cost = _robust_cost(pb)
     result.with_depths = pb.groups is not None
     return result
 
