@@ -35,6 +35,7 @@ from rigctl.calib.active_tracking import roll_tiers
 from rigctl.calib.threads import map_in_threads
 from rigctl.errors import SolveError
 from rigctl.procedures.plot_import import import_matplotlib_in_background
+from rigctl.vision.tracking import searchable
 
 from .base import (
     CaptureStep,
@@ -259,6 +260,8 @@ class WorkWhileMoving:
         if not label or head is None or label.startswith(STATION_PREFIX):
             return image, emap
         angle = tuple(head[a] for a in ("pan", "tilt", "roll"))
+        if label != "ref":  # searched by the tracking: its search maps now, off the solve
+            searchable(emap)
         if self.started:  # a roll after the first: the rolls' stages go on
             if self.ahead is not None and label.startswith("roll"):
                 self._take_roll(label, image, angle, emap)
@@ -297,13 +300,11 @@ class WorkWhileMoving:
 
 
 def image_and_edge_map(image: np.ndarray) -> tuple[np.ndarray, Any]:
-    """One capture's image and its edge map (``vision.contours.edge_map``, with the maps
-    a search in it needs: ``vision.tracking.searchable``): what the solve takes of each
-    capture before anything else (``ActiveCamera.capture_work``)."""
+    """One capture's image and its edge map (``vision.contours.edge_map``): what the
+    solve takes of each capture before anything else (``ActiveCamera.capture_work``)."""
     from rigctl.vision.contours import edge_map
-    from rigctl.vision.tracking import searchable
 
-    return image, searchable(edge_map(image))
+    return image, edge_map(image)
 
 
 def servo_models(captures, config) -> dict[str, str]:
