@@ -78,3 +78,38 @@ def test_the_thread_count_comes_from_the_environment(monkeypatch):
     assert solve_threads() == 3
     monkeypatch.delenv("RIGCTL_SOLVE_THREADS")
     assert solve_threads() == DEFAULT_THREADS >= 1
+
+
+def test_every_item_is_done_before_the_first_error_is_raised():
+    """The pool is the process's and outlives the call: an item still running after the
+    error was raised would go on writing into the caller's arrays."""
+    import time
+
+    done = []
+
+    def fn(i: int) -> int:
+        if i == 0:
+            raise ValueError("item 0")
+        time.sleep(0.05)
+        done.append(i)
+        return i
+
+    with pytest.raises(ValueError, match="item 0"):
+        map_in_threads(fn, range(4), threads=2)
+    assert sorted(done) == [1, 2, 3]
+
+
+def _squares_in_threads(_) -> list[int]:
+    return map_in_threads(lambda i: i * i, range(6), threads=2)
+
+
+@pytest.mark.timeout(60)
+def test_a_forked_child_makes_its_own_pool():
+    """A child forked after the parent used its pool has none of the parent's workers: it
+    makes its own instead of waiting on theirs forever."""
+    import multiprocessing
+
+    assert map_in_threads(lambda i: -i, range(4), threads=2) == [0, -1, -2, -3]
+    with multiprocessing.get_context("fork").Pool(1) as pool:
+        squares = pool.map_async(_squares_in_threads, [None]).get(timeout=30)
+    assert squares == [[0, 1, 4, 9, 16, 25]]

@@ -12,7 +12,7 @@ from __future__ import annotations
 import os
 import threading
 from collections.abc import Callable, Iterable, Iterator
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, wait
 from contextlib import contextmanager
 from typing import TypeVar
 
@@ -66,7 +66,8 @@ def map_in_threads(fn: Callable[[T], R], items: Iterable[T],
                    threads: int | None = None) -> list[R]:
     """``[fn(item) for item in items]``, computed in up to ``threads`` threads (default
     and at most ``threads_here()``: one when called from such a thread); the first
-    exception raised by ``fn`` (in the items' order) is raised again."""
+    exception raised by ``fn`` (in the items' order) is raised again, once every item is
+    done (none goes on behind the caller's back)."""
     items = list(items)
     limit = threads_here()
     threads = min(threads or limit, limit, len(items))
@@ -77,8 +78,36 @@ def map_in_threads(fn: Callable[[T], R], items: Iterable[T],
         _local.threads = 1
         return fn(item)
 
-    with ThreadPoolExecutor(max_workers=threads) as pool:
-        return list(pool.map(alone, items))
+    futures = [_pool(threads).submit(alone, item) for item in items]
+    wait(futures)
+    return [future.result() for future in futures]
+
+
+_pools: dict[int, ThreadPoolExecutor] = {}
+_pools_lock = threading.Lock()
+
+
+def _pool(threads: int) -> ThreadPoolExecutor:
+    """This process's pool of ``threads`` workers, made at its first use and kept: a pool
+    made and shut down for every call cost 0.26 ms (two items) to 0.8 ms (31 items), and a
+    solve makes hundreds of calls (each pass of the refinement's Jacobian is one)."""
+    with _pools_lock:
+        pool = _pools.get(threads)
+        if pool is None:
+            pool = _pools[threads] = ThreadPoolExecutor(max_workers=threads,
+                                                        thread_name_prefix="rigctl-solve")
+        return pool
+
+
+def _forget_pools() -> None:
+    """In a forked child: the parent's workers are not there; pools are made again."""
+    global _pools_lock
+    _pools.clear()
+    _pools_lock = threading.Lock()
+
+
+if hasattr(os, "register_at_fork"):  # POSIX
+    os.register_at_fork(after_in_child=_forget_pools)
 
 
 def row_chunks(counts: list[int], parts: int) -> list[tuple[int, int]]:
