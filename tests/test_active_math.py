@@ -545,3 +545,22 @@ def test_starts_the_coarse_stage_cannot_refine_are_refined_on_all_points(monkeyp
     assert all(report[name].get("fallback") for name in starts)
     assert {"fallback refinement from near", "fallback refinement from far"} <= set(timings)
     assert abs(best.cx - CX) < 0.5 and abs(best.cy - CY) < 0.5
+
+
+def test_the_distinct_reference_points_are_those_of_a_row_wise_unique():
+    """``PredictionCache.distinct`` takes each (x, y) as one complex number: the same
+    distinct points, in the same order, and the same index of each row into them as
+    ``np.unique(..., axis=0)``, over points that repeat (as every motion's reference points
+    do) and share an x or a y."""
+    from rigctl.calib.active_refine import PredictionCache
+
+    rng = np.random.default_rng(7)
+    base = rng.uniform(0.0, 1280.0, (400, 2))
+    base[::7, 0] = base[::5, 0][:len(base[::7])]  # rows sharing an x ...
+    base[1::9, 1] = 360.25  # ... or a y
+    pts = np.concatenate([base[rng.permutation(400)[:300]] for _ in range(6)])
+    unique, inverse = PredictionCache().distinct(pts)
+    expected, expected_inverse = np.unique(pts, axis=0, return_inverse=True)
+    assert np.array_equal(unique, expected)
+    assert np.array_equal(inverse, expected_inverse.ravel())
+    assert np.array_equal(unique[inverse], pts)
