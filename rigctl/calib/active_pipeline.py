@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 import time
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -789,8 +790,12 @@ class _Helper:
         return self.process
 
     def close(self) -> None:
+        """Stops a helper started here, in a thread of its own: the solve's result need
+        not wait for the child's interpreter to end (60 ms on the demo's re-solve). Not a
+        daemon thread, so this process waits for it when it ends: the child is always
+        stopped and waited for by PID (``SolveProcess.close``)."""
         if self._own is not None:
-            self._own.close()
+            threading.Thread(target=self._own.close, name="solve-process-close").start()
 
 
 @dataclass
