@@ -57,9 +57,11 @@ def _edge_maps(images: dict, emaps: dict | None) -> dict:
     them needs)."""
     known = {k: v for k, v in (emaps or {}).items() if k in images}
     missing = [k for k in images if k not in known]
-    known.update(zip(missing, map_in_threads(lambda image: searchable(edge_map(image)),
-                                             [images[k] for k in missing]),
-                     strict=True))
+    def taken(label: str) -> EdgeMap:  # the reference is never searched in
+        emap = edge_map(images[label])
+        return emap if label == "ref" else searchable(emap)
+
+    known.update(zip(missing, map_in_threads(taken, missing), strict=True))
     return {k: known[k] for k in images}
 
 
