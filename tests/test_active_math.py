@@ -514,6 +514,28 @@ def test_distinct_basins_are_each_refined_and_the_cheapest_wins(monkeypatch):
     assert best.cx == report[chosen]["refined_to"][0]
 
 
+def test_a_start_whose_coarse_end_is_far_behind_is_not_refined_on_all_points(monkeypatch):
+    """Two basins (no two ends share one); with ``HOPELESS_COARSE_RATIO`` at 1 the start
+    whose coarse robust cost is not the least is hopeless: reported with its ratio, not
+    refined on all points, and the other is the result."""
+    from rigctl.calib import active_pipeline
+
+    monkeypatch.setattr(active_pipeline, "SAME_END_PX", -1.0)
+    monkeypatch.setattr(active_pipeline, "HOPELESS_COARSE_RATIO", 1.0)
+    motions, starts = _basin_case()
+    timings: dict[str, float] = {}
+    best, report = active_pipeline._refine_from_starts(motions, starts, {}, timings)
+    costs = {name: report[name]["coarse_robust_cost"] for name in starts}
+    kept, behind = sorted(starts, key=costs.get)
+    assert costs[behind] > costs[kept]
+    assert report[behind]["hopeless"] == pytest.approx(costs[behind] / costs[kept])
+    assert "refined_to" not in report[behind] and f"final refinement from {behind}" \
+        not in timings
+    assert report[kept].get("chosen") and f"final refinement from {kept}" in timings
+    assert best.cx == report[kept]["refined_to"][0]
+    assert abs(best.cx - CX) < 0.5 and abs(best.cy - CY) < 0.5
+
+
 def test_starts_the_coarse_stage_cannot_refine_are_refined_on_all_points(monkeypatch):
     """With too few points for a quarter, each start is refined on all points from where
     it was; and when every refinement on all points fails, every start is refined again

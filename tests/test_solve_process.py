@@ -72,6 +72,21 @@ def test_the_final_refinements_starts_with_a_helper_end_where_they_end_without(
     assert abs(shared.cx - CX) < 0.5 and abs(shared.cy - CY) < 0.5
 
 
+def test_a_hopeless_start_is_dropped_with_a_helper_as_without(helper, monkeypatch):
+    """With ``HOPELESS_COARSE_RATIO`` at 1 one of two basins is hopeless: the same result
+    and report with the helper (which may skip the first start's early refinement on
+    all points) as without."""
+    monkeypatch.setattr(active_pipeline, "SAME_END_PX", -1.0)
+    monkeypatch.setattr(active_pipeline, "HOPELESS_COARSE_RATIO", 1.0)
+    motions, starts = _basin_case()
+    alone, report_alone = active_pipeline._refine_from_starts(motions, starts, {}, {})
+    shared, report_shared = active_pipeline._refine_from_starts(motions, starts, {}, {},
+                                                                helper)
+    _same(shared, alone)
+    assert report_shared == report_alone
+    assert sum("hopeless" in report_alone[name] for name in starts) == 1
+
+
 def test_a_solve_error_there_comes_back_as_that_error(helper):
     motions, starts = _basin_case()
     few = [active_pipeline.replace(m, ref_points=m.ref_points[:1], moved_points=

@@ -207,6 +207,7 @@ def world_trial(args) -> dict:
     row["scene_depth"] = res["tracking"].get("scene_depth")
     row["head_geometry"] = head_check(world, res)
     row["timings_s"] = sol.timings_s
+    row["final_starts"] = res["tracking"].get("final_starts")
     return row
 
 

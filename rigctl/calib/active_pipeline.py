@@ -71,6 +71,12 @@ DISTINCT_START_PX = 3.0  # the final refinement also starts from centres this fa
 FINAL_THREADS = 2
 COARSE_FACTOR = 4
 SAME_END_PX = 1.0  # a coarse refinement ending this close to a basin's first is in it
+# A start whose coarse refinement's robust cost is over this many times the least of the
+# coarse stage's is not refined on all points (``_refine_from_starts``). Random worlds
+# 130000-130059: 9 of 60 ended in two basins; each of the 6 coarse ends over 100 times
+# the least was either not chosen or refined to where the chosen one was, while ends
+# under 3 times the least did reverse (130013: 2.4 times, chosen).
+HOPELESS_COARSE_RATIO = 10.0
 # the starts after the first are scouted on every SCOUT_FACTOR-th point in SCOUT_ROUNDS
 # outlier rounds (``_refine_from_starts``)
 SCOUT_FACTOR = 16
@@ -267,6 +273,12 @@ def _refine_from_starts(motions, starts: dict[str, dict], kwargs: dict,
     on all points, go into ``timings``; each stage's error into the report
     (``scout_error``, ``coarse_error``, ``error``, ``fallback_error``).
 
+    A start whose coarse refinement ended with a robust cost over
+    ``HOPELESS_COARSE_RATIO`` times the least of them all (``hopeless`` in the report)
+    is not refined on all points, nor is it a basin: an end that far behind is a local
+    minimum or a run misled by mistracked points, and refining it on all points cost up
+    to three times as long as the others (random world 130059: 6.2 s, against 0.9 s).
+
     Most worlds' starts end in one basin, refined on all points once: refining every
     start on all points took 2-3 times as long, and scouting the other starts instead of
     refining them on the coarse points halves the coarse stage (the demo's run: 4.0 s of
@@ -286,6 +298,7 @@ def _refine_from_starts(motions, starts: dict[str, dict], kwargs: dict,
     report: dict[str, dict] = {name: {"centre": [start["cx"], start["cy"]]}
                                for name, start in starts.items()}
     coarse, errors, early = _coarse_stage(motions, starts, kwargs, timings, report, helper)
+    least = min((r.robust_cost for r in coarse.values()), default=math.inf)
     basins: dict[str, dict] = {}
     for name, start in starts.items():  # in their order: the same basins on a re-solve
         if "basin_of" in report[name]:
@@ -296,6 +309,9 @@ def _refine_from_starts(motions, starts: dict[str, dict], kwargs: dict,
             continue
         r = coarse[name]
         report[name].update(ended_at=[r.cx, r.cy], coarse_robust_cost=r.robust_cost)
+        if _hopeless(r, least):
+            report[name]["hopeless"] = r.robust_cost / least
+            continue
         same = next((b for b in basins if b in coarse and
                      math.dist((r.cx, r.cy), (coarse[b].cx, coarse[b].cy)) <= SAME_END_PX),
                     None)
@@ -329,6 +345,12 @@ def _refine_from_starts(motions, starts: dict[str, dict], kwargs: dict,
     return full[best], report
 
 
+def _hopeless(coarse: RefineResult, least: float) -> bool:
+    """Whether a start's coarse refinement ended too far behind the least robust cost
+    of the coarse stage to be refined on all points (``HOPELESS_COARSE_RATIO``)."""
+    return coarse.robust_cost > HOPELESS_COARSE_RATIO * least
+
+
 def _with_early(basins: dict, later: dict[str, RefineResult], errors: dict[str, SolveError],
                 early: dict[str, tuple], timings: dict[str, float]) -> dict[str, RefineResult]:
     """The refinements on all points, in the basins' order: those taken after the
@@ -359,8 +381,7 @@ def _coarse_stage(motions, starts: dict[str, dict], kwargs: dict, timings: dict[
     coarse_motions = _coarse(motions, COARSE_FACTOR)
     coarse, errors = _refine_each(
         {name: (coarse_motions, quiet) if name == first else
-         (_coarse(motions, SCOUT_FACTOR), {**quiet, "outer_iterations": SCOUT_ROUNDS,
-                                        "robust_cost": False})
+         (_coarse(motions, SCOUT_FACTOR), {**quiet, "outer_iterations": SCOUT_ROUNDS})
          for name in starts}, starts, "coarse refinement from", timings, helper)
     confirm: dict[str, dict] = {}
     for name, start in starts.items():
@@ -402,9 +423,15 @@ def _coarse_stage_shared(motions, starts: dict[str, dict], kwargs: dict,
     first start's coarse refinement runs here; each scout then decided on (those done
     first at once, so that a start to be refined on the coarse points goes to the
     helper at once), and the first start's refinement on all points taken here while
-    the helper works. The same stages, outcomes and report as without the helper."""
+    the helper works, unless a scout to be confirmed ended with a robust cost (scaled by
+    the points, as if on the coarse ones) that makes the first start's coarse end
+    ``_hopeless``: a start the strategies put far off can take several times as long
+    as the others (random world 130059: 4.3 s coarse, 7.1 s on all points, then
+    dropped). Only a saving: which basins are refined on all points is decided once
+    every coarse refinement has ended. The same stages, outcomes and report as without
+    the helper."""
     quiet = {**kwargs, "uncertainty": False}
-    scout_kwargs = {**quiet, "outer_iterations": SCOUT_ROUNDS, "robust_cost": False}
+    scout_kwargs = {**quiet, "outer_iterations": SCOUT_ROUNDS}
     names = list(starts)
     first = names[0]
     coarse_motions = _coarse(motions, COARSE_FACTOR)
@@ -421,6 +448,8 @@ def _coarse_stage_shared(motions, starts: dict[str, dict], kwargs: dict,
     else:
         coarse[first] = first_coarse
     confirming: dict[str, Any] = {}
+    ahead: list[float] = []  # the robust costs of the scouts to be confirmed, as if coarse
+    per_point = _point_count(coarse_motions) / _point_count(scout_motions)
 
     def decide(name: str) -> None:
         scout, sec = helper.run(scouts[name], timed_refine, scout_motions, starts[name],
@@ -429,27 +458,32 @@ def _coarse_stage_shared(motions, starts: dict[str, dict], kwargs: dict,
         if _scouted_elsewhere(name, scout, first, coarse.get(first), report):
             confirming[name] = helper.submit(timed_refine, coarse_motions, starts[name],
                                              quiet)
+            if isinstance(scout, RefineResult):
+                ahead.append(scout.robust_cost * per_point)
 
     for name in names[1:]:
         if scouts[name].done():
             decide(name)
     early: dict[str, tuple] = {}
-    if first in coarse:
+    if first in coarse and not any(_hopeless(coarse[first], cost) for cost in ahead):
         with serial_here():
             early[first] = timed_refine(motions, _basin_start(coarse[first]), kwargs)
     for name in names[1:]:
         if f"coarse refinement from {name}" not in timings:
             decide(name)
-    for name in names[1:]:
-        if name in confirming:
-            outcome, sec = helper.run(confirming[name], timed_refine, coarse_motions,
-                                      starts[name], quiet)
-            timings[f"coarse refinement (after scouting) from {name}"] = sec
-            if isinstance(outcome, SolveError):
-                errors[name] = outcome
-            else:
-                coarse[name] = outcome
+    for name in sorted(confirming, key=names.index):  # in the starts' order
+        outcome, sec = helper.run(confirming[name], timed_refine, coarse_motions,
+                                  starts[name], quiet)
+        timings[f"coarse refinement (after scouting) from {name}"] = sec
+        if isinstance(outcome, SolveError):
+            errors[name] = outcome
+        else:
+            coarse[name] = outcome
     return coarse, errors, early
+
+
+def _point_count(motions: list[Motion]) -> int:
+    return sum(len(m.ref_points) for m in motions)
 
 
 def _basin_start(r: RefineResult) -> dict:

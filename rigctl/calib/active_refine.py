@@ -857,7 +857,7 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
     the kept points after it (for a refinement that only predicts, or starts another).
     Without ``robust_cost`` its ``robust_cost`` (an association and a pass over every
     point, to rank refinements of the same motions from different starts) is left NaN,
-    for a refinement nothing ranks (one that predicts, or scouts where a start ends)."""
+    for a refinement nothing ranks (one that only predicts the next tier)."""
     if len(motions) < 2:
         raise SolveError("refinement: needs at least two motions")
     if sum(len(m.ref_points) for m in motions) < 20:
