@@ -21,6 +21,7 @@ import logging
 import math
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -421,15 +422,15 @@ def _coarse_stage_shared(motions, starts: dict[str, dict], kwargs: dict,
                          ) -> tuple[dict[str, RefineResult], dict[str, SolveError], dict]:
     """``_coarse_stage`` with a helper process: the other starts' scouts there while the
     first start's coarse refinement runs here; each scout then decided on (those done
-    first at once, so that a start to be refined on the coarse points goes to the
-    helper at once), and the first start's refinement on all points taken here while
-    the helper works, unless a scout to be confirmed ended with a robust cost (scaled by
-    the points, as if on the coarse ones) that makes the first start's coarse end
-    ``_hopeless``: a start the strategies put far off can take several times as long
-    as the others (random world 130059: 4.3 s coarse, 7.1 s on all points, then
-    dropped). Only a saving: which basins are refined on all points is decided once
-    every coarse refinement has ended. The same stages, outcomes and report as without
-    the helper."""
+    at once, the others in a thread as they come back, so that a start to be refined on
+    the coarse points goes to the helper as soon as its scout is in), and the first
+    start's refinement on all points taken here while the helper works, unless a scout
+    to be confirmed ended with a robust cost (scaled by the points, as if on the coarse
+    ones) that makes the first start's coarse end ``_hopeless``: a start the strategies
+    put far off can take several times as long as the others (random world 130059:
+    4.3 s coarse, 7.1 s on all points, then dropped). Only a saving: which basins are
+    refined on all points is decided once every coarse refinement has ended. The same
+    stages, outcomes and report as without the helper."""
     quiet = {**kwargs, "uncertainty": False}
     scout_kwargs = {**quiet, "outer_iterations": SCOUT_ROUNDS}
     names = list(starts)
@@ -464,13 +465,18 @@ def _coarse_stage_shared(motions, starts: dict[str, dict], kwargs: dict,
     for name in names[1:]:
         if scouts[name].done():
             decide(name)
+    take_early = first in coarse and not any(_hopeless(coarse[first], cost) for cost in ahead)
     early: dict[str, tuple] = {}
-    if first in coarse and not any(_hopeless(coarse[first], cost) for cost in ahead):
-        with serial_here():
-            early[first] = timed_refine(motions, _basin_start(coarse[first]), kwargs)
-    for name in names[1:]:
-        if f"coarse refinement from {name}" not in timings:
-            decide(name)
+    later = [name for name in names[1:] if f"coarse refinement from {name}" not in timings]
+    # the scouts still out are decided as they come back, in a thread, while the first
+    # start's refinement on all points runs here: a start to be refined on the coarse
+    # points goes to the helper then, not once that refinement has ended
+    with ThreadPoolExecutor(1, thread_name_prefix="scouts") as decider:
+        deciding = decider.submit(lambda: [decide(name) for name in later])
+        if take_early:
+            with serial_here():
+                early[first] = timed_refine(motions, _basin_start(coarse[first]), kwargs)
+        deciding.result()
     for name in sorted(confirming, key=names.index):  # in the starts' order
         outcome, sec = helper.run(confirming[name], timed_refine, coarse_motions,
                                   starts[name], quiet)
