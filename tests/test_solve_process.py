@@ -87,6 +87,24 @@ def test_a_hopeless_start_is_dropped_with_a_helper_as_without(helper, monkeypatc
     assert sum("hopeless" in report_alone[name] for name in starts) == 1
 
 
+def test_a_job_still_queued_is_taken_back_and_computed_here(helper):
+    """While the child computes one refinement, the jobs queued behind it can be taken
+    back (``take_back``): computed here, never there, to the same numbers; the child
+    goes on with the jobs after them."""
+    motions, starts = _basin_case()
+    jobs = [helper.submit(timed_refine, motions, starts[name], {})
+            for name in ("near", "far", "near")]
+    taken, _ = helper.take_back(jobs[2], timed_refine, motions, starts["near"], {})
+    assert jobs[2].cancelled()  # the child was busy with the first: the third waited
+    first, _ = helper.take_back(jobs[0], timed_refine, motions, starts["near"], {})
+    assert not jobs[0].cancelled()  # already taken there: its outcome from there
+    _same(taken, first)
+    later = helper.submit(timed_refine, motions, starts["far"], {})
+    there, _ = helper.run(later, timed_refine, motions, starts["far"], {})
+    _same(there, helper.run(jobs[1], timed_refine, motions, starts["far"], {})[0])
+    assert abs(there.cx - CX) < 0.5 and abs(there.cy - CY) < 0.5
+
+
 def test_a_solve_error_there_comes_back_as_that_error(helper):
     motions, starts = _basin_case()
     few = [active_pipeline.replace(m, ref_points=m.ref_points[:1], moved_points=

@@ -477,9 +477,14 @@ def _coarse_stage_shared(motions, starts: dict[str, dict], kwargs: dict,
             with serial_here():
                 early[first] = timed_refine(motions, _basin_start(coarse[first]), kwargs)
         deciding.result()
-    for name in sorted(confirming, key=names.index):  # in the starts' order
-        outcome, sec = helper.run(confirming[name], timed_refine, coarse_motions,
-                                  starts[name], quiet)
+    order = sorted(confirming, key=names.index)  # in the starts' order
+    outcomes = {}
+    with serial_here():  # the last queued first: one the helper has not begun runs here
+        for name in reversed(order):
+            outcomes[name] = helper.take_back(confirming[name], timed_refine,
+                                              coarse_motions, starts[name], quiet)
+    for name in order:
+        outcome, sec = outcomes[name]
         timings[f"coarse refinement (after scouting) from {name}"] = sec
         if isinstance(outcome, SolveError):
             errors[name] = outcome
@@ -511,8 +516,10 @@ def _refine_each(jobs: dict[str, tuple[list, dict]], starts: dict[str, dict], la
     from that start: the results and the errors, by name (each start's seconds into
     ``timings``). With a ``helper`` process and more than one start, the first is
     refined here, serially, and the others there, one after another (``solve_process``:
-    side by side for real). Else side by side in up to
-    ``FINAL_THREADS`` threads (``map_in_threads``). Either way the same numbers."""
+    side by side for real); once the first is done, those the helper has not begun are
+    taken back and refined here, the last first (``SolveProcess.take_back``). Else side
+    by side in up to ``FINAL_THREADS`` threads (``map_in_threads``). Either way the
+    same numbers."""
     def refine_from(name: str) -> tuple[RefineResult | SolveError, float]:
         return timed_refine(jobs[name][0], starts[name], jobs[name][1])
 
@@ -524,9 +531,10 @@ def _refine_each(jobs: dict[str, tuple[list, dict]], starts: dict[str, dict], la
                                        jobs[name][1]) for name in names[1:]}
         with serial_here():
             done = {names[0]: refine_from(names[0])}
-        for name, future in futures.items():
-            done[name] = helper.run(future, timed_refine, jobs[name][0], starts[name],
-                                    jobs[name][1])
+            # the last queued first: one the helper has not begun is refined here
+            for name in reversed(names[1:]):
+                done[name] = helper.take_back(futures[name], timed_refine, jobs[name][0],
+                                              starts[name], jobs[name][1])
     else:
         done = dict(zip(names, map_in_threads(refine_from, names, FINAL_THREADS),
                         strict=True))

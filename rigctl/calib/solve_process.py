@@ -106,12 +106,22 @@ class SolveProcess:
             log.warning("solve process %d: %s; computing its job here", self.pid, exc)
             return fn(*args, **kwargs)
 
+    def take_back(self, future: Future, fn: Callable, *args: Any, **kwargs: Any) -> Any:
+        """The outcome of ``future`` (``submit(fn, *args, **kwargs)``), computed here at
+        once when the child has not taken it yet (it never will), else ``run``'s: for a
+        parent with nothing else to do while the child still has jobs queued."""
+        if future.cancel():
+            return fn(*args, **kwargs)
+        return self.run(future, fn, *args, **kwargs)
+
     def _feed(self) -> None:
         while True:
             item = self._jobs.get()
             if item is None:
                 break
             future, key, args, kwargs = item
+            if not future.set_running_or_notify_cancel():  # taken back (``take_back``)
+                continue
             if self._gone is None:
                 try:
                     _write_frame(self.proc.stdin, (key, args, kwargs))
@@ -146,7 +156,7 @@ class SolveProcess:
         self.proc.stdout.close()
         while not self._jobs.empty():
             item = self._jobs.get()
-            if item is not None:
+            if item is not None and item[0].set_running_or_notify_cancel():
                 item[0].set_exception(ChildGoneError("closed"))
 
     def __enter__(self) -> SolveProcess:
