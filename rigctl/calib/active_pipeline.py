@@ -478,18 +478,12 @@ def _coarse_stage_shared(motions, starts: dict[str, dict], kwargs: dict,
                 early[first] = timed_refine(motions, _basin_start(coarse[first]), kwargs)
         deciding.result()
     order = sorted(confirming, key=names.index)  # in the starts' order
-    outcomes = {}
-    with serial_here():  # the last queued first: one the helper has not begun runs here
-        for name in reversed(order):
-            outcomes[name] = helper.take_back(confirming[name], timed_refine,
-                                              coarse_motions, starts[name], quiet)
-    for name in order:
-        outcome, sec = outcomes[name]
-        timings[f"coarse refinement (after scouting) from {name}"] = sec
-        if isinstance(outcome, SolveError):
-            errors[name] = outcome
-        else:
-            coarse[name] = outcome
+    outcomes = _taken_back(helper, {name: confirming[name] for name in order},
+                           {name: (coarse_motions, starts[name], quiet) for name in order})
+    confirmed, confirm_errors = _by_outcome(outcomes, order,
+                                            "coarse refinement (after scouting) from", timings)
+    coarse.update(confirmed)
+    errors.update(confirm_errors)
     return coarse, errors, early
 
 
@@ -531,13 +525,30 @@ def _refine_each(jobs: dict[str, tuple[list, dict]], starts: dict[str, dict], la
                                        jobs[name][1]) for name in names[1:]}
         with serial_here():
             done = {names[0]: refine_from(names[0])}
-            # the last queued first: one the helper has not begun is refined here
-            for name in reversed(names[1:]):
-                done[name] = helper.take_back(futures[name], timed_refine, jobs[name][0],
-                                              starts[name], jobs[name][1])
+        done.update(_taken_back(helper, futures, {name: (jobs[name][0], starts[name],
+                                                         jobs[name][1])
+                                                  for name in names[1:]}))
     else:
         done = dict(zip(names, map_in_threads(refine_from, names, FINAL_THREADS),
                         strict=True))
+    return _by_outcome(done, names, label, timings)
+
+
+def _taken_back(helper: SolveProcess, futures: dict[str, Any], jobs: dict[str, tuple]
+                ) -> dict[str, tuple]:
+    """Each ``timed_refine(*jobs[name])`` submitted to the helper (``futures``, by name,
+    in the order queued): the last queued first, so that one the helper has not begun
+    is taken back and refined here, serially (``SolveProcess.take_back``)."""
+    with serial_here():
+        return {name: helper.take_back(futures[name], timed_refine, *jobs[name])
+                for name in reversed(futures)}
+
+
+def _by_outcome(done: dict[str, tuple], names: list[str], label: str,
+                timings: dict[str, float]
+                ) -> tuple[dict[str, RefineResult], dict[str, SolveError]]:
+    """``timed_refine``'s outcomes (``done``, by name) split into results and errors, in
+    ``names``' order, each one's seconds into ``timings`` under ``label``."""
     results: dict[str, RefineResult] = {}
     errors: dict[str, SolveError] = {}
     for name in names:
