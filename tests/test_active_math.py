@@ -265,6 +265,28 @@ def test_refinement_removes_the_roll_axis_bias():
     assert np.linalg.norm(res.roll_axis - truth_axis) < 1e-3
 
 
+def test_roll_axis_is_held_where_no_capture_rolls():
+    """Pans and tilts alone do not observe the roll axis: a refinement on them holds its
+    tilts where the start put them and reports their prior as their sigma; with the
+    rolls it estimates them (random world 120013: free on the pans and tilts, they
+    drifted 5 degrees, and the rolls' prediction missed by 150 px)."""
+    _, poses, obs, _ = scenario(theta_deg=10.0, sigma=0.5, tilt_axis_deg=0.5)
+    start = {"fx": 880.0, "fy": 890.0, "cx": 640.0, "cy": 360.0}
+    no_rolls = [m for m in motions_of(poses, obs) if not m.label.startswith("roll")]
+    assert len(no_rolls) >= 4
+    held = refine(no_rolls, start)
+    assert np.array_equal(held.roll_axis, [0.0, 0.0, 1.0])
+    assert held.sigma["a_x"] == held.sigma["a_y"] == pytest.approx(math.radians(5.0))
+    assert held.fx == pytest.approx(FX, rel=2e-3) and abs(held.cx - CX) < 1.5
+    tilted = refine(no_rolls, {**start, "camera_x": np.r_[held.x[:7], 0.01, -0.02,
+                                                          held.x[9:12]]})
+    assert tilted.x[7:9].tolist() == [0.01, -0.02]
+    free = refine(motions_of(poses, obs), start)
+    truth_axis = head_world(roll_axis_tilt_deg=(0.5, 0.0)).roll_axis
+    assert np.linalg.norm(free.roll_axis - truth_axis) < 1e-3
+    assert free.sigma["a_x"] < math.radians(0.05)
+
+
 def test_refinement_uncertainty_matches_empirical_spread():
     """Predicted 1-sigma of fx and cx against the spread over 25 noisy trials."""
     fxs, cxs, sig_fx, sig_cx = [], [], [], []

@@ -32,6 +32,7 @@ image (images): then the residual is the point-to-curve distance along the norma
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -76,6 +77,10 @@ UNDISTORT_TOL = 1e-12
 # true -3e-4, cx 1.4 px off); with this prior 0.9 px, within 2 sigma. Random worlds
 # 2000-2011 (p drawn with sigma 5e-4): share of |error/sigma| > 3 went 4 % -> 2 %.
 TANGENTIAL_PRIOR = 5e-4
+# a capture pair whose roll readings differ by more than this observes the roll axis
+# (``refine``; the rolls are 45 degrees and more apart, the quantised readings of a pan
+# or tilt a few tenths of a degree)
+ROLL_OBSERVED_DEG = 5.0
 # the outlier rejection has settled once a round drops at most this share of the points
 # (a 3-sigma cut on Gaussian residuals always drops ~0.3 %)
 OUTLIERS_SETTLED = 0.005
@@ -413,6 +418,11 @@ class DepthPrior:
     sigma: np.ndarray
 
 
+def _rolls(m: Motion) -> bool:
+    """Whether ``m`` turns the roll by more than ``ROLL_OBSERVED_DEG``."""
+    return abs(m.angles1[2] - m.angles0[2]) > math.radians(ROLL_OBSERVED_DEG)
+
+
 def _clusters(motions: list[Motion], masks: list[np.ndarray]) -> np.ndarray:
     """A cluster id per residual row: one per contour and motion (one per point when the
     points carry no contour id, e.g. synthetic correspondences)."""
@@ -561,6 +571,10 @@ class _Problem:
         self.free = np.ones(len(self.x), bool)
         # the parallax: estimated with depths, else a consider parameter (held at zero)
         self.free[9:12] = depths is not None
+        # the roll axis's tilts: held where no capture pair turns the roll (unobservable;
+        # they drifted by up to 21 degrees on the pans and tilts and misled the rolls'
+        # prediction: random worlds 120000, 120013)
+        self.free[7:9] = any(_rolls(m) for m in motions)
         self.prior_mean = np.zeros(len(self.x))
         self.prior_sigma = np.r_[_prior_sigmas(
             n_dist, prior_deg, offset_sigma_m if depths is not None else parallax_sigma),
@@ -846,6 +860,13 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
     (prior sigma ``offset_sigma_m`` per axis) and every contour's inverse depth ``rho``,
     each contour moving by its own ``rho o``; no consider term then.
 
+    Without a roll among the motions (``ROLL_OBSERVED_DEG``) the roll axis's tilts are
+    held where the start put them, a consider parameter of their prior sigma
+    (``prior_deg``): pans and tilts do not observe them. Free there, they drifted by up to
+    21 degrees on random worlds 120000-120019, and the rolls predicted from there missed
+    by 100-200 px: 120000 tracked no roll at all, and 120013 tracked them to the wrong
+    contours, which then claimed a roll axis 2.4 degrees off at 0.03 degrees.
+
     With ``angle_sigma`` (rad, per axis: pan, tilt, roll; ``active_angles``) the
     recorded head angles are readings of that sigma: each capture's offset from its
     reading is estimated with that prior, and the reported sigma is marginal over them.
@@ -887,7 +908,7 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
     if not np.all(np.isfinite(pb.x)) or not np.all(np.isfinite(r)):
         raise SolveError("refinement diverged (non-finite parameters)")
     solves_s = time.perf_counter() - started
-    result = _result(pb, final, r, assoc, parallax_sigma, uncertainty)
+    result = _result(pb, final, r, assoc, uncertainty)
     result.timings_s = {"solves": solves_s, **result.timings_s}
     if robust_cost:
         result.robust_cost = _robust_cost(pb)
@@ -911,13 +932,13 @@ def _robust_cost(pb: _Problem) -> float:
     return float(np.sum(2.0 * (np.sqrt(1.0 + r ** 2) - 1.0)) + np.sum(prior ** 2))
 
 
-def _result(pb: _Problem, final, r: np.ndarray, assoc, parallax_sigma: float,
-            uncertainty: bool = True) -> RefineResult:
+def _result(pb: _Problem, final, r: np.ndarray, assoc, uncertainty: bool = True
+            ) -> RefineResult:
     """The refinement's estimate with its 1-sigma uncertainties (``_uncertainty``; NaN
     without ``uncertainty``)."""
     x, n_dist = pb.x, pb.n_dist
     if uncertainty:
-        full, influence, timings = _uncertainty(pb, final, r, assoc, parallax_sigma)
+        full, influence, timings = _uncertainty(pb, final, r, assoc)
     else:
         full, influence, timings = np.full((len(x), len(x)), np.nan), {}, {}
     sig = np.sqrt(np.clip(np.diag(full), 0, None))
@@ -936,10 +957,11 @@ def _result(pb: _Problem, final, r: np.ndarray, assoc, parallax_sigma: float,
                         angle_delta=None if pb.angles is None else pb.angles.delta.copy())
 
 
-def _uncertainty(pb: _Problem, final, r: np.ndarray, assoc, parallax_sigma: float
+def _uncertainty(pb: _Problem, final, r: np.ndarray, assoc
                  ) -> tuple[np.ndarray, dict, dict]:
     """The covariance of all parameters (cluster-robust, the delete-one-contour
-    jackknife with depths, plus the consider term of the parallax when it was held),
+    jackknife with depths, plus the consider term of each held camera parameter at its
+    prior sigma: the parallax without depths, the roll axis without rolls),
     which contour carries each intrinsic, and the seconds of each part."""
     x = pb.x
     J = final.jac[:len(r)]
@@ -969,17 +991,18 @@ def _uncertainty(pb: _Problem, final, r: np.ndarray, assoc, parallax_sigma: floa
         influence = _influence(changes, contours, free_names, cov)
         cov = larger_variances(cov, jackknife_spread(changes) + A_inv @ information @ A_inv)
         timings["jackknife"] = time.perf_counter() - started
-    # the consider parameters: the parallax when it is held (no depths); measured inverse
-    # depths are held too, but as known values, not as consider parameters
+    # the consider parameters: the parallax when it is held (no depths) and the roll
+    # axis's tilts when no capture rolls; measured inverse depths are held too, but as
+    # known values, not as consider parameters
     held = np.flatnonzero(~pb.free[:pb.n_cam])
     J_s = _jacobian_columns(lambda xv: pb.residuals(xv, assoc, cache=False), x, held, r)
     if elimination is not None:  # the offsets follow the held parameters too
         J_s, J_s_prior = elimination.project(J_s)
         J, J_s = np.vstack([J, elimination.jac_prior]), np.vstack([J_s, J_s_prior])
-    cov = _consider(J, J_s, cov, A_inv, np.full(len(held), parallax_sigma))
+    cov = _consider(J, J_s, cov, A_inv, pb.prior_sigma[held])
     full = np.zeros((len(x), len(x)))  # held inverse depths (measured) stay at zero
     full[np.ix_(pb.free, pb.free)] = cov
-    full[held, held] = parallax_sigma ** 2
+    full[held, held] = pb.prior_sigma[held] ** 2
     return full, influence, timings
 
 

@@ -35,12 +35,6 @@ from rigctl.geometry.transforms import R_to_rotvec, make_T
 ROTATION_NAMES = ("n_x", "n_y", "n_z", "a_x", "a_y")
 OFFSET_NAMES = ("s_x", "s_y", "s_z")
 HOME = (0.0, 0.0, 0.0)
-# What ``rigctl bench active-worlds`` found of the roll axis's covariance (the pans' and
-# tilts' held on random worlds 120000-120019: squared Mahalanobis norm mean 1.4)
-ROLL_AXIS_CAUTION = ("the roll axis's sigma (a_x, a_y) is not yet reliable: on 2 of 20 "
-                     "random worlds it claimed far less than the error (rolls barely "
-                     "tracked, or their tilt traded with the centre's offset); the pans' "
-                     "and tilts' rotation is")
 
 
 @dataclass(frozen=True)
@@ -162,7 +156,6 @@ class HeadGeometry:
             "centre_offset_sigma_m": self.offset_sigma_m.tolist(),
             "rotation_names": list(ROTATION_NAMES),
             "rotation_covariance": self.rotation_covariance.tolist(),
-            "roll_axis_caution": ROLL_AXIS_CAUTION,
             "units": {"angle": "rad", "length": "m"},
         }
 
