@@ -281,6 +281,10 @@ def test_roll_axis_is_held_where_no_capture_rolls():
     tilted = refine(no_rolls, {**start, "camera_x": np.r_[held.x[:7], 0.01, -0.02,
                                                           held.x[9:12]]})
     assert tilted.x[7:9].tolist() == [0.01, -0.02]
+    # a start's own tilts (``roll_tilts``: the final refinement's, from the last
+    # predicting refinement) are where a refinement without rolls holds them
+    assert refine(no_rolls, {**start, "roll_tilts": [0.01, -0.02]}).x[7:9].tolist() == \
+        [0.01, -0.02]
     free = refine(motions_of(poses, obs), start)
     truth_axis = head_world(roll_axis_tilt_deg=(0.5, 0.0)).roll_axis
     assert np.linalg.norm(free.roll_axis - truth_axis) < 1e-3

@@ -224,17 +224,33 @@ def _measured_depths(tr: Tracker, K: RefineResult, settings: ActiveSettings, ima
     return depths
 
 
-def _starts(start: dict, K1: dict | RefineResult, K0: dict) -> dict[str, dict]:
-    """The final refinement's starts: ``_final_start``'s, and the same with the centre
-    of the refinement on the pans and tilts and of the first K (the image's centre or
-    the assumed one), those more than ``DISTINCT_START_PX`` from the ones before. The
-    roll centre and the pans' centre both carry the parallax of a camera off the axes
-    (the rolls swing it round the roll axis; the pans see a near, turned scene at
+def _starts(start: dict, K1: dict | RefineResult, K0: dict,
+            K_last: dict | RefineResult | None = None) -> dict[str, dict]:
+    """The final refinement's starts: ``_final_start``'s; the same with the roll axis's
+    tilts and the centre's offset where the last predicting refinement put them
+    (``K_last``, on every tier but the last: ``rolls``); and the same with the centre of
+    the refinement on the pans and tilts (``K1``) and of the first K (the image's centre
+    or the assumed one), those more than ``DISTINCT_START_PX`` from the ones before.
+
+    The pans and tilts tell neither the roll axis nor the offset, and from zero a
+    refinement can stop in a local minimum: random world 140052 (scene at 1.4-3.8 m,
+    camera 2.2 mm off the axes) stopped with the offset at 0.08 mm, cy 1.2 px off (z
+    -5.0); from the rolls' offset it ends 0.4 px off at a third less robust cost. Yet
+    from there, random world 130023 ended 4 px off at 20 times the robust cost of the
+    start from zero: both are tried.
+
+    The roll centre and the pans' centre both carry the parallax of a camera off the
+    axes (the rolls swing it round the roll axis; the pans see a near, turned scene at
     varying depth), and a refinement from there can stop in a local minimum: random
     world 11015 (UR3e, scene at 0.25 m, camera 2.6 mm off) ended 26 px off with the
     offset near 0; from the image's centre it finds the offset and the centre within
     0.1 px, at a lower cost."""
     out = {"final start": start}
+    if isinstance(K_last, RefineResult) and K_last is not K1:
+        rolls = {**start, "roll_tilts": K_last.x[7:9].copy()}
+        if K_last.with_depths:
+            rolls["offset_m"] = np.asarray(K_last.parallax, float).copy()
+        out["rolls"] = rolls
     for name, centre in (("pans", _centre_of(K1)), ("first K", _centre_of(K0))):
         if all(math.dist(centre, (s["cx"], s["cy"])) > DISTINCT_START_PX
                for s in out.values()):
@@ -1092,7 +1108,7 @@ def _solve_active(images: dict[str, np.ndarray], angles: dict[str, tuple[float, 
         [m for m in (tr.motion(lb, REFINE_STRIDE) for lb in order) if m is not None],
         None if depths is None else depths.prior(), second)
     refined, tr.report["final_starts"] = _refine_from_starts(
-        motions, _starts(start, K_pans, K0),
+        motions, _starts(start, K_pans, K0, K1),
         dict(n_dist=_distortion_terms(settings, depths), parallax_sigma=settings.parallax_sigma,
              depths=prior, offset_sigma_m=settings.nodal_offset_mm / 1000.0,
              angle_sigma=settings.encoder_sigma_rad), timings, helper.start())

@@ -558,6 +558,9 @@ class _Problem:
         for j, slot in enumerate(DIST_SLOTS[n_dist]):
             self.x[N_BASE + j] = (initial.get("distortion") or [0.0] * 5)[slot]
         self.x[4:7] = initial.get("mount_rotvec", np.zeros(3))
+        self.x[7:9] = initial.get("roll_tilts", np.zeros(2))
+        if depths is not None:  # the centre's offset (m); without depths it is held at 0
+            self.x[9:12] = initial.get("offset_m", np.zeros(3))
         camera = initial.get("camera_x")  # every camera parameter of an earlier refinement
         if camera is not None:
             camera = np.asarray(camera, float)
@@ -844,7 +847,8 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
     """Joint refinement of fx, fy, cx, cy, the mounting rotation and the roll axis (and
     ``n_dist`` distortion terms, ``DIST_SLOTS``) over all motions with the exact rotation
     model (thesis Lemma 3.1, eq. 3.3), from ``initial`` (fx, fy, cx, cy; e.g. Strategy
-    D; optionally ``distortion`` and ``mount_rotvec``; or ``camera_x``, every camera
+    D; optionally ``distortion``, ``mount_rotvec``, ``roll_tilts`` and, with ``depths``,
+    ``offset_m`` (the centre's offset); or ``camera_x``, every camera
     parameter of a refinement with the same ``n_dist``; or a ``RefineResult``'s ``x_all``
     and ``angle_delta`` of the same motions and settings), with a soft-L1 robust loss, then
     3-sigma outlier rejection.
