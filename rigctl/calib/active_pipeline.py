@@ -478,12 +478,14 @@ def _coarse_stage_shared(motions, starts: dict[str, dict], kwargs: dict,
             if isinstance(scout, RefineResult):
                 ahead.append(scout.robust_cost * per_point)
 
+    later: list[str] = []  # the scouts not back yet
     for name in names[1:]:
         if scouts[name].done():
             decide(name)
+        else:
+            later.append(name)
     take_early = first in coarse and not any(_hopeless(coarse[first], cost) for cost in ahead)
     early: dict[str, tuple] = {}
-    later = [name for name in names[1:] if f"coarse refinement from {name}" not in timings]
     # the scouts still out are decided as they come back, in a thread, while the first
     # start's refinement on all points runs here: a start to be refined on the coarse
     # points goes to the helper then, not once that refinement has ended
