@@ -33,9 +33,10 @@ def views():
     the pans and tilts, then the rolls (in the procedure's order)."""
     spec = WorldFile.model_validate(random_world(SEED))
     world = World(spec)
+    true_angles: dict = {}
     images, angles = render_views(world, POSES_DEG, np.random.default_rng([SEED, 7]),
-                                  "hardware")
-    shift = render_shift(world, 0.010)
+                                  "hardware", true_angles)
+    shift = render_shift(world, 0.010, true_angles["ref"], angles["ref"])
     rolls = [f"roll{r:+g}" for r in ActiveCameraParams().rolls_deg]
     assert sorted(rolls) == sorted(k for k in images if k.startswith("roll"))
     order = ["ref", SHIFT, *(k for k in images if k != "ref" and k not in rolls), *rolls]

@@ -60,12 +60,14 @@ def _delivered(image: np.ndarray, quality: int) -> np.ndarray:
     return cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
 
 
-def render_views(world: World, poses_deg: dict, rng=None, ideal_encoders: bool | str = False
-                 ) -> tuple[dict, dict]:
+def render_views(world: World, poses_deg: dict, rng=None, ideal_encoders: bool | str = False,
+                 true_angles: dict | None = None) -> tuple[dict, dict]:
     """What the stand-in camera would deliver at each head pose (arm at home), and the
     head angles the procedure would record there (``encoder_reading``; ``rng`` draws
     where each move ends and the readings' noise; ``ideal_encoders``: True, or one of
-    ``ENCODER_MODES``)."""
+    ``ENCODER_MODES``). ``true_angles``, when given, is filled with where the head
+    really stood at each pose (rad), e.g. for the sideways move from ``ref``
+    (``render_shift``)."""
     images, angles = {}, {}
     quality = world.spec.camera.jpeg_quality
     rng = np.random.default_rng(0) if rng is None else rng
@@ -75,6 +77,8 @@ def render_views(world: World, poses_deg: dict, rng=None, ideal_encoders: bool |
         images[label] = _delivered(world.render(world.T_base_cam(world.home_q, true),
                                                 frame_index=k), quality)
         angles[label] = read
+        if true_angles is not None:
+            true_angles[label] = true
     return images, angles
 
 
@@ -114,14 +118,19 @@ def _nominal_flange_cam(world: World) -> np.ndarray:
     return xyz_rpy_to_T(mount["xyz_mm"], mount["rpy_deg"])
 
 
-def render_shift(world: World, shift_m: float) -> tuple:
+def render_shift(world: World, shift_m: float, head_true: tuple = (0.0, 0.0, 0.0),
+                 head_read: tuple = (0.0, 0.0, 0.0)) -> tuple:
     """The procedure's sideways move: planned, as on the simulated rig, with the nominal
     arm and the head mount rounded as ``rigctl sim up`` writes it; rendered with the
-    true arm."""
+    true arm. The procedure takes it right after ``ref`` without moving the head, so the
+    head stands where it stood for ``ref`` (``head_true``, read as ``head_read``): drawn
+    at the commanded home instead, the bench turned the camera by up to half an encoder
+    pulse between the two (0.04 deg on the X series, 0.7 px at 1000 px), which the depth
+    fit took for parallax (random world 130046: depths 10-37 % off, 0-5 % here)."""
     q = camera_shift_joints(nominal_ur(world.spec.arm.model), world.home_q,
                             _nominal_flange_cam(world), shift_m)
-    img = world.render(world.T_base_cam(q, (0.0, 0.0, 0.0)), frame_index=99)
-    return _delivered(img, world.spec.camera.jpeg_quality), (0.0, 0.0, 0.0)
+    img = world.render(world.T_base_cam(q, head_true), frame_index=99)
+    return _delivered(img, world.spec.camera.jpeg_quality), tuple(head_read)
 
 
 def render_second_station(world: World, back_m: float, shift_m: float) -> tuple[dict, dict]:
@@ -161,12 +170,14 @@ def world_trial(args) -> dict:
     cam = spec.camera
     row = {"seed": seed, "model": spec.arm.model, "fx_true": cam.fx,
            "k": cam.distortion, "camera_offset_mm": spec.head.camera_offset_mm}
+    true_angles: dict = {}
     images, angles = render_views(world, POSES_DEG, np.random.default_rng([seed, 7]),
-                                  ideal_encoders)
+                                  ideal_encoders, true_angles)
     row["encoders"] = ideal_encoders if isinstance(ideal_encoders, str) else \
         "ideal" if ideal_encoders else spec.head.encoder
     if shift_m > 0:
-        images[SHIFT], angles[SHIFT] = render_shift(world, shift_m)
+        images[SHIFT], angles[SHIFT] = render_shift(world, shift_m, true_angles["ref"],
+                                                    angles["ref"])
     if back_m > 0 and shift_m > 0:
         far, far_angles = render_second_station(world, back_m, shift_m)
         images.update(far)
