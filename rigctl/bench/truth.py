@@ -129,3 +129,35 @@ def image_coverage(corner_sets, width: int, height: int, cells: int = 10) -> flo
         j = np.clip((px[:, 0] * cells / width).astype(int), 0, cells - 1)
         hit[i, j] = True
     return float(hit.mean())
+
+
+def contour_inverse_depths(world, contours: list[np.ndarray], T_base_cam: np.ndarray,
+                           within_px: float = 1.5, samples: int = 20) -> np.ndarray:
+    """The true inverse depth (1/m, camera frame) of each contour seen from
+    ``T_base_cam``: the scene shape whose projected outline (``samples`` points an edge)
+    most of the contour's points (pixels) lie within ``within_px`` of, at the mean depth
+    of those outline points; NaN for a contour that traces no shape (the board, or
+    shapes occluding each other)."""
+    from scipy.spatial import cKDTree
+
+    outlines, depths = [], []
+    T_cam_base = inv_T(T_base_cam)
+    for shape in world.scene_shapes():
+        ends = np.roll(shape, -1, axis=0)
+        f = np.linspace(0.0, 1.0, samples, endpoint=False)[None, :, None]
+        dense = (shape[:, None] + f * (ends - shape)[:, None]).reshape(-1, 3)
+        outlines.append(world.project(dense, T_base_cam))
+        depths.append((T_cam_base[:3, :3] @ dense.T + T_cam_base[:3, 3:4])[2])
+    owner = np.concatenate([np.full(len(o), i) for i, o in enumerate(outlines)])
+    index = np.concatenate([np.arange(len(o)) for o in outlines])
+    tree = cKDTree(np.concatenate(outlines))
+    out = np.full(len(contours), np.nan)
+    for c, points in enumerate(contours):
+        distance, nearest = tree.query(points)
+        near = distance < within_px
+        if near.sum() < 0.5 * len(points):
+            continue
+        shape = np.bincount(owner[nearest[near]]).argmax()
+        on = near & (owner[nearest] == shape)
+        out[c] = 1.0 / float(np.mean(depths[shape][index[nearest[on]]]))
+    return out

@@ -435,6 +435,11 @@ class World:
                                    left + (b + 1) * cell, top + (r + 2) * cell, 2), 235))
         return items
 
+    def scene_shapes(self) -> list[np.ndarray]:
+        """The scene's planar shapes: each one's outline points in the base frame (m), as
+        drawn (the truth a benchmark holds contours against)."""
+        return [pts.copy() for pts, _ in self._scene]
+
     def _make_scene(self) -> list[tuple[np.ndarray, int]]:
         """Planar shapes at random directions and depths around the camera at home."""
         rng = np.random.default_rng(self.spec.seed)
