@@ -524,6 +524,31 @@ def test_starts_in_one_basin_are_refined_on_all_points_once():
     assert best.fx == pytest.approx(FX, rel=2e-3)
 
 
+def _ended(cx: float, offset_mm, with_depths: bool = True):
+    from rigctl.calib.active_refine import RefineResult
+
+    return RefineResult(FX, FX, cx, CY, 0.0, 0.0, 0.0, 0.0, np.zeros(3), np.zeros(2), {},
+                        0.1, 100, 0, {}, parallax=np.asarray(offset_mm, float) / 1000.0,
+                        with_depths=with_depths)
+
+
+def test_ends_with_one_centre_but_offsets_apart_are_two_basins():
+    """Random world 130046: from zero offset the final refinement stopped with the
+    centre of projection's offset at 0.02 mm (a true 1.4 mm), the centre 0.5 px from
+    where the rolls' start, at the true offset, ended: by the centre alone one basin,
+    and the better end was never refined on all points."""
+    from rigctl.calib.active_pipeline import SAME_END_OFFSET_M, SAME_END_PX, _same_end
+
+    near = 0.5 * SAME_END_PX
+    assert _same_end(_ended(CX, [0.0, 0.0, 0.0]), _ended(CX + near, [0.1, -0.1, 0.1]))
+    assert not _same_end(_ended(CX, [0.0, 0.0, 0.0]), _ended(CX + near, [-0.85, -0.40, -1.07]))
+    apart = 1000 * 1.5 * SAME_END_OFFSET_M
+    assert not _same_end(_ended(CX, [0.0, 0.0, 0.0]), _ended(CX, [0.0, 0.0, apart]))
+    assert not _same_end(_ended(CX, [0.0, 0.0, 0.0]), _ended(CX + 2 * SAME_END_PX, [0, 0, 0]))
+    # without depths the parallax is held, and only the centres tell
+    assert _same_end(_ended(CX, [0.0, 0.0, 0.0], False), _ended(CX + near, [0.0, 0.0, 0.0], False))
+
+
 def test_distinct_basins_are_each_refined_and_the_cheapest_wins(monkeypatch):
     from rigctl.calib import active_pipeline
 

@@ -72,6 +72,12 @@ DISTINCT_START_PX = 3.0  # the final refinement also starts from centres this fa
 FINAL_THREADS = 2
 COARSE_FACTOR = 4
 SAME_END_PX = 1.0  # a coarse refinement ending this close to a basin's first is in it
+# ... and, with the scene's depths, with the centre of projection's offset this close to
+# that basin's (m): a refinement from zero offset can stop where the captures' angle
+# offsets carry the parallax, a centre only 0.5 px from the true minimum's (random world
+# 130046: offset 0.02 mm against a true 1.4 mm, claimed to 0.03 mm; the rolls' start,
+# scouted into that basin by its centre, ends at the true offset at a lower cost)
+SAME_END_OFFSET_M = 0.0005
 # A start whose coarse refinement's robust cost is over this many times the least of the
 # coarse stage's is not refined on all points (``_refine_from_starts``). Random worlds
 # 130000-130059: 9 of 60 ended in two basins; each of the 6 coarse ends over 100 times
@@ -277,13 +283,15 @@ def _refine_from_starts(motions, starts: dict[str, dict], kwargs: dict,
     """The refinement from the best of ``starts``. The first start is refined on every
     ``COARSE_FACTOR``-th point (``_coarse``, no covariance); the others, side by side
     with it, are first scouted: refined on every ``SCOUT_FACTOR``-th point in
-    ``SCOUT_ROUNDS`` outlier rounds. A scout that ends within ``SAME_END_PX`` of the
-    first start's coarse end is in its basin (``basin_of``); any other start is refined
-    on every ``COARSE_FACTOR``-th point too, from where it was (the result is then the
-    one without scouts: from the scout's end, random world 99209 ended 0.2 sigma
-    elsewhere, another path to other outliers). Taken in their given order, a start whose coarse
-    refinement ends within ``SAME_END_PX`` of a basin's first start's centre is in that
-    basin; each basin is refined again on all points from where its first start ended,
+    ``SCOUT_ROUNDS`` outlier rounds. A scout that ends where the first start's coarse
+    refinement ended (``_same_end``: the centre within ``SAME_END_PX`` and, with depths,
+    the centre of projection's offset within ``SAME_END_OFFSET_M``) is in its basin
+    (``basin_of``); any other start is refined on every ``COARSE_FACTOR``-th point too,
+    from where it was (the result is then the one without scouts: from the scout's end,
+    random world 99209 ended 0.2 sigma elsewhere, another path to other outliers). Taken
+    in their given order, a start whose coarse refinement ends where a basin's first
+    start's did (``_same_end``) is in that basin; each basin is refined again on all
+    points from where its first start ended,
     and a start whose coarse refinement failed from where it was. Of those, the one of
     least ``robust_cost`` (comparable across starts: every point counts, whatever each
     run rejected) is the result. Each stage's seconds, and the parts of the refinements
@@ -329,9 +337,7 @@ def _refine_from_starts(motions, starts: dict[str, dict], kwargs: dict,
         if _hopeless(r, least):
             report[name]["hopeless"] = r.robust_cost / least
             continue
-        same = next((b for b in basins if b in coarse and
-                     math.dist((r.cx, r.cy), (coarse[b].cx, coarse[b].cy)) <= SAME_END_PX),
-                    None)
+        same = next((b for b in basins if b in coarse and _same_end(r, coarse[b])), None)
         if same is not None:
             report[name]["basin_of"] = same
         else:
@@ -360,6 +366,17 @@ def _refine_from_starts(motions, starts: dict[str, dict], kwargs: dict,
     best = min(full, key=lambda name: full[name].robust_cost)
     report[best]["chosen"] = True
     return full[best], report
+
+
+def _same_end(a: RefineResult, b: RefineResult) -> bool:
+    """Whether two refinements of the same motions ended in one basin: their centres
+    within ``SAME_END_PX`` and their centre-of-projection offsets (zero without depths)
+    within ``SAME_END_OFFSET_M``."""
+    if math.dist((a.cx, a.cy), (b.cx, b.cy)) > SAME_END_PX:
+        return False
+    if not (a.with_depths and b.with_depths):
+        return True
+    return float(np.linalg.norm(np.subtract(a.parallax, b.parallax))) <= SAME_END_OFFSET_M
 
 
 def _hopeless(coarse: RefineResult, least: float) -> bool:
@@ -418,14 +435,13 @@ def _coarse_stage(motions, starts: dict[str, dict], kwargs: dict, timings: dict[
 def _scouted_elsewhere(name: str, scout: RefineResult | SolveError, first: str,
                        first_coarse: RefineResult | None, report: dict[str, dict]) -> bool:
     """Whether start ``name`` must be refined on the coarse points (from where it was, as
-    if never scouted): its scout failed or ended more than ``SAME_END_PX`` from the
-    coarse end of the first start (``first``; ``first_coarse`` None: that failed). The
-    outcome into ``report``."""
+    if never scouted): its scout failed or did not end where the first start's
+    (``first``) coarse refinement did (``_same_end``; ``first_coarse`` None: that
+    failed). The outcome into ``report``."""
     if isinstance(scout, SolveError):
         report[name]["scout_error"] = str(scout)
         return True
-    if first_coarse is not None and \
-            math.dist((scout.cx, scout.cy), (first_coarse.cx, first_coarse.cy)) <= SAME_END_PX:
+    if first_coarse is not None and _same_end(scout, first_coarse):
         report[name].update(scouted_to=[scout.cx, scout.cy], basin_of=first)
         return False
     report[name]["scouted_to"] = [scout.cx, scout.cy]
