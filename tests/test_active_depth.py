@@ -176,3 +176,19 @@ def test_the_depths_of_a_bench_world_meet_its_scene():
     assert both.sum() >= 8, (measured, truth)
     error = np.abs(measured[both] / truth[both] - 1)
     assert np.median(error) < 0.04 and error.max() < 0.08, error
+
+
+def test_measured_depths_go_to_the_refinement_with_their_sigma():
+    """A measured inverse depth is held in the refinement, with its own sigma (the fit's
+    residual over the move's length and ``DEPTH_CONTOUR_SIGMA`` of the depth) and their
+    common scale's (``DEPTH_SCALE_SIGMA``) for the covariance; an unmeasured one is free
+    and has none."""
+    from rigctl.calib.active_depth import DEPTH_CONTOUR_SIGMA, DEPTH_SCALE_SIGMA, SceneDepths
+
+    depths = SceneDepths(np.array([2.0, np.nan, 0.5]), np.array([0.01, 0.0, 0.0]), 3e-5)
+    prior = depths.prior()
+    assert prior.sigma[0] == 0 and prior.sigma[2] == 0 and prior.sigma[1] > 0
+    fit = 3e-5 / 0.01
+    assert prior.measured_sigma == pytest.approx(
+        [np.hypot(fit, DEPTH_CONTOUR_SIGMA * 2.0), 0.0, np.hypot(fit, DEPTH_CONTOUR_SIGMA * 0.5)])
+    assert prior.scale_sigma == DEPTH_SCALE_SIGMA

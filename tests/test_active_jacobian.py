@@ -128,6 +128,43 @@ def test_head_angle_columns_equal_central_differences(curve, depths, n_dist):
     assert err.max() < 1e-5, f"own-offset columns off by {err.max():.2e}"
 
 
+@pytest.mark.parametrize("curve", [True, False])
+def test_held_depth_consider_columns_equal_central_differences(curve):
+    """The held (measured) inverse depths enter the covariance as consider parameters
+    (``active_refine._held_depth_columns``): each one's column, taken with every held
+    depth stepped at once, against a central difference of that depth alone, and the
+    common scale's column against one of every held depth scaled together; with the
+    sigmas handed over (each depth's, then the scale's)."""
+    from rigctl.calib.active_refine import _held_depth_columns
+
+    pb, assoc = _problem(curve, True, 4)
+    held = np.flatnonzero(pb.prior_sigma[pb.n_cam:pb.n_cam + pb.n_rho] == 0)
+    measured = np.where(pb.prior_sigma[pb.n_cam:pb.n_cam + pb.n_rho] == 0, 0.02, 0.0)
+    pb.rho_consider, pb.rho_scale_sigma = measured, 0.01
+    r0 = pb.residuals(pb.x, assoc, cache=False)
+    J, sigma = _held_depth_columns(pb, assoc, r0)
+    assert J.shape == (len(r0), len(held) + 1)
+    assert np.allclose(sigma, [0.02] * len(held) + [0.01])
+
+    def res(xv):
+        return pb.residuals(xv, assoc, cache=False)
+
+    h = 1e-6
+    for j, c in enumerate(held):
+        up, down = pb.x.copy(), pb.x.copy()
+        up[pb.n_cam + c] += h
+        down[pb.n_cam + c] -= h
+        numeric = (res(up) - res(down)) / (2 * h)
+        assert np.any(numeric != 0)
+        assert np.abs(J[:, j] - numeric).max() < 1e-4 * np.abs(numeric).max()
+    rho = slice(pb.n_cam, pb.n_cam + pb.n_rho)
+    up, down = pb.x.copy(), pb.x.copy()
+    up[rho] = np.where(measured > 0, up[rho] * (1 + h), up[rho])
+    down[rho] = np.where(measured > 0, down[rho] * (1 - h), down[rho])
+    numeric = (res(up) - res(down)) / (2 * h)
+    assert np.abs(J[:, -1] - numeric).max() < 1e-4 * np.abs(numeric).max()
+
+
 @pytest.mark.parametrize(("curve", "depths", "n_dist", "angles"),
                          [(True, True, 5, True), (False, False, 2, False)])
 def test_jacobian_in_threaded_chunks_is_the_serial_one_bit_for_bit(monkeypatch, curve,

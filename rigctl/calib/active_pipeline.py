@@ -836,8 +836,11 @@ def _with_second_station(motions: list[Motion], prior: DepthPrior | None,
     if second is None:
         return motions, prior
     far = second.depths.prior()
-    return motions + second.motions, DepthPrior(np.r_[prior.mean, far.mean],
-                                                np.r_[prior.sigma, far.sigma])
+    measured = [np.zeros(len(p.mean)) if p.measured_sigma is None else p.measured_sigma
+                for p in (prior, far)]
+    return motions + second.motions, DepthPrior(
+        np.r_[prior.mean, far.mean], np.r_[prior.sigma, far.sigma], np.r_[tuple(measured)],
+        max(prior.scale_sigma, far.scale_sigma))
 
 
 @with_one_blas_thread

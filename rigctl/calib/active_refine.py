@@ -412,10 +412,17 @@ def _prior_sigmas(n_dist: int, prior_deg: float, parallax_prior: float) -> np.nd
 class DepthPrior:
     """Each contour's inverse depth (1/m, indexed by the motions' ``groups``): measured
     ones held (sigma 0), the others free about ``mean`` within ``sigma``, estimated
-    together with the centre of projection's offset (``active_depth``)."""
+    together with the centre of projection's offset (``active_depth``).
+
+    A held depth is measured, not known: ``measured_sigma`` (1/m, per contour; 0 where
+    free) is its own error, and ``scale_sigma`` (relative) that of a factor common to all
+    held depths (the arm's move, whose length sets their scale). Both enter the
+    covariance as consider parameters (``_uncertainty``), not the estimate."""
 
     mean: np.ndarray
     sigma: np.ndarray
+    measured_sigma: np.ndarray | None = None
+    scale_sigma: float = 0.0
 
 
 def _rolls(m: Motion) -> bool:
@@ -443,11 +450,7 @@ def _contour_clusters(motions: list[Motion], masks: list[np.ndarray]
     """A cluster id per residual row: one per contour over every motion (its points
     share the contour's depth and its place in the scene), for motions whose points carry
     contour ids. Returns the contour of each cluster and the rows' cluster ids."""
-    ids = []
-    for motion, mask in zip(motions, masks, strict=True):
-        groups = motion.groups[mask]
-        ids.append(groups if motion.curve_mode else np.repeat(groups, 2))
-    return np.unique(np.concatenate(ids), return_inverse=True)
+    return np.unique(_row_contours(motions, masks), return_inverse=True)
 
 
 def _influence(changes: np.ndarray, contours: np.ndarray, names: list[str],
@@ -582,8 +585,14 @@ class _Problem:
         self.prior_sigma = np.r_[_prior_sigmas(
             n_dist, prior_deg, offset_sigma_m if depths is not None else parallax_sigma),
             np.zeros(n_rho), np.tile(self.angles.sigma if self.angles else [], len(self.stations))]
+        # the held depths' measurement sigmas and their common scale's (consider terms)
+        self.rho_consider = np.zeros(n_rho)
+        self.rho_scale_sigma = 0.0
         if depths is not None:
             rho = slice(n_cam, n_cam + n_rho)
+            if depths.measured_sigma is not None:
+                self.rho_consider = np.where(depths.sigma > 0, 0.0, depths.measured_sigma)
+                self.rho_scale_sigma = depths.scale_sigma
             self.x[rho] = self.prior_mean[rho] = depths.mean
             self.prior_sigma[rho] = depths.sigma
             self.free[n_cam:n_cam + n_rho] = depths.sigma > 0  # sigma 0: measured, held
@@ -995,19 +1004,50 @@ def _uncertainty(pb: _Problem, final, r: np.ndarray, assoc
         influence = _influence(changes, contours, free_names, cov)
         cov = larger_variances(cov, jackknife_spread(changes) + A_inv @ information @ A_inv)
         timings["jackknife"] = time.perf_counter() - started
-    # the consider parameters: the parallax when it is held (no depths) and the roll
-    # axis's tilts when no capture rolls; measured inverse depths are held too, but as
-    # known values, not as consider parameters
+    # the consider parameters: the parallax when it is held (no depths), the roll axis's
+    # tilts when no capture rolls, and the measured (held) inverse depths with their
+    # common scale
     held = np.flatnonzero(~pb.free[:pb.n_cam])
     J_s = _jacobian_columns(lambda xv: pb.residuals(xv, assoc, cache=False), x, held, r)
+    J_d, sigma_d = _held_depth_columns(pb, assoc, r)
+    J_s, sigma_s = np.hstack([J_s, J_d]), np.r_[pb.prior_sigma[held], sigma_d]
     if elimination is not None:  # the offsets follow the held parameters too
         J_s, J_s_prior = elimination.project(J_s)
         J, J_s = np.vstack([J, elimination.jac_prior]), np.vstack([J_s, J_s_prior])
-    cov = _consider(J, J_s, cov, A_inv, pb.prior_sigma[held])
+    cov = _consider(J, J_s, cov, A_inv, sigma_s)
     full = np.zeros((len(x), len(x)))  # held inverse depths (measured) stay at zero
     full[np.ix_(pb.free, pb.free)] = cov
     full[held, held] = pb.prior_sigma[held] ** 2
     return full, influence, timings
+
+
+def _held_depth_columns(pb: _Problem, assoc, r0: np.ndarray, step: float = 1e-6
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """The residuals' derivatives by each held inverse depth that has a measurement
+    sigma (``DepthPrior.measured_sigma``), then by their common scale (every held depth
+    times ``1 + e``), with those sigmas. A row depends on its own contour's depth only,
+    so one forward difference with every held depth stepped at once gives them all."""
+    contours = np.flatnonzero(pb.rho_consider > 0)
+    if not len(contours):
+        return np.zeros((len(r0), 0)), np.zeros(0)
+    xv = pb.x.copy()
+    xv[pb.n_cam + contours] += step
+    change = (pb.residuals(xv, assoc, cache=False) - r0) / step
+    row_contour = _row_contours(pb.motions, pb.masks)
+    columns = np.zeros((len(r0), len(contours) + 1))
+    for j, c in enumerate(contours):
+        rows = row_contour == c
+        columns[rows, j] = change[rows]
+    rho = pb.x[pb.n_cam + contours]
+    columns[:, -1] = columns[:, :-1] @ rho  # d r / d e of rho (1 + e)
+    return columns, np.r_[pb.rho_consider[contours], pb.rho_scale_sigma]
+
+
+def _row_contours(motions: list[Motion], masks: list[np.ndarray]) -> np.ndarray:
+    """The contour id of each residual row (kept points; two rows a point
+    correspondence)."""
+    return np.concatenate([m.groups[mask] if m.curve_mode else np.repeat(m.groups[mask], 2)
+                           for m, mask in zip(motions, masks, strict=True)])
 
 
 def _angle_offsets(pb: _Problem) -> dict[str, list[float]]:
