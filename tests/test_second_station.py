@@ -113,11 +113,16 @@ def test_the_second_stations_motions_follow_the_first_stations_contours():
     points = np.zeros((4, 2))
     near = [Motion((0, 0, 0), (0.1, 0, 0), points, points, groups=np.array([0, 0, 1, 1]))]
     far = [Motion((0, 0, 0), (0.1, 0, 0), points, points, groups=np.array([2, 2, 3, 3]))]
-    station = SecondStation(far, SceneDepths(np.array([1.5, np.nan]), np.zeros(3), 0.0), {})
-    prior = DepthPrior(np.array([2.0, 0.5]), np.zeros(2))
+    station = SecondStation(far, SceneDepths(np.array([1.5, np.nan]),
+                                             np.array([0.01, 0.0, 0.0]), 0.0), {})
+    prior = DepthPrior(np.array([2.0, 0.5]), np.zeros(2), np.array([0.03, 0.01]), 0.01)
     motions, both = _with_second_station(near, prior, station)
     assert motions == near + far
     assert np.allclose(both.mean[:3], [2.0, 0.5, 1.5]) and both.sigma[2] == 0.0
     assert both.sigma[3] > 0.0  # unmeasured there: free within its prior
+    # the measured depths keep their sigmas for the covariance, the far one's its own
+    far_sigma = station.depths.measurement_sigma()
+    assert np.allclose(both.measured_sigma, [0.03, 0.01, far_sigma[0], 0.0])
+    assert far_sigma[0] > 0 and both.scale_sigma == 0.01
     assert _with_second_station(near, prior, None) == (near, prior)
 

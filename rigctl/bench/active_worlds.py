@@ -118,15 +118,16 @@ def _nominal_flange_cam(world: World) -> np.ndarray:
     return xyz_rpy_to_T(mount["xyz_mm"], mount["rpy_deg"])
 
 
-def render_shift(world: World, shift_m: float, head_true: tuple = (0.0, 0.0, 0.0),
-                 head_read: tuple = (0.0, 0.0, 0.0)) -> tuple:
+def render_shift(world: World, shift_m: float, head_true: tuple, head_read: tuple) -> tuple:
     """The procedure's sideways move: planned, as on the simulated rig, with the nominal
     arm and the head mount rounded as ``rigctl sim up`` writes it; rendered with the
     true arm. The procedure takes it right after ``ref`` without moving the head, so the
     head stands where it stood for ``ref`` (``head_true``, read as ``head_read``): drawn
     at the commanded home instead, the bench turned the camera by up to half an encoder
     pulse between the two (0.04 deg on the X series, 0.7 px at 1000 px), which the depth
-    fit took for parallax (random world 130046: depths 10-37 % off, 0-5 % here)."""
+    fit took for parallax (random world 130046: depths 10-37 % off, 0-5 % here). The
+    reading is ``ref``'s, where the procedure reads the encoders again (the solve reads
+    no angle of this capture)."""
     q = camera_shift_joints(nominal_ur(world.spec.arm.model), world.home_q,
                             _nominal_flange_cam(world), shift_m)
     img = world.render(world.T_base_cam(q, head_true), frame_index=99)

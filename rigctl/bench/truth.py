@@ -134,10 +134,12 @@ def image_coverage(corner_sets, width: int, height: int, cells: int = 10) -> flo
 def contour_inverse_depths(world, contours: list[np.ndarray], T_base_cam: np.ndarray,
                            within_px: float = 1.5, samples: int = 20) -> np.ndarray:
     """The true inverse depth (1/m, camera frame) of each contour seen from
-    ``T_base_cam``: the scene shape whose projected outline (``samples`` points an edge)
-    most of the contour's points (pixels) lie within ``within_px`` of, at the mean depth
-    of those outline points; NaN for a contour that traces no shape (the board, or
-    shapes occluding each other)."""
+    ``T_base_cam``: the scene shape whose projected outline (``samples`` points an edge,
+    those in front of the camera) most of the contour's points (pixels) lie within
+    ``within_px`` of, at the mean depth of those outline points; NaN for a contour that
+    traces no shape so (the board's). Occlusion is not checked: a contour along the
+    edge where a nearer shape covers a farther one gets the depth of whichever shape's
+    outline it follows more."""
     from scipy.spatial import cKDTree
 
     outlines, depths = [], []
@@ -146,8 +148,10 @@ def contour_inverse_depths(world, contours: list[np.ndarray], T_base_cam: np.nda
         ends = np.roll(shape, -1, axis=0)
         f = np.linspace(0.0, 1.0, samples, endpoint=False)[None, :, None]
         dense = (shape[:, None] + f * (ends - shape)[:, None]).reshape(-1, 3)
-        outlines.append(world.project(dense, T_base_cam))
-        depths.append((T_cam_base[:3, :3] @ dense.T + T_cam_base[:3, 3:4])[2])
+        z = (T_cam_base[:3, :3] @ dense.T + T_cam_base[:3, 3:4])[2]
+        dense, z = dense[z > 0], z[z > 0]  # behind the camera, projections mirror
+        outlines.append(world.project(dense, T_base_cam) if len(dense) else np.zeros((0, 2)))
+        depths.append(z)
     owner = np.concatenate([np.full(len(o), i) for i, o in enumerate(outlines)])
     index = np.concatenate([np.arange(len(o)) for o in outlines])
     tree = cKDTree(np.concatenate(outlines))

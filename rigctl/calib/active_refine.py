@@ -871,7 +871,9 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
     With ``depths`` (each contour's inverse depth as a prior, ``DepthPrior``) the
     parallax is estimated instead: the centre of projection's offset ``o`` from the axes
     (prior sigma ``offset_sigma_m`` per axis) and every contour's inverse depth ``rho``,
-    each contour moving by its own ``rho o``; no consider term then.
+    each contour moving by its own ``rho o``. The parallax then needs no consider term,
+    but the measured (held) depths do: their own sigmas and their common scale's
+    (``DepthPrior.measured_sigma``, ``scale_sigma``) widen the covariance.
 
     Without a roll among the motions (``ROLL_OBSERVED_DEG``) the roll axis's tilts are
     held where the start put them, a consider parameter of their prior sigma
@@ -974,7 +976,9 @@ def _uncertainty(pb: _Problem, final, r: np.ndarray, assoc
                  ) -> tuple[np.ndarray, dict, dict]:
     """The covariance of all parameters (cluster-robust, the delete-one-contour
     jackknife with depths, plus the consider term of each held camera parameter at its
-    prior sigma: the parallax without depths, the roll axis without rolls),
+    prior sigma: the parallax without depths, the roll axis without rolls; and of the
+    held inverse depths at their measurement sigmas, with their common scale,
+    ``_held_depth_columns``),
     which contour carries each intrinsic, and the seconds of each part."""
     x = pb.x
     J = final.jac[:len(r)]
@@ -1024,8 +1028,10 @@ def _uncertainty(pb: _Problem, final, r: np.ndarray, assoc
 def _held_depth_columns(pb: _Problem, assoc, r0: np.ndarray, step: float = 1e-6
                         ) -> tuple[np.ndarray, np.ndarray]:
     """The residuals' derivatives by each held inverse depth that has a measurement
-    sigma (``DepthPrior.measured_sigma``), then by their common scale (every held depth
-    times ``1 + e``), with those sigmas. A row depends on its own contour's depth only,
+    sigma (``DepthPrior.measured_sigma``; every measured one, from
+    ``SceneDepths.prior``), then by their common scale (each of those depths times
+    ``1 + e``: one factor for both stations' moves, taken as fully correlated), with
+    those sigmas. A row depends on its own contour's depth only,
     so one forward difference with every held depth stepped at once gives them all."""
     contours = np.flatnonzero(pb.rho_consider > 0)
     if not len(contours):
