@@ -59,6 +59,9 @@ def start_sim(tmp, world, host=None, camera_port=0):
                         log=tmp / "sim-up.log")
 
 
+HELD_MOVE_TIMEOUT_S = 120.0
+
+
 class Stack:
     """The simulated rig and `rigctl serve` on it; whatever was started is stopped by PID,
     also when the constructor fails half-way."""
@@ -76,6 +79,11 @@ class Stack:
     def _start(self, tmp, schedules):
         self.sim = start_sim(tmp, "ideal")
         rig = yaml.safe_load((tmp / "sim-rig.yaml").read_text())
+        # a move the bus stand-in holds (a test's latched ``freeze``) waits for the test's
+        # thaw or abort, however slow the host: at the default 15 s the held move of
+        # test_abort_mid_run_and_cli_sees_the_rig_busy timed out (the run failed, not
+        # aborted) while a CLI call started beside it, with two cores kept busy
+        rig["devices"]["head"]["move_timeout_s"] = HELD_MOVE_TIMEOUT_S
         port = free_port()
         rig["service"] = {"bind": "127.0.0.1", "port": port, "token": TOKEN,
                           "webhook": self.hook.url, "auto_accept": False,
