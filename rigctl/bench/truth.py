@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from rigctl.geometry.kinematics import KinematicModel
 from rigctl.geometry.transforms import inv_T
@@ -140,8 +141,6 @@ def contour_inverse_depths(world, contours: list[np.ndarray], T_base_cam: np.nda
     traces no shape so (the board's). Occlusion is not checked: a contour along the
     edge where a nearer shape covers a farther one gets the depth of whichever shape's
     outline it follows more."""
-    from scipy.spatial import cKDTree
-
     outlines, depths = [], []
     T_cam_base = inv_T(T_base_cam)
     for shape in world.scene_shapes():

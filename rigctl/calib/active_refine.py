@@ -1031,19 +1031,20 @@ def _held_depth_columns(pb: _Problem, assoc, r0: np.ndarray, step: float = 1e-6
     sigma (``DepthPrior.measured_sigma``; every measured one, from
     ``SceneDepths.prior``), then by their common scale (each of those depths times
     ``1 + e``: one factor for both stations' moves, taken as fully correlated), with
-    those sigmas. A row depends on its own contour's depth only,
-    so one forward difference with every held depth stepped at once gives them all."""
+    those sigmas. A row depends on its own contour's depth only, so one forward
+    difference with every held depth stepped at once gives them all."""
     contours = np.flatnonzero(pb.rho_consider > 0)
     if not len(contours):
         return np.zeros((len(r0), 0)), np.zeros(0)
     xv = pb.x.copy()
     xv[pb.n_cam + contours] += step
     change = (pb.residuals(xv, assoc, cache=False) - r0) / step
-    row_contour = _row_contours(pb.motions, pb.masks)
+    column_of = np.full(pb.n_rho, -1)
+    column_of[contours] = np.arange(len(contours))
+    column = column_of[_row_contours(pb.motions, pb.masks)]
+    rows = np.flatnonzero(column >= 0)
     columns = np.zeros((len(r0), len(contours) + 1))
-    for j, c in enumerate(contours):
-        rows = row_contour == c
-        columns[rows, j] = change[rows]
+    columns[rows, column[rows]] = change[rows]
     rho = pb.x[pb.n_cam + contours]
     columns[:, -1] = columns[:, :-1] @ rho  # d r / d e of rho (1 + e)
     return columns, np.r_[pb.rho_consider[contours], pb.rho_scale_sigma]
