@@ -163,6 +163,7 @@ class Runner(ResumeMixin):
         self.on_event = on_event
         self._board: CaptureWorker | None = None
         self._prefetch: CaptureWorker | None = None
+        self._after_last: Callable[[], Any] | None = None  # see _start_after_last_capture
         self.abort_event = threading.Event()
         self.continue_event = threading.Event()  # the operator's resume of a paused run
         self._abort_reason = "abort requested"
@@ -297,6 +298,11 @@ class Runner(ResumeMixin):
         ctx = SolveContext(run, self.config, params, inputs)
         if procedure.uses_solve_process:  # its interpreter starts while the rig moves
             ctx.solve_process = start_if_useful()
+        after_last = getattr(work, "after_last_capture", None)
+        # once the last capture is in, the work after it goes on beside the last moves
+        # (not in a resumed run: the worker saw only the captures since the resume)
+        self._after_last = None if after_last is None or resumed is not None else \
+            (lambda: after_last(ctx))
         started = time.monotonic()
         try:
             if resumed is not None:
@@ -361,6 +367,7 @@ class Runner(ResumeMixin):
             self._board.finish()
         if self._prefetch is not None:
             ctx.prefetched = self._prefetch.finish()
+            ctx.after_captures = self._prefetch.after
             ctx.timings_s["waiting for the work while moving"] = time.monotonic() - started
 
     def _end_capture_work(self, ctx: SolveContext) -> None:
@@ -428,9 +435,13 @@ class Runner(ResumeMixin):
         state = {"last_motion_end": time.time(), "capture": first_capture,
                  "head_commanded": None, "arm_commanded": None, "step": None}
         n, approach = start, start > 0
+        last_capture = max((i for i, step in enumerate(steps)
+                            if isinstance(step, CaptureStep)), default=-1)
         with progress:
             task = progress.add_task(procedure.name, total=len(steps), completed=start)
             while n < len(steps):
+                if n > last_capture:
+                    self._start_after_last_capture()
                 if self.abort_event.is_set():
                     raise AbortedError(self._abort_reason)
                 try:
@@ -455,6 +466,14 @@ class Runner(ResumeMixin):
                     continue
                 n += 1
                 progress.advance(task)
+        self._start_after_last_capture()
+
+    def _start_after_last_capture(self) -> None:
+        """Once, when every capture is in: the capture work's ``after_last_capture`` goes
+        to its worker, after the captures' own work (``Procedure.capture_work``)."""
+        if self._after_last is not None and self._prefetch is not None:
+            self._prefetch.submit_after(self._after_last)
+        self._after_last = None
 
     def _pause(self, rig: Rig, run: RunDirectory, run_id: str,
                exc: suspenders.SuspendError) -> None:
@@ -615,10 +634,22 @@ class CaptureWorker:
 
         self.work, self.what = work, what
         self.outcomes: dict[int, Any] = {}
+        self.after: Any = None  # the outcome of ``submit_after``'s work
         self.pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix=what.split()[0])
 
     def submit(self, index: int, image, meta: dict) -> None:
         self.pool.submit(self._do, index, image, meta)
+
+    def submit_after(self, work: Callable[[], Any]) -> None:
+        """``work()`` after the captures submitted so far; its outcome is ``after`` (a
+        failure is logged, and ``after`` stays None)."""
+        self.pool.submit(self._do_after, work)
+
+    def _do_after(self, work: Callable[[], Any]) -> None:
+        try:
+            self.after = work()
+        except Exception as exc:
+            log.warning("%s after the last capture: %s", self.what, exc)
 
     def _do(self, index: int, image, meta: dict) -> None:
         try:
@@ -636,6 +667,7 @@ class CaptureWorker:
         running, so that nothing of the run goes on after it."""
         self.pool.shutdown(wait=True, cancel_futures=True)
         self.outcomes.clear()
+        self.after = None
 
 
 def _same_view(before, after, threshold: float) -> bool:

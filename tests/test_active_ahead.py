@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import logging
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -20,7 +21,11 @@ from rigctl.calib.active_pipeline import SHIFT, ActiveSettings, pan_tilt_stage, 
 from rigctl.calib.active_tracking import roll_tiers
 from rigctl.mocks.random_world import random_world
 from rigctl.mocks.world import World, WorldFile
-from rigctl.procedures.active_camera import ActiveCameraParams
+from rigctl.procedures.active_camera import (
+    ActiveCameraParams,
+    WorkWhileMoving,
+    solved_after_captures,
+)
 
 pytestmark = pytest.mark.heavy
 
@@ -157,3 +162,37 @@ def test_rolls_taken_as_they_come_in_leave_the_solve_only_the_rest(views, from_s
     assert [k for k in _roll_stages(solution.timings_s)
             if not k.startswith("while moving: ")] == ["tracking: rolls_-180"]
     assert "while moving: predicting refinement: K_for_rolls_-180" in solution.timings_s
+
+
+@pytest.mark.timeout(600)
+def test_the_solve_after_the_last_capture_is_the_solve_from_scratch(views, from_scratch,
+                                                                    monkeypatch, caplog):
+    """A live run hands each capture to ``WorkWhileMoving`` as it comes in and, once the
+    last is in, takes the whole solve there while the head goes home
+    (``after_last_capture``); the procedure's solve uses it when it holds the recorded
+    captures, and that is the solve from scratch, to the last bit."""
+    monkeypatch.setenv("RIGCTL_SOLVE_THREADS", "1")  # no second process in this test
+    images, angles, settings, _ = views
+    models = dict(zip(("pan", "tilt", "roll"), WorldFile.model_validate(
+        random_world(SEED)).head.models, strict=True))
+    work = WorkWhileMoving(ActiveCameraParams())
+    for label, image in images.items():
+        head = dict(zip(("pan", "tilt", "roll"), angles[label], strict=True))
+        work(image, {"label": label, "head": head,
+                     "head_health": {axis: {"model": m} for axis, m in models.items()}})
+    after = work.after_last_capture(SimpleNamespace(config=None, solve_process=None))
+    assert after.differs(images, angles, settings) is None
+    with caplog.at_level(logging.INFO, logger="rigctl.procedures.active_camera"):
+        solution = solved_after_captures(after, images, angles, settings)
+    assert "solved from the last capture on" in caplog.text
+    assert _as_json(solution.result) == _as_json(from_scratch.result)
+    assert "after the last capture: strategies A-D" in solution.timings_s
+    assert "while moving: tracking: rolls_-180" in solution.timings_s
+    # captures other than the ones it took, or other settings: the solve takes them all
+    copied = dict(images, **{"tilt+": images["tilt+"].copy()})
+    assert solved_after_captures(after, copied, angles, settings) is None
+    assert after.differs(copied, angles, settings) == "a capture differs"
+    fewer = {k: v for k, v in images.items() if k != "roll-90"}
+    assert after.differs(fewer, angles, settings).startswith("the captures differ")
+    exact = ActiveSettings(shift_m=0.010, encoder_sigma_rad=None)
+    assert after.differs(images, angles, exact) == "the settings differ"

@@ -98,6 +98,10 @@ def test_active_camera_on_default_world(camera_run):
     assert "while moving: tracking: rolls_-180" in log_text
     # the wait for that work after the motion is the solve's time, and named in its stages
     assert "solve stages: waiting for the work while moving" in log_text
+    # the whole solve went on from the last capture, while the head went home, and the
+    # solve used it (the re-solve, from scratch, gives the same result)
+    assert "solved from the last capture on, while the rig made its last moves" in log_text
+    assert "after the last capture: strategies A-D" in log_text
     depths = out["tracking"]["scene_depth"]
     assert depths["contours_measured"] >= 6
     assert np.linalg.norm(depths["move_in_camera_mm"]) == pytest.approx(10.0, rel=0.01)

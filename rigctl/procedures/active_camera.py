@@ -16,6 +16,9 @@ from __future__ import annotations
 
 import logging
 import math
+import time
+from dataclasses import dataclass
+from types import SimpleNamespace
 from typing import Annotated, Any, Literal
 
 import cv2
@@ -27,6 +30,7 @@ from rigctl.calib.active_pipeline import (
     SHIFT,
     STATION_PREFIX,
     ActiveSettings,
+    ActiveSolution,
     PanTiltStage,
     pan_tilt_stage,
     solve_active,
@@ -201,11 +205,17 @@ class ActiveCamera(Procedure):
         settings = _settings(params, head_encoder_sigmas(servo_models(caps.values(),
                                                                       ctx.config)))
         with ctx.stage("pipeline"):
-            # a live run started the solve's second process while the rig moved, and took
-            # the stages up to the rolls while it rolled; a re-solve starts the process as
-            # the rolls' tiers begin, and takes every stage
-            solution = solve_active(images, angles, settings, emaps, ctx.solve_process,
-                                    ahead=ahead)
+            solution = solved_after_captures(ctx.after_captures, images, angles, settings)
+            if solution is None:
+                # a live run started the solve's second process while the rig moved, and
+                # took the stages up to the rolls while it rolled; a re-solve starts the
+                # process as the rolls' tiers begin, and takes every stage (and so does a
+                # run whose solve after the last capture did not fit: that solve went on
+                # from the stages taken ahead, whose tracker it moved on)
+                if ctx.after_captures is not None:
+                    ahead = None
+                solution = solve_active(images, angles, settings, emaps, ctx.solve_process,
+                                        ahead=ahead)
         ctx.timings_s.update({f"pipeline: {k}": v for k, v in solution.timings_s.items()})
         # the size and focus these intrinsics hold for (checked by procedures using them)
         solution.result["camera_settings"] = settings_of_run(ctx.run)
@@ -214,6 +224,54 @@ class ActiveCamera(Procedure):
         ctx.defer("plots", lambda: _plots(ctx, images, solution.contours, solution.matches,
                                           solution.refined, solution.order))
         return solution.result
+
+
+@dataclass
+class SolvedAfterCaptures:
+    """The whole solve, taken on the capture worker once the last capture was in
+    (``WorkWhileMoving.after_last_capture``), and the inputs it was taken from."""
+
+    images: dict[str, np.ndarray]
+    angles: dict[str, tuple[float, float, float]]
+    settings: ActiveSettings
+    outcome: ActiveSolution | SolveError
+    seconds: float
+
+    def differs(self, images: dict, angles: dict, settings: ActiveSettings) -> str | None:
+        """Why the solve of the recorded captures would not be this one, or None: it
+        must hold the same captures (labels in order, the same image objects, the same
+        angles) and the same settings."""
+        if list(images) != list(self.images):
+            return f"the captures differ ({len(images)} against {len(self.images)})"
+        if any(images[label] is not self.images[label] or
+               tuple(angles[label]) != tuple(self.angles[label]) for label in images):
+            return "a capture differs"
+        if settings != self.settings:
+            return "the settings differ"
+        return None
+
+
+def solved_after_captures(after: Any, images: dict, angles: dict,
+                           settings: ActiveSettings) -> ActiveSolution | None:
+    """The solve taken after the last capture (``after``: a ``SolvedAfterCaptures``),
+    when it was taken from these captures and settings (its ``SolveError`` raised
+    again); else None (why, logged), and the solve takes every stage itself."""
+    if not isinstance(after, SolvedAfterCaptures):
+        return None
+    why = after.differs(images, angles, settings)
+    if why is not None:
+        log.info("active-camera: the solve taken after the last capture is not used "
+                 "(%s); solving again", why)
+        return None
+    log.info("active-camera: solved from the last capture on, while the rig made its "
+             "last moves (%.1f s)", after.seconds)
+    if isinstance(after.outcome, SolveError):
+        raise after.outcome
+    solution = after.outcome
+    solution.timings_s = {k if k.startswith("while moving: ") else
+                          f"after the last capture: {k}": v
+                          for k, v in solution.timings_s.items()}
+    return solution
 
 
 def _settings(params: ActiveCameraParams, encoder_sigma_rad) -> ActiveSettings:
@@ -245,6 +303,9 @@ class WorkWhileMoving:
         self.images: dict[str, np.ndarray] = {}
         self.angles: dict[str, tuple[float, float, float]] = {}
         self.emaps: dict[str, Any] = {}
+        # every labelled capture with its head angles, for the solve after the last
+        # (``after_last_capture``): image, angles, edge map and metadata, by label
+        self.captures: dict[str, tuple[np.ndarray, tuple, Any, dict]] = {}
         self.started = False
         self.ahead: PanTiltStage | None = None
         # the rolls' tiers as planned (the recorded angles group the same way, checked
@@ -257,9 +318,12 @@ class WorkWhileMoving:
     def __call__(self, image: np.ndarray, meta: dict) -> tuple:
         image, emap = image_and_edge_map(image)
         label, head = meta.get("label"), meta.get("head")
-        if not label or head is None or label.startswith(STATION_PREFIX):
+        if not label or head is None:
             return image, emap
         angle = tuple(head[a] for a in ("pan", "tilt", "roll"))
+        self.captures[label] = (image, angle, emap, meta)
+        if label.startswith(STATION_PREFIX):
+            return image, emap
         if label != "ref":  # searched by the tracking: its search maps now, off the solve
             searchable(emap)
         if self.started:  # a roll after the first: the rolls' stages go on
@@ -284,6 +348,27 @@ class WorkWhileMoving:
         ahead.roll_plan = self.roll_plan
         self._take_roll(label, image, angle, emap)
         return image, emap, ahead
+
+    def after_last_capture(self, ctx: SolveContext) -> SolvedAfterCaptures:
+        """The whole solve on the captures, taken on the capture worker as soon as the
+        last is in, while the rig makes its last moves (the head's return home, a 180 deg
+        roll: 3-4 s of motion in which the solve would otherwise wait), with the run's
+        second process; ``ActiveCamera.solve`` uses it when it fits the recorded
+        captures. The same call as the solve's, so the same numbers."""
+        images = {label: c[0] for label, c in self.captures.items()}
+        angles = {label: c[1] for label, c in self.captures.items()}
+        emaps = {label: c[2] for label, c in self.captures.items()}
+        metas = [SimpleNamespace(meta=c[3]) for c in self.captures.values()]
+        settings = _settings(self.params, head_encoder_sigmas(servo_models(metas,
+                                                                           ctx.config)))
+        started = time.perf_counter()
+        try:
+            outcome = solve_active(images, angles, settings, emaps, ctx.solve_process,
+                                   ahead=self.ahead)
+        except SolveError as exc:
+            outcome = exc
+        return SolvedAfterCaptures(images, angles, settings, outcome,
+                                   time.perf_counter() - started)
 
     def _take_roll(self, label: str, image: np.ndarray, angle: tuple, emap) -> None:
         """The rolls' stages that this roll capture completes (``take_roll``); after a

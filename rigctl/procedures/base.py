@@ -141,6 +141,11 @@ class SolveContext:
     # its solve (``calib.solve_process``), started while the rig moved; None offline (the
     # solve starts its own)
     solve_process: Any = None
+    # in a live run whose ``capture_work`` has ``after_last_capture``: its outcome, taken
+    # on the capture worker once the last capture was in, while the rig made its last
+    # moves (active-camera: the whole solve, which ``solve`` uses when it fits the
+    # recorded captures); None offline
+    after_captures: Any = None
 
     def stage(self, name: str):
         """Time one stage of the solve (``rigctl bench solve`` prints them)."""
@@ -246,7 +251,13 @@ class Procedure:
         run and may keep what earlier captures gave (active-camera takes its first stages
         on the captures before the rolls). None: no such work. An outcome must be what
         the solve computes from the recorded captures, so a re-solve gives the same
-        result."""
+        result.
+
+        The function may have an ``after_last_capture(ctx)`` method: the runner calls it
+        on the same worker, once, after the last capture's work, while the rig makes the
+        moves after the last capture (e.g. home); its outcome is
+        ``SolveContext.after_captures``. A resumed run does not call it (the worker saw
+        only the captures since the resume)."""
         return None
 
     def solve(self, ctx: SolveContext) -> dict[str, Any]:
