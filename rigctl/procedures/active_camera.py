@@ -18,7 +18,6 @@ import logging
 import math
 import time
 from dataclasses import dataclass
-from types import SimpleNamespace
 from typing import Annotated, Any, Literal
 
 import cv2
@@ -202,8 +201,7 @@ class ActiveCamera(Procedure):
                      "moved", len(prefetched), len(caps))
         angles = {k: tuple(c.meta["head"][a] for a in ("pan", "tilt", "roll"))
                   for k, c in caps.items()}
-        settings = _settings(params, head_encoder_sigmas(servo_models(caps.values(),
-                                                                      ctx.config)))
+        settings = _run_settings(params, (c.meta for c in caps.values()), ctx.config)
         with ctx.stage("pipeline"):
             solution = solved_after_captures(ctx.after_captures, images, angles, settings)
             if solution is None:
@@ -274,6 +272,12 @@ def solved_after_captures(after: Any, images: dict, angles: dict,
     return solution
 
 
+def _run_settings(params: ActiveCameraParams, metas, config) -> ActiveSettings:
+    """``_settings`` with the encoder sigmas of the head's servos, as the captures'
+    metadata (``metas``) or the rig file (``config``) name them (``servo_models``)."""
+    return _settings(params, head_encoder_sigmas(servo_models(metas, config)))
+
+
 def _settings(params: ActiveCameraParams, encoder_sigma_rad) -> ActiveSettings:
     """The solve's settings: the procedure's parameters without the motion plan, and the
     head's encoder sigmas (rad; None: the recorded angles are exact)."""
@@ -300,11 +304,8 @@ class WorkWhileMoving:
 
     def __init__(self, params: ActiveCameraParams) -> None:
         self.params = params
-        self.images: dict[str, np.ndarray] = {}
-        self.angles: dict[str, tuple[float, float, float]] = {}
-        self.emaps: dict[str, Any] = {}
-        # every labelled capture with its head angles, for the solve after the last
-        # (``after_last_capture``): image, angles, edge map and metadata, by label
+        # every labelled capture with its head angles, in the captures' order: image,
+        # angles, edge map and metadata, by label
         self.captures: dict[str, tuple[np.ndarray, tuple, Any, dict]] = {}
         self.started = False
         self.ahead: PanTiltStage | None = None
@@ -331,13 +332,14 @@ class WorkWhileMoving:
                 self._take_roll(label, image, angle, emap)
             return image, emap
         if not label.startswith("roll"):
-            self.images[label], self.emaps[label], self.angles[label] = image, emap, angle
             return image, emap
         self.started = True
+        before = [lb for lb in self.captures if not lb.startswith(("roll", STATION_PREFIX))]
         try:
             # the encoders' sigmas only enter the final refinement: checked there
-            ahead = pan_tilt_stage(self.images, self.angles, _settings(self.params, None),
-                                   self.emaps, rolls_follow=True)
+            images, angles, emaps = self._of(before)
+            ahead = pan_tilt_stage(images, angles, _settings(self.params, None), emaps,
+                                   rolls_follow=True)
         except SolveError as exc:
             log.info("active-camera: the stages up to the rolls, taken while the rig "
                      "rolls, failed (%s); the solve takes them again", exc)
@@ -355,12 +357,9 @@ class WorkWhileMoving:
         roll: 3-4 s of motion in which the solve would otherwise wait), with the run's
         second process; ``ActiveCamera.solve`` uses it when it fits the recorded
         captures. The same call as the solve's, so the same numbers."""
-        images = {label: c[0] for label, c in self.captures.items()}
-        angles = {label: c[1] for label, c in self.captures.items()}
-        emaps = {label: c[2] for label, c in self.captures.items()}
-        metas = [SimpleNamespace(meta=c[3]) for c in self.captures.values()]
-        settings = _settings(self.params, head_encoder_sigmas(servo_models(metas,
-                                                                           ctx.config)))
+        images, angles, emaps = self._of(list(self.captures))
+        settings = _run_settings(self.params, (c[3] for c in self.captures.values()),
+                                 ctx.config)
         started = time.perf_counter()
         try:
             outcome = solve_active(images, angles, settings, emaps, ctx.solve_process,
@@ -369,6 +368,10 @@ class WorkWhileMoving:
             outcome = exc
         return SolvedAfterCaptures(images, angles, settings, outcome,
                                    time.perf_counter() - started)
+
+    def _of(self, labels: list[str]) -> tuple[dict, dict, dict]:
+        """The images, angles and edge maps of the captures ``labels``, by label."""
+        return tuple({lb: self.captures[lb][i] for lb in labels} for i in range(3))
 
     def _take_roll(self, label: str, image: np.ndarray, angle: tuple, emap) -> None:
         """The rolls' stages that this roll capture completes (``take_roll``); after a
@@ -392,12 +395,12 @@ def image_and_edge_map(image: np.ndarray) -> tuple[np.ndarray, Any]:
     return image, edge_map(image)
 
 
-def servo_models(captures, config) -> dict[str, str]:
-    """The head's servo model per axis: as the captures recorded them (each servo's
-    health, read from the servo), else as the rig file names them; axes with neither
-    are left out."""
-    for capture in captures:
-        health = capture.meta.get("head_health") or {}
+def servo_models(metas, config) -> dict[str, str]:
+    """The head's servo model per axis: as the captures' metadata (``metas``) recorded
+    them (each servo's health, read from the servo), else as the rig file names them;
+    axes with neither are left out."""
+    for meta in metas:
+        health = meta.get("head_health") or {}
         models = {axis: h.get("model") for axis, h in health.items() if isinstance(h, dict)}
         if all(models.get(axis) for axis in ("pan", "tilt", "roll")):
             return models

@@ -326,7 +326,8 @@ class RobotKinematics(Procedure):
                           ctx.params.refine_camera, controller=controller, fixed=fixed,
                           head=head_geometry(intr) if fixed else None,
                           encoder_sigma_rad=head_encoder_sigmas(
-                              servo_models(ctx.captures(), ctx.config)) if fixed else None)
+                              servo_models((c.meta for c in ctx.captures()),
+                                           ctx.config)) if fixed else None)
         if sol.ref.rms > MAX_RESIDUAL_PX:
             # a refinement stuck in a wrong minimum still "converges"; its residual says so
             # (unseen random world 4015: 20.7 px, the exported model 12 mm off the truth)
