@@ -471,14 +471,14 @@ def test_a_start_carrying_another_refinements_camera_needs_fewer_evaluations(mon
     _, poses, obs, _ = scenario(theta_deg=5.0, sigma=0.5, seed=7, count=6, points=30)
     start = {"fx": 880, "fy": 890, "cx": 640, "cy": 360}
     evaluations: list[int] = []
-    solver = active_refine.levenberg_marquardt
+    solver = active_refine.normal_lm_solve
 
     def counted(*args, **kwargs):
         fit = solver(*args, **kwargs)
         evaluations.append(fit.nfev)
         return fit
 
-    monkeypatch.setattr(active_refine, "levenberg_marquardt", counted)
+    monkeypatch.setattr(active_refine, "normal_lm_solve", counted)
     first = refine(motions_of(poses, obs), start, n_dist=2)
     cold = sum(evaluations)
     evaluations.clear()

@@ -444,7 +444,7 @@ def _scouted_elsewhere(name: str, scout: RefineResult | SolveError, first: str,
     if first_coarse is not None and _same_end(scout, first_coarse):
         report[name].update(scouted_to=[scout.cx, scout.cy], basin_of=first)
         return False
-    report[name]["scouted_to"] = [scout.cx, scout.cy]
+    report[name].update(scouted_to=[scout.cx, scout.cy], scout_robust_cost=scout.robust_cost)
     return True
 
 

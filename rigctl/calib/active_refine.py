@@ -32,6 +32,7 @@ image (images): then the residual is the point-to-curve distance along the norma
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 from dataclasses import dataclass, field
@@ -47,6 +48,7 @@ from rigctl.calib.active_jacobian import (
     residual_jacobian,
     undistortion_terms,
 )
+from rigctl.calib.active_normal import MotionColumns, motion_normal, summed
 from rigctl.calib.active_rotations import (
     motion_rotations,
     mounting,
@@ -59,7 +61,7 @@ from rigctl.calib.covariance import (
     jackknife_spread,
     larger_variances,
 )
-from rigctl.calib.normal_lm import levenberg_marquardt
+from rigctl.calib.normal_lm import loss_terms, normal_lm_solve, normal_matrix
 from rigctl.calib.threads import map_in_threads, row_chunks, threads_here
 from rigctl.errors import SolveError
 
@@ -87,6 +89,13 @@ OUTLIERS_SETTLED = 0.005
 # rows per chunk of the Jacobian (``jacobian_chunks``): the chunk's per-row vectors
 # stay in the cache while ``residual_jacobian`` goes through them
 JACOBIAN_CHUNK_ROWS = 16384
+# Rows per motion from which a solve forms its normal equations motion by motion
+# (``active_normal``) rather than from the whole Jacobian: each motion's share costs some
+# 40 small numpy calls. Random world 99289 (31 motions; one evaluation, one thread, then
+# two): 412 rows per motion 18 against 19 ms, then 17.5 against 16.0 ms; 1650 rows 37
+# against 52 ms, then 49 against 55 ms; 6600 rows 170 against 241 ms, then 191 against
+# 269 ms. The same numbers to rounding either way (``tests/test_active_normal.py``).
+STREAM_ROWS_PER_MOTION = 1000
 
 
 def param_names(n_dist: int) -> list[str]:
@@ -369,6 +378,10 @@ class CurveTargets:
     def residuals(self, pixels: np.ndarray) -> np.ndarray:
         return self.row_residuals(pixels[self.rows])
 
+    def row_residuals_of(self, row_pixels: np.ndarray, a: int, b: int) -> np.ndarray:
+        """``row_residuals`` of the kept rows ``a`` to ``b`` (excluded) alone."""
+        return np.sum((row_pixels - self.points[a:b]) * self.normals[a:b], axis=1)
+
     def row_residuals(self, row_pixels: np.ndarray) -> np.ndarray:
         """The residuals of the kept points' predicted pixels (``rows`` already taken)."""
         return np.sum((row_pixels - self.points) * self.normals, axis=1)
@@ -612,6 +625,8 @@ class _Problem:
                 self.angles.delta[:] = delta
         self._elimination: tuple | None = None  # (key, Elimination)
         self._jacobian: tuple | None = None  # (key, assoc, targets, J, residuals)
+        self._grouped: tuple | None = None  # (targets, each motion's MotionColumns)
+        self._accepted_steps: tuple | None = None  # (key, id(targets), offset steps)
         # whether the captures' own offsets are estimated (eliminated) in the solves; the
         # first solve from a far start leaves them at the readings
         self.eliminating = self.angles is not None
@@ -737,50 +752,25 @@ class _Problem:
         """d residual / d free parameters (at the captures' current offsets; rows, then
         ``extra_rows`` of zeros), d residual / d the captures' own offsets (rows x 3, or
         None), each motion's row count and each row's predicted pixel."""
-        cam = xv[:self.n_cam]
-        fx, fy, cx, cy, N, a, o, k = _unpack(cam, self.n_dist)
-        point, normals, counts = self._row_layout(assoc, targets)
-        _, inverse = self.cache.distinct(self.refs)
-        und = self.cache.undistort_distinct(self.refs, fx, fy, cx, cy, k)
-        rho = self.rho(xv)
-        rho_rows = None if rho is None else rho[point]
-        s = o if rho is None else rho_rows[:, None] * o
-        offsets = self.offsets(xv)
-        rotations = self.cache.rotations(self.motions, N, a, offsets)
-        d_rotations = rotation_derivatives(self.motions, cam, offsets=offsets,
-                                           angles=self.angles is not None)
-        slots = DIST_SLOTS[self.n_dist]
-        und_terms = undistortion_terms(und, distortion_vector(cam, self.n_dist, slots),
-                                       slots) if self.n_dist else None
+        rows = _RowModel(self, xv, assoc, targets)
+        counts, bounds, free_cam = rows.counts, rows.bounds, rows.free_cam
         # one array for the whole Jacobian: the residual rows' camera and inverse-depth
         # columns, then the priors' rows (copying a Jacobian of 100,000 rows costs as
         # much as forming it); column-major, as ``residual_jacobian`` writes its columns:
         # each column is one contiguous copy (a row-major copy cost twice as much)
-        free_cam = np.flatnonzero(self.free[:self.n_cam])
-        free_rho = self.free[self.n_cam:self.n_cam + self.n_rho]
-        n_rows = len(point)
+        n_rows = len(rows.point)
         J = np.zeros((n_rows + extra_rows, int(self.free.sum())), order="F")
-        row_column = None
-        if free_rho.any():  # each point's inverse depth is its contour's parameter
-            column = np.full(len(free_rho), -1)
-            column[free_rho] = len(free_cam) + np.arange(int(free_rho.sum()))
-            row_column = column[self.groups[point]]
+        row_column = rows.row_column
         # the reference captures' offsets: their columns (after the free depths), each
         # motion's rows in its station's three
-        first = len(free_cam) + int(free_rho.sum())
         G = None if self.angles is None else np.empty((n_rows, 3))
         pixels = np.empty((n_rows, 2))
-        bounds = np.cumsum([0, *counts])
 
         def rows_of(chunk: tuple[int, int]) -> None:
             """The Jacobian's rows of motions ``chunk[0]`` to ``chunk[1]`` (excluded)."""
             m0, m1 = chunk
             a, b = bounds[m0], bounds[m1]
-            J_cam, d_rho, pixels[a:b] = residual_jacobian(
-                cam, self.n_dist, slots, und, inverse[point[a:b]], normals[a:b],
-                rotations[m0:m1], d_rotations[m0:m1], counts[m0:m1],
-                s if s.ndim == 1 else s[a:b], None if rho_rows is None else rho_rows[a:b],
-                und_terms)
+            J_cam, d_rho, pixels[a:b] = rows.jacobian(m0, m1)
             for column, cam_column in enumerate(free_cam):
                 J[a:b, column] = J_cam[:, cam_column]
             if row_column is not None:
@@ -789,7 +779,7 @@ class _Problem:
             if G is None:
                 return
             for m in range(m0, m1):
-                column = first + 3 * self.station_of[m]
+                column = rows.station_column(m)
                 J[bounds[m]:bounds[m + 1], column:column + 3] = \
                     J_cam[bounds[m] - a:bounds[m + 1] - a, self.n_cam:self.n_cam + 3]
             G[a:b] = J_cam[:, self.n_cam + 3:]
@@ -798,6 +788,98 @@ class _Problem:
         # as one pass (every row is computed alone)
         map_in_threads(rows_of, jacobian_chunks(counts, threads_here()))
         return J, G, counts, pixels
+
+    def evaluate(self, xf: np.ndarray, assoc, targets, loss: str):
+        """For ``normal_lm_solve``: the robust cost of ``fun`` at ``xf`` and a callable
+        giving its normal equations ``(H, g)`` there (``(inf, None)`` where the residuals
+        are not finite). With every motion in curve mode and ``STREAM_ROWS_PER_MOTION``
+        rows per motion they are formed motion by motion (``active_normal``), without
+        the whole Jacobian; else from ``fun`` and ``jac``."""
+        if targets is None or len(targets.rows) < STREAM_ROWS_PER_MOTION * len(self.motions):
+            f = self.fun(xf, assoc, targets)
+            if not np.all(np.isfinite(f)):
+                return math.inf, None
+            cost, weight, rf = loss_terms(f, loss, 1.0)
+
+            def dense() -> tuple[np.ndarray, np.ndarray]:
+                J = self.jac(xf, assoc, targets)
+                return normal_matrix(J, weight), J.T @ rf
+            return cost, dense
+        normal = self.normal_equations(xf, assoc, targets, loss)
+        if normal is None:
+            return math.inf, None
+        cost, H, g, steps = normal
+
+        def formed() -> tuple[np.ndarray, np.ndarray]:
+            self._accepted_steps = (xf.tobytes(), id(targets), steps)
+            return H, g
+        return cost, formed
+
+    def normal_equations(self, xf: np.ndarray, assoc, targets: CurveTargets, loss: str):
+        """The robust cost, ``H`` and ``g`` of ``fun``'s rows at ``xf`` (all motions in curve
+        mode; ``active_normal``) and, when the captures' offsets are eliminated, each
+        motion's step to its best offsets (motions x 3; else None); None where the
+        residuals are not finite. The same numbers as ``fun`` and ``jac`` give, to
+        rounding, whatever the threads."""
+        xv = self.full(xf)
+        rows = _RowModel(self, xv, assoc, targets)
+        bounds = rows.bounds
+        layout = self._normal_layout(targets, rows)
+        eliminating = self.eliminating
+        w = None if self.angles is None else self.angles.scale / self.angles.sigma
+        # the dense columns of ``residual_jacobian``'s: the free camera parameters, the
+        # station's offsets, then (eliminated) the capture's own
+        columns = rows.free_cam if self.angles is None else \
+            np.r_[rows.free_cam, np.arange(self.n_cam, self.n_cam + (6 if eliminating else 3))]
+        delta = self.angles.delta if eliminating else None
+
+        def motions_of(chunk: tuple[int, int]) -> list:
+            m0, m1 = chunk
+            a = bounds[m0]
+            J_cam, d_rho, pixels = rows.jacobian(m0, m1)
+            r = targets.row_residuals_of(pixels, a, bounds[m1])
+            DG = J_cam[:, columns]
+            if not (np.isfinite(DG).all() and np.isfinite(r).all()):
+                return [None]  # a trial step that turned the model over
+            parts = []
+            for m in range(m0, m1):
+                lo, hi = bounds[m] - a, bounds[m + 1] - a
+                parts.append(motion_normal(
+                    DG[lo:hi], None if d_rho is None else d_rho[lo:hi], layout[m],
+                    r[lo:hi], loss, eliminating, None if delta is None else delta[m], w))
+            return parts
+
+        parts = [part for chunk in map_in_threads(
+            motions_of, jacobian_chunks(rows.counts, threads_here())) for part in chunk]
+        if any(part is None for part in parts):
+            return None
+        cost, H, g = summed(parts, layout, len(xf))
+        has = np.flatnonzero(self._has_prior())
+        sigma = self.prior_sigma[self.free][has]
+        prior_cost, weight, u = loss_terms(
+            (xf - self.prior_mean[self.free])[has] / sigma, loss, 1.0)
+        H[has, has] += (1.0 if weight is None else weight) / sigma ** 2
+        g[has] += u / sigma
+        steps = np.array([part.step for part in parts]) if eliminating else None
+        return cost + prior_cost, H, g, steps
+
+    def _normal_layout(self, targets: CurveTargets, rows: _RowModel) -> list[MotionColumns]:
+        """Each motion's columns in the free parameters and its rows grouped by their
+        free inverse depth (``active_normal.MotionColumns``), kept for the fixed rows
+        of one solve."""
+        kept = self._grouped
+        if kept is None or kept[0] is not targets:
+            bounds, column = rows.bounds, rows.row_column
+            n_cam = len(rows.free_cam)
+            dense = [np.arange(n_cam) if self.angles is None else
+                     np.r_[np.arange(n_cam), rows.station_column(m) + np.arange(3)]
+                     for m in range(len(self.motions))]
+            self._grouped = (targets, [
+                MotionColumns.of(dense[m], None if column is None else column[a:b],
+                                 int(self.free.sum()))
+                for m, (a, b) in enumerate(itertools.pairwise(bounds))])
+        return self._grouped[1]
+
 
     def _row_layout(self, assoc, targets) -> tuple[np.ndarray, np.ndarray, list[int]]:
         """For each residual row, in ``_residuals``' order: its reference point (row of
@@ -823,16 +905,70 @@ class _Problem:
     def solve(self, assoc, loss: str, max_nfev: int):
         targets = CurveTargets.build(self.motions, self.masks, assoc)
         self._jacobian = None  # the masks may have changed since
+        self._grouped = None
         try:
-            fit = levenberg_marquardt(self.fun, self.jac, self.x[self.free],
-                                      args=(assoc, targets), loss=loss, f_scale=1.0,
-                                      max_nfev=max_nfev)
+            fit = normal_lm_solve(lambda xf: self.evaluate(xf, assoc, targets, loss),
+                                  self.x[self.free], max_nfev=max_nfev)
         except (ValueError, np.linalg.LinAlgError) as exc:  # non-finite at its start
             raise SolveError(f"refinement diverged: {exc}") from exc
         self.x = self.full(fit.x)
         if self.eliminating:  # the captures' offsets move to their best
-            self.angles.delta += self.eliminated(fit.x, assoc, targets).step
+            kept = self._accepted_steps
+            if kept is not None and kept[0] == fit.x.tobytes() and kept[1] == id(targets):
+                self.angles.delta += kept[2]
+            else:
+                self.angles.delta += self.eliminated(fit.x, assoc, targets).step
+        self._accepted_steps = None
         return fit
+
+
+class _RowModel:
+    """What ``residual_jacobian`` needs of each residual row of ``pb`` at ``xv`` (every
+    parameter), taken once per evaluation: each row's reference point and normal, each
+    motion's rows (``counts``, ``bounds``) and rotations, and where the free parameters'
+    columns are (the free camera parameters, each row's inverse depth: ``row_column``, -1
+    where held; then each station's offsets)."""
+
+    def __init__(self, pb: _Problem, xv: np.ndarray, assoc, targets) -> None:
+        cam = xv[:pb.n_cam]
+        fx, fy, cx, cy, N, a, o, k = _unpack(cam, pb.n_dist)
+        self.pb, self.cam = pb, cam
+        self.point, self.normals, self.counts = pb._row_layout(assoc, targets)
+        _, self.inverse = pb.cache.distinct(pb.refs)
+        self.und = pb.cache.undistort_distinct(pb.refs, fx, fy, cx, cy, k)
+        rho = pb.rho(xv)
+        self.rho_rows = None if rho is None else rho[self.point]
+        self.s = o if rho is None else self.rho_rows[:, None] * o
+        offsets = pb.offsets(xv)
+        self.rotations = pb.cache.rotations(pb.motions, N, a, offsets)
+        self.d_rotations = rotation_derivatives(pb.motions, cam, offsets=offsets,
+                                                angles=pb.angles is not None)
+        self.slots = DIST_SLOTS[pb.n_dist]
+        self.und_terms = undistortion_terms(
+            self.und, distortion_vector(cam, pb.n_dist, self.slots), self.slots) \
+            if pb.n_dist else None
+        self.free_cam = np.flatnonzero(pb.free[:pb.n_cam])
+        free_rho = pb.free[pb.n_cam:pb.n_cam + pb.n_rho]
+        self.row_column = None
+        if free_rho.any():  # each point's inverse depth is its contour's parameter
+            column = np.full(len(free_rho), -1)
+            column[free_rho] = len(self.free_cam) + np.arange(int(free_rho.sum()))
+            self.row_column = column[pb.groups[self.point]]
+        self.first_station = len(self.free_cam) + int(free_rho.sum())
+        self.bounds = np.cumsum([0, *self.counts])
+
+    def station_column(self, m: int) -> int:
+        """The first of motion ``m``'s station's three offset columns."""
+        return self.first_station + 3 * int(self.pb.station_of[m])
+
+    def jacobian(self, m0: int, m1: int):
+        """``residual_jacobian`` of the rows of motions ``m0`` to ``m1`` (excluded)."""
+        a, b = self.bounds[m0], self.bounds[m1]
+        return residual_jacobian(
+            self.cam, self.pb.n_dist, self.slots, self.und, self.inverse[self.point[a:b]],
+            self.normals[a:b], self.rotations[m0:m1], self.d_rotations[m0:m1],
+            self.counts[m0:m1], self.s if self.s.ndim == 1 else self.s[a:b],
+            None if self.rho_rows is None else self.rho_rows[a:b], self.und_terms)
 
 
 def timed_refine(motions: list[Motion], initial: dict, kwargs: dict
@@ -907,7 +1043,7 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
         assoc = pb.associate(pb.x)
         # from a far start the camera moves first, the captures' offsets after
         pb.eliminating = pb.angles is not None and round_ > 0
-        final = pb.solve(assoc, "soft_l1", 200)
+        pb.solve(assoc, "soft_l1", 200)
         kept = sum(int(mk.sum()) for mk in pb.masks)
         dropped = _reject_outliers(pb.residuals(pb.x, assoc, cache=False), motions, pb.masks,
                                    outlier_sigmas)
@@ -918,12 +1054,12 @@ def refine(motions: list[Motion], initial: dict[str, float], n_dist: int = 0,
     # when the rounds ended before any did (the first round holds them)
     if least_squares_end or (pb.angles is not None and not pb.eliminating):
         pb.eliminating = pb.angles is not None
-        final = pb.solve(assoc, "linear" if least_squares_end else "soft_l1", 100)
+        pb.solve(assoc, "linear" if least_squares_end else "soft_l1", 100)
     r = pb.residuals(pb.x, assoc, cache=False)
     if not np.all(np.isfinite(pb.x)) or not np.all(np.isfinite(r)):
         raise SolveError("refinement diverged (non-finite parameters)")
     solves_s = time.perf_counter() - started
-    result = _result(pb, final, r, assoc, uncertainty)
+    result = _result(pb, r, assoc, uncertainty)
     result.timings_s = {"solves": solves_s, **result.timings_s}
     if robust_cost:
         result.robust_cost = _robust_cost(pb)
@@ -947,13 +1083,13 @@ def _robust_cost(pb: _Problem) -> float:
     return float(np.sum(2.0 * (np.sqrt(1.0 + r ** 2) - 1.0)) + np.sum(prior ** 2))
 
 
-def _result(pb: _Problem, final, r: np.ndarray, assoc, uncertainty: bool = True
+def _result(pb: _Problem, r: np.ndarray, assoc, uncertainty: bool = True
             ) -> RefineResult:
     """The refinement's estimate with its 1-sigma uncertainties (``_uncertainty``; NaN
     without ``uncertainty``)."""
     x, n_dist = pb.x, pb.n_dist
     if uncertainty:
-        full, influence, timings = _uncertainty(pb, final, r, assoc)
+        full, influence, timings = _uncertainty(pb, r, assoc)
     else:
         full, influence, timings = np.full((len(x), len(x)), np.nan), {}, {}
     sig = np.sqrt(np.clip(np.diag(full), 0, None))
@@ -972,7 +1108,7 @@ def _result(pb: _Problem, final, r: np.ndarray, assoc, uncertainty: bool = True
                         angle_delta=None if pb.angles is None else pb.angles.delta.copy())
 
 
-def _uncertainty(pb: _Problem, final, r: np.ndarray, assoc
+def _uncertainty(pb: _Problem, r: np.ndarray, assoc
                  ) -> tuple[np.ndarray, dict, dict]:
     """The covariance of all parameters (cluster-robust, the delete-one-contour
     jackknife with depths, plus the consider term of each held camera parameter at its
@@ -981,17 +1117,17 @@ def _uncertainty(pb: _Problem, final, r: np.ndarray, assoc
     ``_held_depth_columns``),
     which contour carries each intrinsic, and the seconds of each part."""
     x = pb.x
-    J = final.jac[:len(r)]
-    J = J.toarray() if hasattr(J, "toarray") else np.asarray(J)
     prior = pb.prior_sigma[pb.free]
     information = np.diag(1.0 / prior ** 2)
     started = time.perf_counter()
     elimination = None
+    targets = CurveTargets.build(pb.motions, pb.masks, assoc)
     if pb.angles is not None:  # marginal over the captures' angle offsets
-        elimination = pb.eliminated(x[pb.free], assoc,
-                                    CurveTargets.build(pb.motions, pb.masks, assoc))
+        elimination = pb.eliminated(x[pb.free], assoc, targets)
         J = elimination.jac_rows
         information = information + elimination.jac_prior.T @ elimination.jac_prior
+    else:  # the solver formed its normal equations without it
+        J = pb._jacobian_at(x[pb.free], assoc, targets, 0)[0]
     cov, A_inv, A = _covariance(J, r, _clusters(pb.motions, pb.masks), information)
     timings = {"covariance": time.perf_counter() - started}
     influence: dict = {}

@@ -30,6 +30,7 @@ convergence, never moves its end point.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -44,7 +45,7 @@ FIRST_GROWTH = 2.0
 # the least damping: below it a step is Gauss-Newton's to rounding, and a damping that
 # had shrunk to zero could not grow again after a rejected step
 MIN_DAMPING = 1e-15
-# rows per block of ``_normal_matrix``: a block of a 40-column Jacobian (2.6 MB) stays in
+# rows per block of ``normal_matrix``: a block of a 40-column Jacobian (2.6 MB) stays in
 # the cache between its weighting and its product
 NORMAL_BLOCK_ROWS = 8192
 
@@ -82,7 +83,7 @@ def _loss_terms(f: np.ndarray, loss: str, f_scale: float
     return cost, weight, d1 * f
 
 
-def _normal_matrix(J: np.ndarray, weight: np.ndarray | None) -> np.ndarray:
+def normal_matrix(J: np.ndarray, weight: np.ndarray | None) -> np.ndarray:
     """``H = J^T W J`` (``W`` = diag(``weight``), None: the identity). Weighted, it is
     summed over blocks of ``NORMAL_BLOCK_ROWS`` rows, each scaled by the root of its
     weights and multiplied by its own transpose while in the cache: one weighted copy of
@@ -141,6 +142,14 @@ def _check_finite(H: np.ndarray, g: np.ndarray, x: np.ndarray) -> None:
                      f"whose residuals are: x = {np.round(x[:6], 6).tolist()}...")
 
 
+def loss_terms(f: np.ndarray, loss: str, f_scale: float
+               ) -> tuple[float, np.ndarray | None, np.ndarray]:
+    """The cost of residuals ``f``, each row's weight in ``H`` (None: all ones) and
+    ``rho' f`` (module docstring): for a caller that forms the normal equations itself
+    (``normal_lm_solve``)."""
+    return _loss_terms(f, loss, f_scale)
+
+
 def levenberg_marquardt(fun: Callable[..., np.ndarray], jac: Callable[..., np.ndarray],
                         x0: np.ndarray, args: tuple = (), loss: str = "linear",
                         f_scale: float = 1.0, max_nfev: int = 100, ftol: float = 1e-8,
@@ -152,20 +161,65 @@ def levenberg_marquardt(fun: Callable[..., np.ndarray], jac: Callable[..., np.nd
     anywhere."""
     if loss not in LOSSES:
         raise ValueError(f"levenberg_marquardt: loss must be one of {LOSSES}, got {loss!r}")
+    accepted: dict[str, np.ndarray] = {}
+
+    def evaluate(x: np.ndarray):
+        f = np.asarray(fun(x, *args), float)
+        if not np.all(np.isfinite(f)):
+            return math.inf, None
+        cost, weight, rf = _loss_terms(f, loss, f_scale)
+
+        def normal() -> tuple[np.ndarray, np.ndarray]:
+            J = np.asarray(jac(x, *args), float)
+            accepted.update(f=f, J=J)
+            return normal_matrix(J, weight), J.T @ rf
+
+        return cost, normal
+
+    end = normal_lm_solve(evaluate, x0, max_nfev, ftol, xtol, gtol)
+    return LsqFit(end.x, accepted["f"], accepted["J"], end.cost, end.nfev, end.njev,
+                  end.status)
+
+
+@dataclass
+class NormalFit:
+    """The end of ``normal_lm_solve``: the parameters, the cost there, the evaluations
+    (``nfev``), the normal equations formed (``njev``) and why it stopped (as
+    ``LsqFit``)."""
+
+    x: np.ndarray
+    cost: float
+    nfev: int
+    njev: int
+    status: int
+
+    @property
+    def success(self) -> bool:
+        return self.status > 0
+
+
+def normal_lm_solve(evaluate: Callable[[np.ndarray], tuple], x0: np.ndarray,
+                    max_nfev: int = 100, ftol: float = 1e-8, xtol: float = 1e-8,
+                    gtol: float = 1e-8) -> NormalFit:
+    """Levenberg-Marquardt (module docstring) on a problem that forms its own normal
+    equations: ``evaluate(x)`` gives the robust cost at ``x`` and a callable that gives
+    ``(H, g)`` there (``H = J^T W J``, ``g = J^T rho' f``; called only at the start and at
+    accepted points), or ``(inf, None)`` where the residuals are not finite. A problem
+    whose Jacobian has structure (``active_normal``: sparse columns, eliminated
+    parameters) forms them without the whole Jacobian. Non-finite residuals at ``x0``
+    raise ``ValueError``, as scipy's ``least_squares`` does; so does a non-finite ``H``
+    or ``g``."""
     x = np.array(x0, float)
-    f = np.asarray(fun(x, *args), float)
-    if not np.all(np.isfinite(f)):
+    cost, normal = evaluate(x)
+    if normal is None or not np.isfinite(cost):
         raise ValueError("Residuals are not finite in the initial point.")
-    J = np.asarray(jac(x, *args), float)
+    H, g = normal()
     nfev = njev = 1
     unfactored = 0
-    cost, weight, rf = _loss_terms(f, loss, f_scale)
     diag_max = np.zeros(len(x))
     damping = _Damping()
     status = None
     while status is None:
-        H = _normal_matrix(J, weight)
-        g = J.T @ rf
         _check_finite(H, g, x)
         diag_max = np.maximum(diag_max, np.diag(H))
         D = np.sqrt(np.where(diag_max > 0, diag_max, 1.0))
@@ -183,10 +237,10 @@ def levenberg_marquardt(fun: Callable[..., np.ndarray], jac: Callable[..., np.nd
                     status = 0
                 continue
             x_new = x + step
-            f_new = np.asarray(fun(x_new, *args), float)
+            cost_new, normal_new = evaluate(x_new)
             nfev += 1
-            terms = _loss_terms(f_new, loss, f_scale) if np.all(np.isfinite(f_new)) else None
-            cost_new = np.inf if terms is None else terms[0]
+            if normal_new is None:
+                cost_new = np.inf
             predicted = -(g @ step + 0.5 * step @ (H @ step))
             actual = cost - cost_new
             ratio = actual / predicted if predicted > 0 else 0.0
@@ -197,9 +251,8 @@ def levenberg_marquardt(fun: Callable[..., np.ndarray], jac: Callable[..., np.nd
                 continue
             damping.accepted(ratio)
             status = 2 if actual < ftol * cost and ratio > 0.25 else 3 if small else None
-            x, f = x_new, f_new
-            cost, weight, rf = terms
-            J = np.asarray(jac(x, *args), float)
+            x, cost = x_new, cost_new
+            H, g = normal_new()
             njev += 1
             break
-    return LsqFit(x, f, J, cost, nfev, njev, status)
+    return NormalFit(x, cost, nfev, njev, status)
