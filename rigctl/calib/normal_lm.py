@@ -22,6 +22,10 @@ solver works on the normal equations instead, so each step costs one product
   scaled by ``D`` under ``gtol`` (scipy tests the unscaled one), or after ``max_nfev``
   residual evaluations (or as many steps the damped matrix could not factor).
 
+``levenberg_marquardt`` takes the residuals and the Jacobian; ``normal_lm_solve`` takes a
+problem that forms ``H`` and ``g`` itself (the active-camera refinement, motion by motion
+without the whole Jacobian: ``active_normal``), with the same steps and stopping tests.
+
 The normal equations square the Jacobian's condition number. With the columns scaled
 to unit norm the refinement's is about 1e3, so ``H``'s 1e6 leaves ten digits; the
 residuals themselves are always evaluated exactly, so a step's rounding only slows
