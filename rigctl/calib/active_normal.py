@@ -34,14 +34,13 @@ from rigctl.calib.normal_lm import loss_terms
 
 @dataclass
 class MotionColumns:
-    """Where a motion's rows sit in the free parameters: its dense columns (``dense``:
-    the free camera parameters and its station's offsets), its rows that carry a free
+    """Where a motion's rows sit in the free parameters: its rows that carry a free
     inverse depth grouped by that depth (``rows``, into the motion's rows; ``starts``,
     each group's first entry in ``rows``; ``depths``, each group's column), and all its
-    columns (``columns``: dense, then depths) with their entries' places in the whole
+    columns (``columns``: its dense ones, the free camera parameters and its station's
+    offsets, then the depths) with their entries' places in the whole
     ``H`` (``flat``, row-major, n x n)."""
 
-    dense: np.ndarray
     rows: np.ndarray
     starts: np.ndarray
     depths: np.ndarray
@@ -61,7 +60,7 @@ class MotionColumns:
         else:
             starts = depths = np.zeros(0, int)
         columns = np.r_[dense, depths].astype(int)
-        return cls(dense, rows, starts, depths, columns,
+        return cls(rows, starts, depths, columns,
                    (columns[:, None] * n + columns[None, :]).ravel())
 
 

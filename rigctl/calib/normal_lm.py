@@ -55,15 +55,12 @@ NORMAL_BLOCK_ROWS = 8192
 
 
 @dataclass
-class LsqFit:
-    """The end of a solve: the parameters, the residuals and the Jacobian there (as
-    ``jac`` returned it, unweighted), the cost (half the sum of ``rho``, times
-    ``f_scale^2``), the evaluations, and why it stopped (0: ``max_nfev``, 1: ``gtol``,
-    2: ``ftol``, 3: ``xtol``)."""
+class NormalFit:
+    """The end of ``normal_lm_solve``: the parameters, the cost there, the evaluations
+    (``nfev``), the normal equations formed (``njev``) and why it stopped (as
+    ``LsqFit``)."""
 
     x: np.ndarray
-    fun: np.ndarray
-    jac: np.ndarray
     cost: float
     nfev: int
     njev: int
@@ -72,6 +69,17 @@ class LsqFit:
     @property
     def success(self) -> bool:
         return self.status > 0
+
+
+@dataclass
+class LsqFit(NormalFit):
+    """The end of a solve: the parameters, the residuals and the Jacobian there (as
+    ``jac`` returned it, unweighted), the cost (half the sum of ``rho``, times
+    ``f_scale^2``), the evaluations, and why it stopped (0: ``max_nfev``, 1: ``gtol``,
+    2: ``ftol``, 3: ``xtol``)."""
+
+    fun: np.ndarray | None = None
+    jac: np.ndarray | None = None
 
 
 def _loss_terms(f: np.ndarray, loss: str, f_scale: float
@@ -181,25 +189,8 @@ def levenberg_marquardt(fun: Callable[..., np.ndarray], jac: Callable[..., np.nd
         return cost, normal
 
     end = normal_lm_solve(evaluate, x0, max_nfev, ftol, xtol, gtol)
-    return LsqFit(end.x, accepted["f"], accepted["J"], end.cost, end.nfev, end.njev,
-                  end.status)
-
-
-@dataclass
-class NormalFit:
-    """The end of ``normal_lm_solve``: the parameters, the cost there, the evaluations
-    (``nfev``), the normal equations formed (``njev``) and why it stopped (as
-    ``LsqFit``)."""
-
-    x: np.ndarray
-    cost: float
-    nfev: int
-    njev: int
-    status: int
-
-    @property
-    def success(self) -> bool:
-        return self.status > 0
+    return LsqFit(end.x, end.cost, end.nfev, end.njev, end.status, fun=accepted["f"],
+                  jac=accepted["J"])
 
 
 def normal_lm_solve(evaluate: Callable[[np.ndarray], tuple], x0: np.ndarray,
