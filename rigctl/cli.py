@@ -909,7 +909,11 @@ def bench_worlds(as_json: bool = typer.Option(False, "--json"),
                      "each", "--combination",
                      help="each (target x mounting by seed mod 4) or one for every world: "
                      "checkerboard-flange | charuco-flange | checkerboard-fixed | "
-                     "charuco-fixed")
+                     "charuco-fixed"),
+                 until: str | None = typer.Option(
+                     None, "--until",
+                     help="run the chain up to this procedure only: active-camera | "
+                     "hand-eye | robot-kinematics | validate-arm (default: all)")
                  ) -> None:
     """The whole chain (active-camera, hand-eye, robot-kinematics, validate-arm) through
     the stand-ins on N random worlds, with default parameters, against each world's truth;
@@ -917,13 +921,18 @@ def bench_worlds(as_json: bool = typer.Option(False, "--json"),
     from rigctl.bench import worlds
     from rigctl.bench.common import print_table
 
+    try:  # a bad --until or --combination: a clear error before any world runs
+        chain = worlds.chain_until(until)
+        worlds.combination(first_seed, combination)
+    except RigError as exc:
+        _fail(exc, as_json)
     with stdout_to_stderr() as real_stdout:
         if from_kept is not None:
-            result = worlds.report(worlds.rows_from_kept(from_kept), plot)
+            result = worlds.report(worlds.rows_from_kept(from_kept, chain), plot, chain)
             n = len(result["worlds"])
         else:
-            worlds.combination(first_seed, combination)  # a bad --combination: exit 2
-            result = worlds.run(n, first_seed, plot, keep, console=err, only=combination)
+            result = worlds.run(n, first_seed, plot, keep, console=err, only=combination,
+                                chain=chain)
     stopped = typer.Exit(130) if result.get("stopped") else None  # Ctrl-C or SIGTERM
     if as_json:
         _print_json(result, real_stdout)

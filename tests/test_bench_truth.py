@@ -44,3 +44,42 @@ def test_bench_worlds_reports_each_arm_model_and_the_solve_over_the_motion():
     ratio = summary["solve_over_motion"]["active-camera"]
     assert ratio["median"] == pytest.approx(0.1) and ratio["max"] == pytest.approx(0.2)
     assert summary["solve_over_motion"]["hand-eye"] is None
+
+
+def test_bench_worlds_until_runs_a_chain_prefix_and_judges_it_alone():
+    from rigctl.bench.worlds import PIPELINE, _failed, chain_until, summarise
+    from rigctl.errors import ConfigError
+
+    assert chain_until(None) == PIPELINE
+    assert chain_until("active-camera") == ("active-camera",)
+    assert chain_until("robot-kinematics") == ("active-camera", "hand-eye",
+                                               "robot-kinematics")
+    with pytest.raises(ConfigError, match=r"--until 'hand_eye'.*hand-eye"):
+        chain_until("hand_eye")
+    done = {"status": "succeeded", "timings_s": {"motion_s": 30.0, "solve_s": 1.5}}
+    row = {"seed": 1, "model": "ur5e", "procedures": {"active-camera": done}}
+    assert not _failed(row, chain_until("active-camera"))
+    assert _failed(row)  # the whole chain stopped after its first procedure
+    assert _failed({**row, "procedures": {"active-camera": {**done, "status": "failed"}}},
+                   chain_until("active-camera"))
+    summary = summarise([{**row, "failed": False}], chain_until("active-camera"))
+    assert list(summary["solve_over_motion"]) == ["active-camera"]
+    assert summary["solve_over_motion"]["active-camera"]["max"] == pytest.approx(0.05)
+    assert list(summary["times_s"]) == ["active-camera"]
+
+
+@pytest.mark.parametrize("args, named", [(["--until", "nope"], "--until 'nope'"),
+                                         (["--combination", "nope"], "--combination 'nope'")])
+def test_bench_worlds_refuses_a_bad_option_before_any_world_runs(args, named, tmp_path):
+    import json
+
+    from typer.testing import CliRunner
+
+    from rigctl.cli import app
+
+    result = CliRunner().invoke(app, ["bench", "worlds", "--n", "1", "--json",
+                                      "--keep", str(tmp_path / "kept"), *args])
+    assert result.exit_code == 2, result.output
+    error = json.loads(result.stdout)
+    assert named in error["error"] and error["type"] == "ConfigError"
+    assert not (tmp_path / "kept").exists()  # nothing started

@@ -58,6 +58,17 @@ COMBINATIONS = (("checkerboard", "flange"), ("charuco", "flange"), ("checkerboar
                 ("charuco", "fixed"))
 
 
+def chain_until(last: str | None = None) -> tuple[str, ...]:
+    """The procedures run on each world: ``PIPELINE`` up to and including ``last``
+    (None: all of it). ``--until active-camera`` runs that procedure alone, the
+    quickest way to the distribution of its solve over its motion (issue 43)."""
+    if last is None:
+        return PIPELINE
+    if last not in PIPELINE:
+        raise ConfigError(f"--until {last!r}: expected one of {', '.join(PIPELINE)}")
+    return PIPELINE[:PIPELINE.index(last) + 1]
+
+
 def combination(seed: int, only: str | None = None) -> tuple[str, str]:
     """World ``seed``'s (target, mount): ``COMBINATIONS[seed % 4]``, or ``only``
     ("checkerboard-flange", ...) for every seed."""
@@ -123,10 +134,10 @@ def _row(seed: int, spec) -> dict:
             "distortion": list(spec.camera.distortion), "procedures": {}}
 
 
-def _failed(row: dict) -> bool:
+def _failed(row: dict, chain: tuple[str, ...] = PIPELINE) -> bool:
     """Any procedure not succeeded, or the chain stopped before its end."""
     return any(p["status"] != "succeeded" for p in row["procedures"].values()) \
-        or len(row["procedures"]) < len(PIPELINE)
+        or len(row["procedures"]) < len(chain)
 
 
 def _values(rows: list[dict], proc: str, key: str) -> list[float]:
@@ -168,10 +179,10 @@ def _run_coverage(run_dir: Path, truth: dict) -> float:
     return image_coverage(corners, truth["width"], truth["height"])
 
 
-def rows_from_kept(folder: Path) -> list[dict]:
+def rows_from_kept(folder: Path, chain: tuple[str, ...] = PIPELINE) -> list[dict]:
     """The benchmark's rows rebuilt from a ``--keep`` folder (world files and records),
     also of a benchmark that was stopped part-way (a world whose last run had not
-    finished is left out)."""
+    finished is left out); ``chain``: the procedures that benchmark ran."""
     rows = []
     for path in sorted(folder.glob("world-*.yaml"), key=lambda p: int(p.stem.split("-")[1])):
         seed = int(path.stem.split("-")[1])
@@ -179,21 +190,22 @@ def rows_from_kept(folder: Path) -> list[dict]:
         world = World(spec)
         truth = world.truth()
         row = _row(seed, spec)
-        for name in PIPELINE:
+        for name in chain:
             runs = sorted((folder / f"records-{seed}").glob(f"*-{name}-*"))
             if not runs:
                 break
             row["procedures"][name] = _from_run_dir(name, runs[-1], truth, world)
         if any(p["status"] == "unfinished" for p in row["procedures"].values()):
             continue
-        row["failed"] = _failed(row)
+        row["failed"] = _failed(row, chain)
         rows.append(row)
     return rows
 
 
 def world_run(seed: int, folder: Path, say: Callable[[str], None],
-              only: str | None = None) -> dict:
-    """The whole chain on world ``seed`` (its ``combination``); one row of the benchmark."""
+              only: str | None = None, chain: tuple[str, ...] = PIPELINE) -> dict:
+    """The chain (``chain_until``) on world ``seed`` (its ``combination``); one row of
+    the benchmark."""
     path, world = _write_world(seed, folder, only)
     spec, truth = world.spec, world.truth()
     row = _row(seed, spec)
@@ -201,7 +213,7 @@ def world_run(seed: int, folder: Path, say: Callable[[str], None],
                       log=folder / f"sim-up-{seed}.log") as sim:
         config = load_rig(sim.rig_path)
         runner = Runner(config, show_progress=False, operator="bench-worlds")
-        for name in PIPELINE:
+        for name in chain:
             try:
                 outcome = runner.run(name, {})
             except RigError as exc:  # refused before anything moved
@@ -233,7 +245,7 @@ def world_run(seed: int, folder: Path, say: Callable[[str], None],
     if sim.crash:  # a stand-in died: the world's failure is the simulation's, not the rig's
         row["simulation_crashed"] = sim.crash
         say(f"world {seed}: {sim.crash.splitlines()[0]}")
-    row["failed"] = _failed(row)
+    row["failed"] = _failed(row, chain)
     return row
 
 
@@ -303,7 +315,7 @@ def solve_over_motion(rows: list[dict], name: str) -> dict | None:
     return _dist(ratios)
 
 
-def summarise(rows: list[dict]) -> dict:
+def summarise(rows: list[dict], chain: tuple[str, ...] = PIPELINE) -> dict:
     z_cam = [v for r in rows for v in r["procedures"].get("active-camera", {})
              .get("z", {}).values()]
     z_arm = [v for r in rows for v in r["procedures"].get("robot-kinematics", {})
@@ -315,7 +327,7 @@ def summarise(rows: list[dict]) -> dict:
                   .get("position_z", [])]
     times = {name: {kind: _dist([r["procedures"][name]["timings_s"][kind] for r in rows
                                  if kind in r["procedures"].get(name, {}).get("timings_s", {})])
-                    for kind in ("motion_s", "solve_s", "run_s")} for name in PIPELINE}
+                    for kind in ("motion_s", "solve_s", "run_s")} for name in chain}
     return {
         "worlds": len(rows), "failed": sum(r["failed"] for r in rows),
         "failed_seeds": [r["seed"] for r in rows if r["failed"]],
@@ -338,11 +350,11 @@ def summarise(rows: list[dict]) -> dict:
         "times_s": times,
         "by_combination": by_combination(rows),
         "by_arm_model": by_arm_model(rows),
-        "solve_over_motion": {name: solve_over_motion(rows, name) for name in PIPELINE},
+        "solve_over_motion": {name: solve_over_motion(rows, name) for name in chain},
     }
 
 
-def plot(rows: list[dict], path: Path) -> str:
+def plot(rows: list[dict], path: Path, chain: tuple[str, ...] = PIPELINE) -> str:
     """Distributions over the worlds: focal and centre error, the exported model's error,
     |error / sigma| and solve times."""
     import matplotlib
@@ -376,9 +388,9 @@ def plot(rows: list[dict], path: Path) -> str:
     ax.legend(loc="lower right")
     ax = axes[1][1]
     solve = [[r["procedures"][p]["timings_s"].get("solve_s", math.nan) for r in rows
-              if "timings_s" in r["procedures"].get(p, {})] for p in PIPELINE]
+              if "timings_s" in r["procedures"].get(p, {})] for p in chain]
     ax.boxplot([[v for v in s if not math.isnan(v)] or [0.0] for s in solve])
-    ax.set_xticks(range(1, len(PIPELINE) + 1), [p.replace("-", "\n") for p in PIPELINE])
+    ax.set_xticks(range(1, len(chain) + 1), [p.replace("-", "\n") for p in chain])
     ax.set_ylabel("solve time (s)")
     ax = axes[1][2]
     seeds = [r["seed"] for r in rows]
@@ -394,20 +406,22 @@ def plot(rows: list[dict], path: Path) -> str:
     return str(path)
 
 
-def report(rows: list[dict], plot_path: Path | None) -> dict:
-    out = {"seeds": sorted(r["seed"] for r in rows), "pipeline": list(PIPELINE),
-           "summary": summarise(rows), "worlds": rows}
+def report(rows: list[dict], plot_path: Path | None,
+           chain: tuple[str, ...] = PIPELINE) -> dict:
+    out = {"seeds": sorted(r["seed"] for r in rows), "pipeline": list(chain),
+           "summary": summarise(rows, chain), "worlds": rows}
     if plot_path is not None and rows:
-        out["plot"] = plot(rows, plot_path)
+        out["plot"] = plot(rows, plot_path, chain)
     return out
 
 
 def run(n: int = 20, first_seed: int = 1000, plot_path: Path | None = None,
         keep: Path | None = None, console: Console | None = None,
-        only: str | None = None) -> dict:
+        only: str | None = None, chain: tuple[str, ...] = PIPELINE) -> dict:
     """N random worlds from ``first_seed`` (the tests use seeds below 100), each of its
-    ``combination`` (``only``: one for all). With ``keep``, the world files and every
-    run's records stay in that folder (``rows_from_kept`` reads them back)."""
+    ``combination`` (``only``: one for all), through the procedures of ``chain``
+    (``chain_until``). With ``keep``, the world files and every run's records stay in
+    that folder (``rows_from_kept`` reads them back)."""
     console = console or Console(stderr=True)
     rows = []
     with tempfile.TemporaryDirectory(prefix="rigctl-bench-worlds-") as tmp:
@@ -415,9 +429,9 @@ def run(n: int = 20, first_seed: int = 1000, plot_path: Path | None = None,
         folder.mkdir(parents=True, exist_ok=True)
         try:
             for seed in range(first_seed, first_seed + n):
-                rows.append(world_run(seed, folder, console.print, only))
+                rows.append(world_run(seed, folder, console.print, only, chain))
         except AbortedError as exc:  # the world in progress is left out of the report
             console.print(f"bench stopped ({exc}); the report covers the {len(rows)} "
                           "world(s) finished before it")
-            return {**report(rows, plot_path), "stopped": str(exc)}
-    return report(rows, plot_path)
+            return {**report(rows, plot_path, chain), "stopped": str(exc)}
+    return report(rows, plot_path, chain)
