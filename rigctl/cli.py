@@ -915,9 +915,10 @@ def bench_worlds(as_json: bool = typer.Option(False, "--json"),
                      help="run the chain up to this procedure only: active-camera | "
                      "hand-eye | robot-kinematics | validate-arm (default: all)")
                  ) -> None:
-    """The whole chain (active-camera, hand-eye, robot-kinematics, validate-arm) through
-    the stand-ins on N random worlds, with default parameters, against each world's truth;
-    each combination of target and mounting reported apart."""
+    """The whole chain (active-camera, hand-eye, robot-kinematics, validate-arm), or its
+    first procedures up to --until, through the stand-ins on N random worlds, with
+    default parameters, against each world's truth; each combination of target and
+    mounting reported apart."""
     from rigctl.bench import worlds
     from rigctl.bench.common import print_table
 
