@@ -42,7 +42,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import brentq, least_squares
 
-from rigctl.calib import robot_stations
+from rigctl.calib import robot_jacobian, robot_stations
 from rigctl.calib.covariance import robust_covariance, view_clusters
 from rigctl.errors import SolveError
 from rigctl.geometry.camera import camera_matrix, invert_batch, project_batch
@@ -518,13 +518,21 @@ def refine(model0: KinematicModel, X0, W0, meas: Measurements, mask=None,
             return np.r_[residuals(model, X, W, meas, stations=D),
                          robot_stations.prior_rows(stations, D, scale)]
 
+        def jac(p):
+            model, X, W = _unpack(p[:n_base], base, X_base, W_base, mask, free_XW)
+            return _pixel_jacobian(p, n_base, model, X, W, mask, free_XW, meas, stations,
+                                   scale)
+
         start = _pack(base, X_base, W_base, mask, free_XW)[0]
         if stations is not None:
             start = np.r_[start, robot_stations.pack(stations.predicted)]
-        sol = least_squares(fun, start,
+        # pose residuals keep scipy's finite differences
+        jacobian = jac if meas.corners is not None else "2-point"
+        sol = least_squares(fun, start, jac=jacobian,
                             loss="soft_l1" if robust else "linear", f_scale=3.0,
                             x_scale="jac", max_nfev=max_nfev)
-        sol = least_squares(fun, sol.x, loss="linear", x_scale="jac", max_nfev=max_nfev // 2)
+        sol = least_squares(fun, sol.x, jac=jacobian, loss="linear", x_scale="jac",
+                            max_nfev=max_nfev // 2)
         return sol, _unpack(sol.x[:n_base], base, X_base, W_base, mask, free_XW)
 
     sol, (model, X, W) = min((solve(*start) for start in [(model0, X0, W0), *extra_starts]),
@@ -549,6 +557,43 @@ def refine(model0: KinematicModel, X0, W0, meas: Measurements, mask=None,
     if stations is not None:
         result.stations = robot_stations.unpack(sol.x[n_base:])
     return result
+
+
+def _pixel_jacobian(p: np.ndarray, n_base: int, model: KinematicModel, X, W, mask,
+                    free_XW: bool, meas: Measurements, stations, scale: float,
+                    K: np.ndarray | None = None, dist=None, camera: bool = False
+                    ) -> np.ndarray:
+    """The analytic Jacobian (``robot_jacobian``) of ``residuals`` with board corners by
+    the packed parameters ``p`` (``_pack``'s, then each station's six when
+    ``stations``, then with ``camera`` fx fy cx cy k1 k2 p1 p2 k3 at ``K``, ``dist``),
+    followed by the stations' prior rows (``robot_stations.prior_rows`` times ``scale``;
+    their columns by central differences of those rows alone)."""
+    n_link = n_base - (12 if free_XW else 0)
+    T, dT = robot_jacobian.pose_jacobian(
+        model, X, W, _cached(meas, "_Q", lambda: np.array(meas.q, float)), mask, free_XW,
+        meas.fixed, p[n_link:n_link + 3], p[n_link + 6:n_link + 9])
+    n_station = 0 if stations is None else 6 * stations.count
+    if stations is not None:
+        q_station = p[n_base:n_base + n_station]
+        D = robot_stations.unpack(q_station)
+        T, dT = robot_jacobian.station_jacobian(
+            T, dT, stations.index, D, [q_station[6 * s:6 * s + 3]
+                                       for s in range(stations.count)])
+    J = robot_jacobian.pixel_jacobian(T, dT, meas.obj, meas.K if K is None else K,
+                                      meas.dist if dist is None else dist, _seen(meas),
+                                      camera)
+    if stations is None:
+        return J
+    prior = np.zeros((n_station, J.shape[1]))
+    for j in range(n_station):
+        h = 1e-6 * max(1.0, abs(q_station[j]))
+        step = np.zeros(n_station)
+        step[j] = h
+        prior[:, n_base + j] = (
+            robot_stations.prior_rows(stations, robot_stations.unpack(q_station + step), scale)
+            - robot_stations.prior_rows(stations, robot_stations.unpack(q_station - step),
+                                        scale)) / (2 * h)
+    return np.r_[J, prior]
 
 
 def _view_robust(J: np.ndarray, r: np.ndarray, rows: list[int], P: np.ndarray,
@@ -657,8 +702,13 @@ def refine_with_camera(ref: RefineResult, meas: Measurements, prior_sigma: dict[
         return np.r_[residuals(model, X, W, meas, *camera(p), stations=D),
                      robot_stations.prior_rows(stations, D, scale)]
 
-    board = least_squares(pixels, np.r_[p_arm, prior, dist0], x_scale="jac",
-                          max_nfev=max_nfev)
+    def pixels_jacobian(p):
+        model, X, W = _unpack(p[:n_frames], ref.model, ref.X, ref.W, mask, True)
+        return _pixel_jacobian(p, n_frames, model, X, W, mask, True, meas, stations, scale,
+                               *camera(p), camera=True)
+
+    board = least_squares(pixels, np.r_[p_arm, prior, dist0], jac=pixels_jacobian,
+                          x_scale="jac", max_nfev=max_nfev)
     n_station_rows = 0 if stations is None else 6 * stations.count
     n_px = len(board.fun) - n_station_rows
     s2_board = float(np.sum(board.fun[:n_px] ** 2) / max(n_px - len(board.x), 1))
@@ -672,7 +722,12 @@ def refine_with_camera(ref: RefineResult, meas: Measurements, prior_sigma: dict[
     def fun(p):
         return np.r_[pixels(p), (p[n_arm:n_arm + 4] - prior) / sig * scale]
 
-    sol = least_squares(fun, board.x, x_scale="jac", max_nfev=max_nfev)
+    def jac(p):
+        rows = np.zeros((4, len(p)))
+        rows[np.arange(4), n_arm + np.arange(4)] = scale / sig
+        return np.r_[pixels_jacobian(p), rows]
+
+    sol = least_squares(fun, board.x, jac=jac, x_scale="jac", max_nfev=max_nfev)
     model, X, W = _unpack(sol.x[:n_frames], ref.model, ref.X, ref.W, mask, True)
     K, dist = camera(sol.x)
     J = sol.jac
@@ -746,8 +801,14 @@ def jacobian_singular_values(model, X, W, meas: Measurements, mask) -> np.ndarra
     of the ``mask``ed link parameters with X and W, at (model, X, W): one central-
     difference Jacobian of the residuals of (4.11), no solve. Enough to show a
     parameterisation's rank deficiency (plain D-H on parallel joints) without iterating
-    on it to the evaluation limit."""
+    on it to the evaluation limit. With board corners the Jacobian is the analytic one
+    (``_pixel_jacobian``, the stations held where predicted)."""
     p0, _ = _pack(model, X, W, mask, True)
+    if meas.corners is not None:
+        stations = meas.stations if meas.station_count else None
+        p = p0 if stations is None else np.r_[p0, robot_stations.pack(stations.predicted)]
+        J = _pixel_jacobian(p, len(p0), model, X, W, mask, True, meas, stations, 1.0)
+        return scaled_singular_values(J[:len(J) - (len(p) - len(p0)), :len(p0)])
 
     def fun(p):
         return residuals(*_unpack(p, model, X, W, mask, True), meas)
