@@ -21,6 +21,7 @@ import pytest
 import yaml
 
 from rigctl.bench.truth import model_against_truth
+from rigctl.calib import robot
 from rigctl.config import load_rig
 from rigctl.geometry.kinematics import nominal_ur
 from rigctl.mocks.ur_primary import VERSION as UR_VERSION
@@ -155,7 +156,7 @@ def test_robot_kinematics_end_to_end(tmp_path, camera_run):
         < summary["heldout_mm_before"]
     # ... and it was a start of the joint refinement; the summary names the one that won
     starts = summary["refinement_starts_rms_px"]
-    assert "controller" in starts and summary["refinement_start"] == min(starts, key=starts.get)
+    assert "controller" in starts and summary["refinement_start"] == robot.first_of_least(starts)
     # D-optimal training views: Schroer's guideline (below 100) for the link parameters
     assert 1 < out["uncertainty"]["condition_number_kinematic"] < 100
     assert min(out["uncertainty"]["plain_dh_smallest_singular_values"]) < 1e-3

@@ -221,7 +221,8 @@ def joint_refinement(meas: robot.Measurements, start: KinematicModel, X,
                      ) -> robot.RefineResult:
     """Stage 4: the joint refinement (4.11) of the minimal parameter set over every
     training view, from ``start`` (the link-by-link model, when it ran) with X and W
-    averaged over the views, and from each of ``other_starts``; the lowest cost wins."""
+    averaged over the views, and from each of ``other_starts``; the lowest cost wins
+    (the first of equals)."""
     W = handeye.average_W(handeye.flange_poses([start.fk(q) for q in meas.q], meas.fixed),
                           home_C(meas), X)
     return robot.refine(start, X, W, meas, extra_starts=other_starts)
@@ -231,14 +232,14 @@ def joint_refinement_from(meas: robot.Measurements,
                           starts: dict[str, tuple[KinematicModel, np.ndarray, np.ndarray]]
                           ) -> tuple[robot.RefineResult, str, dict[str, float]]:
     """Stage 4 from named starts (model, X, W), each refined with the first start's
-    parameter set, as ``joint_refinement`` does; the lowest cost wins (the first of
-    equals). Returns the refinement, the name of the start it came from, and the RMS
-    residual (px) each start ended at."""
+    parameter set, as ``joint_refinement`` does; the lowest cost wins, the first of
+    equals (``robot.first_of_least``). Returns the refinement, the name of the start it
+    came from, and the RMS residual (px) each start ended at."""
     first = next(iter(starts.values()))[0]
     mask = robot.identifiable_mask(first)
     results = {name: robot.refine(model, X, W, meas, mask=mask)
                for name, (model, X, W) in starts.items()}
-    won = min(results, key=lambda name: results[name].rms)
+    won = robot.first_of_least({name: r.rms for name, r in results.items()})
     return results[won], won, {name: r.rms for name, r in results.items()}
 
 
