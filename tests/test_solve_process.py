@@ -94,7 +94,6 @@ def test_a_job_still_queued_is_taken_back_and_computed_here(helper):
     motions, starts = _basin_case()
     jobs = [helper.submit(timed_refine, motions, starts[name], {})
             for name in ("near", "far", "near")]
-    assert helper.busy()
     taken, _ = helper.take_back(jobs[2], timed_refine, motions, starts["near"], {})
     assert jobs[2].cancelled()  # the child was busy with the first: the third waited
     first, _ = helper.take_back(jobs[0], timed_refine, motions, starts["near"], {})
@@ -103,7 +102,6 @@ def test_a_job_still_queued_is_taken_back_and_computed_here(helper):
     later = helper.submit(timed_refine, motions, starts["far"], {})
     there, _ = helper.run(later, timed_refine, motions, starts["far"], {})
     _same(there, helper.run(jobs[1], timed_refine, motions, starts["far"], {})[0])
-    assert not helper.busy()  # every job back, the one taken back too
     assert abs(there.cx - CX) < 0.5 and abs(there.cy - CY) < 0.5
 
 

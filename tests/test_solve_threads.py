@@ -8,7 +8,7 @@ import threading
 
 import pytest
 
-from rigctl.calib.threads import map_in_threads, row_chunks, serial_while, threads_here
+from rigctl.calib.threads import map_in_threads, row_chunks, threads_here
 
 
 @pytest.mark.parametrize(("counts", "parts", "expected"), [
@@ -44,20 +44,6 @@ def test_map_in_threads_keeps_order_and_nests_serially():
     # inside a worker thread, work runs serially in that thread (no threads of threads)
     assert all(here == 1 for pair in out for _, here, _ in pair)
     assert all(pair[0][2] == pair[1][2] for pair in out)
-
-
-def test_work_is_serial_only_while_the_condition_holds(monkeypatch):
-    monkeypatch.setenv("RIGCTL_SOLVE_THREADS", "2")
-    busy = [True]
-    with serial_while(lambda: busy[0]):
-        assert threads_here() == 1
-        assert len({name for _, _, name in map_in_threads(
-            lambda i: (i, threads_here(), threading.current_thread().name), range(4))}) == 1
-        busy[0] = False  # the other process is done: this thread takes both cores again
-        assert threads_here() == 2
-        inner = map_in_threads(lambda i: threads_here(), range(4))
-        assert inner == [1, 1, 1, 1]  # its workers' own work is serial, as ever
-    assert threads_here() == 2  # the condition no longer asked outside
 
 
 def test_map_in_threads_raises_the_first_error_in_order():

@@ -42,7 +42,7 @@ from rigctl.calib.active_refine import (
 from rigctl.calib.active_tracking import SHIFT, WIDE_WINDOW, Tracker, roll_tiers, tier_key, tiers
 from rigctl.calib.blas_threads import with_one_blas_thread
 from rigctl.calib.solve_process import SolveProcess, start_if_useful
-from rigctl.calib.threads import map_in_threads, serial_while
+from rigctl.calib.threads import map_in_threads, serial_here
 from rigctl.errors import SolveError
 from rigctl.timing import stage_timer
 from rigctl.vision.tracking import track_in_range
@@ -471,7 +471,7 @@ def _coarse_stage_shared(motions, starts: dict[str, dict], kwargs: dict,
     scout_motions = _coarse(motions, SCOUT_FACTOR)
     scouts = {name: helper.submit(timed_refine, scout_motions, starts[name], scout_kwargs)
               for name in names[1:]}
-    with serial_while(helper.busy):
+    with serial_here():
         first_coarse, seconds = timed_refine(coarse_motions, starts[first], quiet)
     timings[f"coarse refinement from {first}"] = seconds
     coarse: dict[str, RefineResult] = {}
@@ -508,7 +508,7 @@ def _coarse_stage_shared(motions, starts: dict[str, dict], kwargs: dict,
     with ThreadPoolExecutor(1, thread_name_prefix="scouts") as decider:
         deciding = decider.submit(lambda: [decide(name) for name in later])
         if take_early:
-            with serial_while(helper.busy):
+            with serial_here():
                 early[first] = timed_refine(motions, _basin_start(coarse[first]), kwargs)
         deciding.result()
     order = sorted(confirming, key=names.index)  # in the starts' order
@@ -557,7 +557,7 @@ def _refine_each(jobs: dict[str, tuple[list, dict]], starts: dict[str, dict], la
     if helper is not None and len(names) > 1:
         futures = {name: helper.submit(timed_refine, jobs[name][0], starts[name],
                                        jobs[name][1]) for name in names[1:]}
-        with serial_while(helper.busy):
+        with serial_here():
             done = {names[0]: refine_from(names[0])}
         done.update(_taken_back(helper, futures, {name: (jobs[name][0], starts[name],
                                                          jobs[name][1])
@@ -573,7 +573,7 @@ def _taken_back(helper: SolveProcess, futures: dict[str, Any], jobs: dict[str, t
     """Each ``timed_refine(*jobs[name])`` submitted to the helper (``futures``, by name,
     in the order queued): the last queued first, so that one the helper has not begun
     is taken back and refined here, serially (``SolveProcess.take_back``)."""
-    with serial_while(helper.busy):
+    with serial_here():
         return {name: helper.take_back(futures[name], timed_refine, *jobs[name])
                 for name in reversed(futures)}
 

@@ -79,8 +79,6 @@ class SolveProcess:
                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env)
         self.pid = self.proc.pid
         self._jobs: Queue = Queue()
-        self._outstanding: list[Future] = []  # submitted, not yet done (``busy``)
-        self._outstanding_lock = threading.Lock()
         self._gone: str | None = None  # why the child can take no more jobs
         self._feeder = threading.Thread(target=self._feed, name=f"solve process {self.pid}",
                                         daemon=True)
@@ -96,17 +94,8 @@ class SolveProcess:
         if self._gone is not None:
             future.set_exception(ChildGoneError(self._gone))
         else:
-            with self._outstanding_lock:
-                self._outstanding.append(future)
             self._jobs.put((future, key, args, kwargs))
         return future
-
-    def busy(self) -> bool:
-        """Whether a job submitted here is queued or running in the child (one taken
-        back counts as done)."""
-        with self._outstanding_lock:
-            self._outstanding = [f for f in self._outstanding if not f.done()]
-            return bool(self._outstanding)
 
     def run(self, future: Future, fn: Callable, *args: Any, **kwargs: Any) -> Any:
         """The outcome of ``future`` (``submit(fn, *args, **kwargs)``); computed here,

@@ -46,23 +46,16 @@ def solve_threads() -> int:
 
 def threads_here() -> int:
     """How many threads work started here may use: ``solve_threads()``, or one inside a
-    thread of ``map_in_threads`` (its siblings already use the other cores), or inside
-    ``serial_while`` while its condition holds."""
-    limit = getattr(_local, "threads", None)
-    if callable(limit):
-        return 1 if limit() else solve_threads()
-    return limit or solve_threads()
+    thread of ``map_in_threads`` (its siblings already use the other cores)."""
+    return getattr(_local, "threads", None) or solve_threads()
 
 
 @contextmanager
-def serial_while(busy: Callable[[], bool]) -> Iterator[None]:
-    """Inside it, work started in this thread is serial (``threads_here()`` is 1) while
-    ``busy()``: the other cores are busy (e.g. a ``calib.solve_process`` computes beside
-    it). ``busy`` is asked each time work here is split (e.g. each Jacobian of a
-    refinement), so once the other process is done, work here takes the cores again.
-    The threads change no number (module docstring)."""
+def serial_here() -> Iterator[None]:
+    """Inside it, work started in this thread is serial (``threads_here()`` is 1): the
+    other cores are busy (e.g. a ``calib.solve_process`` computes beside it)."""
     before = getattr(_local, "threads", None)
-    _local.threads = busy
+    _local.threads = 1
     try:
         yield
     finally:
