@@ -27,6 +27,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from rigctl.calib.active_rotations import skew
+from rigctl.geometry.camera import distortion_coefficients, invert_batch
 from rigctl.geometry.kinematics import LINK_KEYS, KinematicModel
 from rigctl.geometry.transforms import inv_T
 
@@ -37,10 +39,6 @@ _G["ry"][0, 2], _G["ry"][2, 0] = 1.0, -1.0
 _G["rz"][1, 0], _G["rz"][0, 1] = 1.0, -1.0
 _G["tx"][0, 3] = 1.0
 _G["tz"][2, 3] = 1.0
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
 def rotvec_derivatives(r) -> np.ndarray:
@@ -61,11 +59,11 @@ def rotvec_derivatives(r) -> np.ndarray:
         a, b = s / t, (1.0 - c) / t2
         da = (t * c - s) / (t2 * t)
         db = (t * s - 2.0 * (1.0 - c)) / (t2 * t2)
-    K = _skew(r)
+    K = skew(r)
     K2 = K @ K
     out = np.empty((3, 3, 3))
     for k in range(3):
-        E = _skew(np.eye(3)[k])
+        E = skew(np.eye(3)[k])
         out[k] = a * E + b * (E @ K + K @ E) + r[k] * (da * K + db * K2)
     return out
 
@@ -79,27 +77,10 @@ def transform_derivatives(T: np.ndarray, rotvec) -> np.ndarray:
     return out
 
 
-def _link_factors(model: KinematicModel, i: int, q: np.ndarray
-                  ) -> tuple[np.ndarray, np.ndarray]:
-    """Link i's ``Rz(theta) Tz(d) Tx(a) Rx(alpha)`` for each view (P x 4 x 4) and its
-    ``Ry(beta)`` (4 x 4)."""
-    th = q + model.theta_offset[i]
-    ct, st = np.cos(th), np.sin(th)
-    ca, sa = np.cos(model.alpha[i]), np.sin(model.alpha[i])
-    A = np.zeros((len(q), 4, 4))
-    A[:, 0, 0], A[:, 0, 1], A[:, 0, 2], A[:, 0, 3] = ct, -st * ca, st * sa, model.a[i] * ct
-    A[:, 1, 0], A[:, 1, 1], A[:, 1, 2], A[:, 1, 3] = st, ct * ca, -ct * sa, model.a[i] * st
-    A[:, 2, 1], A[:, 2, 2], A[:, 2, 3] = sa, ca, model.d[i]
-    A[:, 3, 3] = 1.0
-    cb, sb = np.cos(model.beta[i]), np.sin(model.beta[i])
-    Ry = np.array([[cb, 0, sb, 0], [0, 1, 0, 0], [-sb, 0, cb, 0], [0, 0, 0, 1.0]])
-    return A, Ry
-
-
 def link_derivative(model: KinematicModel, key: str, i: int, q: np.ndarray) -> np.ndarray:
     """``dA_i/dp`` for each view (P x 4 x 4), p link i's parameter ``key``
     (``LINK_KEYS``), q the views' joint i."""
-    A_pre, Ry = _link_factors(model, i, q)
+    A_pre, Ry = model.link_factors_batch(i, q)
     if key == "theta_offset":  # Rz is the first factor
         return _G["rz"] @ (A_pre @ Ry)
     if key == "d":  # Tz commutes with Rz
@@ -127,7 +108,7 @@ def pose_jacobian(model: KinematicModel, X: np.ndarray, W: np.ndarray, Q: np.nda
     frames = model.frames_batch(Q)                      # P_0 .. P_n
     F = frames[:, -1] @ model.T_flange_tool
     X_inv = inv_T(X)
-    F_inv = _invert(F)
+    F_inv = invert_batch(F)
     if fixed:
         T = X_inv @ F @ W
         left = X_inv                                    # dC = X^-1 dFK W
@@ -136,13 +117,16 @@ def pose_jacobian(model: KinematicModel, X: np.ndarray, W: np.ndarray, Q: np.nda
         T = X_inv @ F_inv @ W
         left = -(X_inv @ F_inv)                         # dC = -X^-1 FK^-1 dFK FK^-1 W
         right = F_inv @ W
+    # dFK = P_{i-1} dA_i P_i^-1 FK, so dC = (left P_{i-1}) dA_i (P_i^-1 FK right): the
+    # outer factors once per link, whichever of its parameters are free
+    outer: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     columns = []
     for key in LINK_KEYS:
         for i in np.flatnonzero(mask[key]):
-            dA = link_derivative(model, key, i, Q[:, i])
-            # dFK = P_{i-1} dA_i P_i^-1 FK
-            dF = frames[:, i] @ dA @ _invert(frames[:, i + 1]) @ F
-            columns.append(left @ dF @ right)
+            if i not in outer:
+                outer[i] = (left @ frames[:, i], invert_batch(frames[:, i + 1]) @ F @ right)
+            before, after = outer[i]
+            columns.append(before @ link_derivative(model, key, i, Q[:, i]) @ after)
     if free_XW:
         for dX in transform_derivatives(X, X_rotvec):
             columns.append(-(X_inv @ dX) @ T)           # d X^-1 = -X^-1 dX X^-1
@@ -171,22 +155,6 @@ def station_jacobian(T: np.ndarray, dT: np.ndarray, index: np.ndarray, D: list[n
     return T_seen, np.concatenate([dT_seen, extra], axis=1)
 
 
-def _invert(T: np.ndarray) -> np.ndarray:
-    out = np.zeros_like(T)
-    Rt = np.swapaxes(T[..., :3, :3], -1, -2)
-    out[..., :3, :3] = Rt
-    out[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, T[..., :3, 3])
-    out[..., 3, 3] = 1.0
-    return out
-
-
-def _distortion(dist) -> np.ndarray:
-    d = np.zeros(8)
-    dist = np.asarray(dist if dist is not None else [], float).ravel()[:8]
-    d[:len(dist)] = dist
-    return d
-
-
 def pixel_jacobian(T: np.ndarray, dT: np.ndarray, obj: np.ndarray, K: np.ndarray, dist,
                    seen: np.ndarray | None, camera: bool = False) -> np.ndarray:
     """d (u, v) of every corner each view has by each parameter (rows as
@@ -201,7 +169,7 @@ def pixel_jacobian(T: np.ndarray, dT: np.ndarray, obj: np.ndarray, K: np.ndarray
     pts = np.asarray(obj, float).reshape(-1, 3)
     P, M, N = len(T), dT.shape[1], len(pts)
     c = np.einsum("pij,nj->pni", T[:, :3, :3], pts) + T[:, None, :3, 3]          # P N 3
-    k1, k2, p1, p2, k3, k4, k5, k6 = _distortion(dist)
+    k1, k2, p1, p2, k3, k4, k5, k6 = distortion_coefficients(dist)
     z = c[..., 2]
     x, y = c[..., 0] / z, c[..., 1] / z
     r2 = x * x + y * y

@@ -23,7 +23,9 @@ def camera_matrix(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
 
-def _coefficients(dist) -> tuple[float, ...]:
+def distortion_coefficients(dist) -> tuple[float, ...]:
+    """k1 k2 p1 p2 k3 k4 k5 k6 of OpenCV's ``dist`` (zeros where it is shorter); thin-prism
+    and tilt terms are refused."""
     d = np.zeros(8)
     dist = np.asarray(dist if dist is not None else [], float).ravel()
     if len(dist) > 8 and np.any(dist[8:] != 0):
@@ -41,7 +43,7 @@ def project_batch(T_cam_obj: np.ndarray, points_obj: np.ndarray, K: np.ndarray,
     pts = np.asarray(points_obj, float).reshape(-1, 3)
     cam = np.einsum("pij,nj->pni", T[:, :3, :3], pts) + T[:, None, :3, 3]
     x, y = cam[..., 0] / cam[..., 2], cam[..., 1] / cam[..., 2]
-    k1, k2, p1, p2, k3, k4, k5, k6 = _coefficients(dist)
+    k1, k2, p1, p2, k3, k4, k5, k6 = distortion_coefficients(dist)
     r2 = x * x + y * y
     radial = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
     xy = x * y

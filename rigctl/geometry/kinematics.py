@@ -103,6 +103,21 @@ class KinematicModel:
         """``fk`` for many joint vectors at once: (N, n) -> (N, 4, 4)."""
         return self.frames_batch(Q)[:, -1] @ self.T_flange_tool
 
+    def link_factors_batch(self, i: int, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Link i's ``Rz(theta) Tz(d) Tx(a) Rx(alpha)`` at each of the joint values ``q``
+        (N,) -> (N, 4, 4), and its ``Ry(beta)`` (4, 4): the factors of eq. 1.3 with
+        Hayati's beta, apart for their derivatives (``calib.robot_jacobian``)."""
+        th = q + self.theta_offset[i]
+        ct, st = np.cos(th), np.sin(th)
+        ca, sa = np.cos(self.alpha[i]), np.sin(self.alpha[i])
+        A = np.zeros((len(q), 4, 4))
+        A[:, 0, 0], A[:, 0, 1], A[:, 0, 2], A[:, 0, 3] = ct, -st * ca, st * sa, self.a[i] * ct
+        A[:, 1, 0], A[:, 1, 1], A[:, 1, 2], A[:, 1, 3] = st, ct * ca, -ct * sa, self.a[i] * st
+        A[:, 2, 1], A[:, 2, 2], A[:, 2, 3] = sa, ca, self.d[i]
+        A[:, 3, 3] = 1.0
+        cb, sb = np.cos(self.beta[i]), np.sin(self.beta[i])
+        return A, np.array([[cb, 0, sb, 0], [0, 1, 0, 0], [-sb, 0, cb, 0], [0, 0, 0, 1.0]])
+
     def frames_batch(self, Q: np.ndarray) -> np.ndarray:
         """``frames`` for many joint vectors at once: (N, n) -> (N, n + 1, 4, 4), the
         base's ``T_base_link0`` first and the flange last."""
@@ -112,17 +127,9 @@ class KinematicModel:
         T = np.broadcast_to(self.T_base_link0, (N, 4, 4)).copy()
         out[:, 0] = T
         for i in range(self.n):
-            th = Q[:, i] + self.theta_offset[i]
-            ct, st = np.cos(th), np.sin(th)
-            ca, sa = np.cos(self.alpha[i]), np.sin(self.alpha[i])
-            A = np.zeros((N, 4, 4))
-            A[:, 0, 0], A[:, 0, 1], A[:, 0, 2], A[:, 0, 3] = ct, -st * ca, st * sa, self.a[i] * ct
-            A[:, 1, 0], A[:, 1, 1], A[:, 1, 2], A[:, 1, 3] = st, ct * ca, -ct * sa, self.a[i] * st
-            A[:, 2, 1], A[:, 2, 2], A[:, 2, 3] = sa, ca, self.d[i]
-            A[:, 3, 3] = 1.0
+            A, Ry = self.link_factors_batch(i, Q[:, i])
             if self.beta[i] != 0.0:
-                cb, sb = np.cos(self.beta[i]), np.sin(self.beta[i])
-                A = A @ np.array([[cb, 0, sb, 0], [0, 1, 0, 0], [-sb, 0, cb, 0], [0, 0, 0, 1.0]])
+                A = A @ Ry
             T = T @ A
             out[:, i + 1] = T
         return out
