@@ -38,6 +38,7 @@ from .planning import (
     nominal_base_cam,
     nominal_flange_target,
     reach_sphere,
+    resolved_distance,
 )
 
 HEAD_STILL_NOTE = "head beside the arm: the head stays at home for every view"
@@ -103,7 +104,8 @@ def board_views(config: RigConfig, n: int, distance_m: float, max_tilt_deg: floa
     limits = arm.joint_limits_rad()
     shoulder, reach = reach_sphere(model, make_T())
     seeds = [np.asarray(arm.home_rad(), float)] + [np.radians(s) for s in VIEW_SEEDS_DEG]
-    start = max(distance_m, 1.1 * fit_distance(config, K))
+    decodable, why = resolved_distance(config, K, distance_m)
+    start = max(decodable, 1.1 * fit_distance(config, K))
     best: tuple[list, float] = ([], start)
     for factor in DISTANCES:
         rng = np.random.default_rng([seed, int(1000 * factor)])
@@ -132,7 +134,7 @@ def board_views(config: RigConfig, n: int, distance_m: float, max_tilt_deg: floa
     poses, used = best
     notes = [] if abs(used - distance_m) < 1e-9 else [
         f"board views: planned at {used:.2f} m from the camera instead of {distance_m:.2f} m "
-        f"({len(poses)} of {n} views)"]
+        f"({len(poses)} of {n} views)" + (f"; {why}" if why else "")]
     if len(poses) < MIN_VIEWS:
         raise SolveError(f"board views{'' if station is None else ' (head re-aimed)'}: only "
                          f"{len(poses)} of {n} views hold the board in the "
