@@ -491,8 +491,7 @@ def visible_views(config: RigConfig, count: int, distance_m: float, max_tilt_deg
     ``MIN_VIEWS`` is refused here."""
     model = arm_model(config, model)
     nearest = fit_distance(config, K)
-    decodable, why = resolved_distance(config, K, distance_m)
-    start = max(decodable, nearest)
+    start = max(distance_m, nearest)
     ladder = [start] + [d for d in sorted({start * f for f in (*FARTHER, *CLOSER)},
                                           key=lambda d: abs(d - start)) if d >= nearest]
     aligned = aligned_spin(config)
@@ -515,7 +514,7 @@ def visible_views(config: RigConfig, count: int, distance_m: float, max_tilt_deg
     if abs(used - distance_m) > 1e-9:
         notes.append(f"{label}s: planned at {used:.2f} m instead of {distance_m:.2f} m "
                      f"({len(poses)} of {count} views with the whole board in sight; the "
-                     f"board fits the image from {nearest:.2f} m)" + (f"; {why}" if why else ""))
+                     f"board fits the image from {nearest:.2f} m)")
     if reached < MIN_VIEWS:
         raise SolveError(f"{label}s: only {reached} of {count} views of the target are "
                          f"reachable at {min(ladder):.2f}-{max(ladder):.2f} m within the soft "

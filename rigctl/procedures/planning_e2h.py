@@ -90,7 +90,8 @@ def board_views(config: RigConfig, n: int, distance_m: float, max_tilt_deg: floa
                 ) -> tuple[list[np.ndarray], list[str]]:
     """Up to ``n`` joint configurations that hold the board in the fixed camera's view
     (module note), at ``distance_m`` (never nearer than the board fits the image with
-    ``K``, ``planning.fit_distance``) or, when too few are reachable there, at the other
+    ``K``, ``planning.fit_distance``; never farther than a ChArUco board's markers decode,
+    ``planning.resolved_distance``) or, when too few are reachable there, at the other
     ``DISTANCES``. Returns them and notes; fewer than ``MIN_VIEWS`` is a ``SolveError``
     naming what to change. ``station``: the head re-aimed, the camera there seen from the
     camera at home (``head_stations``)."""
