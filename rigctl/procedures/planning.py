@@ -428,7 +428,9 @@ def reachable_views(config: RigConfig, count: int, distance_m: float, max_tilt_d
 # (JPEG, blur 0.3-1.2 px, views tilted up to 35 deg; random worlds 99500-99513, both
 # mountings): from 3.6 px every view was found, with at least 92 % of its corners; at
 # 2.4 px one blurred view in five was lost, and those found kept about half their corners.
-# OpenCV samples a marker at 4 px per cell (``perspectiveRemovePixelPerCell``).
+# OpenCV samples a marker at 4 px per cell (``perspectiveRemovePixelPerCell``). Applied to
+# the board views of a head beside the arm only (``planning_e2h.board_views``): with the head
+# on the flange, views planned nearer gave three random worlds slightly worse arm models.
 MIN_MARKER_CELL_PX = 3.5
 
 
