@@ -361,13 +361,50 @@ def solve(run_dir: Path = typer.Argument(..., help="A run directory."),
     """Solve a recorded run again, offline; the old result is kept as result.N.json.
     With --exclude, without those captures; who excluded what, and why, goes into the
     run's decisions, and the result names them (exit 2 for a capture the run lacks)."""
-    from rigctl.records import RecordIndex, RunDirectory
-    from rigctl.runner import recorded_config, solve_recorded
-
     try:
         excluded = parse_indices(exclude)
     except ConfigError as exc:
         _fail(exc, as_json)
+    # the solve's second process first: its interpreter starts, and imports the plots'
+    # modules, on the other core while this one imports the solve's
+    try:
+        helper = _solve_process_for(run_dir)
+    except ConfigError as exc:  # RIGCTL_SOLVE_THREADS is not a number of threads
+        _fail(exc, as_json, EXIT_FAILED)
+    try:
+        result = _solve_offline(run_dir, excluded, operator, reason, helper, as_json)
+    finally:
+        if helper is not None:
+            helper.close()
+    if as_json:
+        _print_json(result)
+    else:
+        out.print_json(json.dumps(_summary(result), default=str))
+
+
+def _solve_process_for(run_dir: Path):
+    """A second process for the re-solve of ``run_dir`` (``calib.solve_process``, with
+    the plots' modules), when its procedure uses one and the solve may use more than
+    one thread; else None (also for a run directory without a readable
+    ``params.json``: the solve reports that). ``ConfigError`` for a bad
+    ``RIGCTL_SOLVE_THREADS``."""
+    from rigctl.calib.solve_process import start_if_useful
+    from rigctl.procedures import SOLVE_PROCESS_USERS
+
+    try:
+        name = json.loads((run_dir / "params.json").read_text()).get("procedure")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return start_if_useful(plots=True) if name in SOLVE_PROCESS_USERS else None
+
+
+def _solve_offline(run_dir: Path, excluded: list[int], operator: str | None, reason: str,
+                   helper, as_json: bool) -> dict[str, Any]:
+    """``runner.solve_recorded`` on ``run_dir`` with the run's own record index (its
+    rig's database, else an ``index.sqlite`` beside it); a failure ends the command."""
+    from rigctl.records import RecordIndex, RunDirectory
+    from rigctl.runner import recorded_config, solve_recorded
+
     try:
         index = None
         try:
@@ -379,15 +416,12 @@ def solve(run_dir: Path = typer.Argument(..., help="A run directory."),
             index_path = run_dir.resolve().parent / "index.sqlite"
             if index_path.exists():
                 index = RecordIndex(f"sqlite:///{index_path}")
-        result = solve_recorded(run_dir, index, exclude=excluded, by=operator, reason=reason)
+        return solve_recorded(run_dir, index, exclude=excluded, by=operator, reason=reason,
+                              solve_process=helper)
     except ConfigError as exc:  # the run directory or an excluded index is wrong
         _fail(exc, as_json, EXIT_REFUSED if excluded else EXIT_FAILED)
     except RigError as exc:
         _fail(exc, as_json, EXIT_FAILED)
-    if as_json:
-        _print_json(result)
-    else:
-        out.print_json(json.dumps(_summary(result), default=str))
 
 
 @app.command()

@@ -760,7 +760,8 @@ class CuratedRun(RunDirectory):
 
 def solve_recorded(run_path, index: RecordIndex | None = None,
                    timings_s: dict[str, float] | None = None, exclude=(),
-                   by: str | None = None, reason: str = "") -> dict[str, Any]:
+                   by: str | None = None, reason: str = "",
+                   solve_process: Any = None) -> dict[str, Any]:
     """Solve a recorded run again, offline, from its run directory alone.
 
     The previous ``result.json`` is kept as ``result.<n>.json``. ``timings_s``, when
@@ -768,7 +769,9 @@ def solve_recorded(run_path, index: RecordIndex | None = None,
     the solve leaves out (``CuratedRun``; ``ConfigError`` before solving for one the run
     does not have); who (``by``, the user by default) excluded which and why
     (``reason``) is appended to the run's decisions, and the result names them
-    (``excluded``).
+    (``excluded``). ``solve_process``: a second process for the solve and its plots
+    (``calib.solve_process``, started and closed by the caller), for a procedure that
+    uses one.
     """
     run = CuratedRun(run_path, exclude)
     if not run.path.is_dir():
@@ -781,6 +784,8 @@ def solve_recorded(run_path, index: RecordIndex | None = None,
     inputs = run.read_json("inputs.json") if (run.path / "inputs.json").exists() else {}
     run.plots_dir.mkdir(exist_ok=True)  # a copy may have lost it: plots are drawn again
     ctx = SolveContext(run, config, params, inputs)
+    if procedure.uses_solve_process:
+        ctx.solve_process = solve_process
     with one_blas_thread():
         result = procedure.solve(ctx)
     if run.excluded:

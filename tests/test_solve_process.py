@@ -1,9 +1,11 @@
 """``rigctl.calib.solve_process``: a solve's refinements in a second Python process give
 the numbers of the same refinements here, bit for bit, and the process is stopped by PID.
-Pure math (a synthetic head scene) in a real child process: no mocks."""
+Pure math (a synthetic head scene) in a real child process: no mocks. The plots drawn
+there are those drawn here, and `rigctl solve` starts one only where it is used."""
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import signal
@@ -12,9 +14,12 @@ import numpy as np
 import pytest
 
 from rigctl.calib import active_pipeline
+from rigctl.calib.active_plots import draw_active_plots
 from rigctl.calib.active_refine import RefineResult, timed_refine
 from rigctl.calib.solve_process import SolveProcess
-from rigctl.errors import SolveError
+from rigctl.calib.threads import THREADS_VARIABLE
+from rigctl.errors import ConfigError, SolveError
+from rigctl.procedures import SOLVE_PROCESS_USERS, get_procedure, procedure_names
 from tests.test_active_math import CX, CY, FX, _basin_case
 
 
@@ -135,3 +140,61 @@ def test_a_killed_process_hands_its_job_back_to_the_parent(helper, caplog):
 def test_only_the_listed_jobs_are_taken(helper):
     with pytest.raises(ValueError, match="not a job it takes"):
         helper.submit(os.getpid)
+
+
+@pytest.fixture
+def plotter():
+    """A solve process that imported the plots' modules, stopped by PID after the test."""
+    process = SolveProcess(plots=True)
+    try:
+        yield process
+    finally:
+        process.close()
+        with pytest.raises(ProcessLookupError):
+            os.kill(process.pid, 0)
+
+
+def _plot_inputs(folder):
+    rng = np.random.default_rng(7)
+    image = (rng.random((120, 160)) * 255).astype(np.uint8)
+    curves = [rng.random((40, 2)) * [160, 120] for _ in range(3)]
+    return (folder, image, curves, "roll-180", image[::-1].copy(), curves[:2],
+            {"pan+5": 0.12, "roll-180": 0.2}, 0.16)
+
+
+def test_the_plots_drawn_there_are_the_ones_drawn_here(plotter, tmp_path):
+    there, here = tmp_path / "there", tmp_path / "here"
+    there.mkdir()
+    here.mkdir()
+    assert plotter.plots
+    plotter.run(plotter.submit(draw_active_plots, *_plot_inputs(there)), lambda *a: None)
+    draw_active_plots(*_plot_inputs(here))
+    for name in ("contours.png", "residuals.png"):
+        drawn = (there / name).read_bytes()
+        assert drawn[:8] == b"\x89PNG\r\n\x1a\n" and drawn == (here / name).read_bytes()
+
+
+def test_rigctl_solve_starts_the_process_only_for_a_procedure_that_uses_one(tmp_path,
+                                                                          monkeypatch):
+    from rigctl.cli import _solve_process_for
+
+    monkeypatch.setenv(THREADS_VARIABLE, "2")
+    users = {name for name in procedure_names() if get_procedure(name).uses_solve_process}
+    assert users == SOLVE_PROCESS_USERS
+    assert _solve_process_for(tmp_path) is None  # no params.json: the solve says so
+    for name in procedure_names():
+        (tmp_path / "params.json").write_text(json.dumps({"procedure": name}))
+        process = _solve_process_for(tmp_path)
+        try:
+            assert (process is not None) == (name in SOLVE_PROCESS_USERS), name
+            assert process is None or process.plots
+        finally:
+            if process is not None:
+                process.close()
+                assert process.proc.poll() is not None
+    monkeypatch.setenv(THREADS_VARIABLE, "1")  # a busy controller: no second process
+    (tmp_path / "params.json").write_text(json.dumps({"procedure": "active-camera"}))
+    assert _solve_process_for(tmp_path) is None
+    monkeypatch.setenv(THREADS_VARIABLE, "many")
+    with pytest.raises(ConfigError, match=THREADS_VARIABLE):
+        _solve_process_for(tmp_path)

@@ -1,4 +1,4 @@
-"""A second Python process for a solve's independent refinements.
+"""A second Python process for a solve's independent refinements, and its plots.
 
 A refinement spends its time in many numpy operations on arrays of 10,000 to 100,000
 rows; two of them in threads of one process hold the interpreter in turn, so on two cores
@@ -11,8 +11,12 @@ function of ``JOBS`` and its arguments, pickled over the child's stdin, the outc
 pickled back over its stdout. The child computes with one thread (``RIGCTL_SOLVE_THREADS``
 and BLAS), so a job's numbers are those of the same call in the parent, bit for bit (the
 solve's threads never change a number, ``calib.threads``). The child imports numpy and
-scipy as it starts (about 0.4 s); a run starts it while the rig moves, an offline
-re-solve as its rolls' tiers begin (``active_pipeline._Helper``).
+scipy as it starts (about 0.4 s); a run starts it while the rig moves. ``rigctl solve``
+starts it as the command begins, with ``plots``: the child then imports matplotlib too,
+on the second core while the parent imports its own modules and loads the images, and
+draws the plots after the result (``calib.active_plots``). A re-solve without one
+(``rigctl bench solve``, the service) starts it as its rolls' tiers begin
+(``active_pipeline._Helper``), and draws the plots itself.
 
 The child only ever speeds a solve up: a job whose process has ended, or that failed
 there other than with a ``SolveError``, is computed again in the parent (``run``). The
@@ -42,7 +46,14 @@ from rigctl.errors import RigError, SolveError
 log = logging.getLogger(__name__)
 
 # the functions a job may name: module, then name (nothing else is imported or called)
-JOBS = {("rigctl.calib.active_refine", "timed_refine")}
+JOBS = {("rigctl.calib.active_refine", "timed_refine"),
+        ("rigctl.calib.active_plots", "draw_active_plots")}
+# what a child started with ``plots`` imports before its first job, besides the
+# refinement's modules: matplotlib's figure and Agg backend (0.6 s of the active-camera
+# plots' 0.9 s on the demo's re-solve), and the plots' own module
+PLOT_MODULES = ("matplotlib.figure", "matplotlib.backends.backend_agg",
+                "rigctl.calib.active_plots")
+PLOTS_VARIABLE = "RIGCTL_SOLVE_PROCESS_PLOTS"
 HEADER = struct.Struct(">Q")  # each frame: its length, then a pickle
 STOP_WAIT_S = 10.0  # after stdin closes: how long the child may finish its job
 
@@ -71,9 +82,11 @@ class SolveProcess:
     docstring). ``submit`` returns a ``Future``; ``run`` waits for it, and computes the
     job here when the child cannot."""
 
-    def __init__(self) -> None:
-        env = {**os.environ, THREADS_VARIABLE: "1", "OPENBLAS_NUM_THREADS": "1",
-               "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
+    def __init__(self, plots: bool = False) -> None:
+        # ``plots``: the child imports ``PLOT_MODULES`` too, to draw a re-solve's plots
+        self.plots = plots
+        env = {**os.environ, THREADS_VARIABLE: "1", PLOTS_VARIABLE: "1" if plots else "",
+               "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
                "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
         self.proc = subprocess.Popen([sys.executable, "-m", "rigctl.calib.solve_process"],
                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env)
@@ -171,7 +184,7 @@ class ChildGoneError(RigError):
     parent computes it itself (``SolveProcess.run``). Never leaves this module's users."""
 
 
-def start_if_useful() -> SolveProcess | None:
+def start_if_useful(plots: bool = False) -> SolveProcess | None:
     """A ``SolveProcess`` when the solve may use more than one thread
     (``calib.threads.solve_threads``), else None (a busy controller: every solve
     serial, in one process), or when it cannot be started (logged: the solve then runs
@@ -179,10 +192,22 @@ def start_if_useful() -> SolveProcess | None:
     if solve_threads() <= 1:
         return None
     try:
-        return SolveProcess()
+        return SolveProcess(plots)
     except OSError as exc:
         log.warning("solve process: not started (%s); solving in one process", exc)
         return None
+
+
+def _import_plot_modules() -> None:
+    """``PLOT_MODULES``, when matplotlib is installed (the ``plots`` extra); without it the
+    plot job fails here and the parent reports the missing extra itself."""
+    import importlib
+
+    try:
+        for name in PLOT_MODULES:
+            importlib.import_module(name)
+    except ImportError:
+        pass
 
 
 def _serve() -> None:
@@ -219,4 +244,6 @@ if __name__ == "__main__":
     # still tracks, and is ready when the refinements begin
     import rigctl.calib.active_refine  # noqa: F401
 
+    if os.environ.get(PLOTS_VARIABLE):
+        _import_plot_modules()
     _serve()

@@ -18,6 +18,10 @@ _MODULES = {
     "validate-arm": "rigctl.procedures.validate_arm",
 }
 
+# the procedures with ``uses_solve_process``, by name: ``rigctl solve`` starts the process
+# before it imports the procedure's module (checked against each in the tests)
+SOLVE_PROCESS_USERS = frozenset({"active-camera"})
+
 
 def procedure_names() -> list[str]:
     return sorted(_MODULES)

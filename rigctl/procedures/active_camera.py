@@ -20,7 +20,6 @@ import time
 from dataclasses import dataclass
 from typing import Annotated, Any, Literal
 
-import cv2
 import numpy as np
 from pydantic import Field
 
@@ -34,6 +33,7 @@ from rigctl.calib.active_pipeline import (
     pan_tilt_stage,
     solve_active,
 )
+from rigctl.calib.active_plots import draw_active_plots
 from rigctl.calib.active_tracking import roll_tiers
 from rigctl.calib.threads import map_in_threads
 from rigctl.errors import SolveError
@@ -512,43 +512,17 @@ def _second_station_steps(config, home: tuple, params: ActiveCameraParams) -> li
 
 
 def _plots(ctx: SolveContext, images, contours, matches, refined, order) -> None:
-    # matplotlib's object API: no pyplot state (the service solves in its own threads), and
-    # pyplot's import (0.24 s of CPU) is not paid. Each image is drawn at half size in its
-    # own pixel coordinates: the panels are about 550 px wide at 80 dpi, so the figure
-    # looks the same, at half the drawing's cost.
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(14, 4.5))
-    axes = fig.subplots(1, 2)
-    _show_image(axes[0], images["ref"])
-    for c in contours:
-        axes[0].plot(c.points[:, 0], c.points[:, 1], ".", ms=1)
-    axes[0].set_title(f"reference: {len(contours)} contours")
-    show = next((m for m in ("roll-180", "roll+180") if m in matches), order[0])
-    _show_image(axes[1], images[show])
-    for m in matches[show]:
-        if m.ok:
-            axes[1].plot(m.points[:, 0], m.points[:, 1], ".", ms=1)
-    axes[1].set_title(f"{show}: tracked {sum(m.ok for m in matches[show])}")
-    for ax in axes:
-        ax.axis("off")
-    fig.tight_layout()
-    fig.savefig(ctx.plots_dir / "contours.png", dpi=80)
-    fig = Figure(figsize=(7, 3.5))
-    ax = fig.subplots()
-    labels = list(refined.residuals_by_motion)
-    ax.bar(labels, [refined.residuals_by_motion[k] for k in labels])
-    ax.set_ylabel("RMS point-to-contour residual (px)")
-    ax.set_title(f"refinement residuals (overall {refined.rms_px:.3f} px)")
-    fig.tight_layout()
-    fig.savefig(ctx.plots_dir / "residuals.png", dpi=80)
-
-
-def _show_image(ax, image) -> None:
-    """``image`` (grey) on ``ax`` at half size, its axes still in the full image's pixels."""
-    h, w = image.shape[:2]
-    half = cv2.resize(image, (max(w // 2, 1), max(h // 2, 1)), interpolation=cv2.INTER_AREA)
-    ax.imshow(half, cmap="gray", extent=(-0.5, w - 0.5, h - 0.5, -0.5))
+    """The run's plots (``active_plots``): in the solve's second process when a re-solve
+    started it with matplotlib imported (``SolveProcess.plots``), else here."""
+    shown = next((m for m in ("roll-180", "roll+180") if m in matches), order[0])
+    args = (ctx.plots_dir, images["ref"], [c.points for c in contours], shown, images[shown],
+            [m.points for m in matches[shown] if m.ok], dict(refined.residuals_by_motion),
+            refined.rms_px)
+    process = ctx.solve_process
+    if process is not None and process.plots:
+        process.run(process.submit(draw_active_plots, *args), draw_active_plots, *args)
+    else:
+        draw_active_plots(*args)
 
 
 def _exports(ctx: SolveContext, result: dict) -> None:

@@ -138,8 +138,9 @@ class SolveContext:
     # does that work itself, with the same outcome)
     prefetched: dict[int, Any] = field(default_factory=dict)
     # in a live run of a procedure with ``uses_solve_process``, the second process for
-    # its solve (``calib.solve_process``), started while the rig moved; None offline (the
-    # solve starts its own)
+    # its solve (``calib.solve_process``), started while the rig moved; in ``rigctl
+    # solve``, the one the command started with the plots' modules; else None (the solve
+    # starts its own)
     solve_process: Any = None
     # in a live run whose ``capture_work`` has ``after_last_capture``: its outcome, taken
     # on the capture worker once the last capture was in, while the rig made its last
@@ -199,7 +200,8 @@ class Procedure:
     # capture while the rig moves on, so that solving waits less after the motion
     detects_board: ClassVar[bool] = False
     # the solve hands independent refinements to a second process
-    # (``calib.solve_process``): the runner starts it while the rig moves
+    # (``calib.solve_process``): the runner starts it while the rig moves, ``rigctl
+    # solve`` as it begins (by name: ``procedures.SOLVE_PROCESS_USERS``)
     uses_solve_process: ClassVar[bool] = False
 
     def resolve_inputs(self, params: Params, config: RigConfig) -> dict[str, Any]:
