@@ -45,14 +45,11 @@ from rigctl.errors import RigError, SolveError
 
 log = logging.getLogger(__name__)
 
-# the functions a job may name: module, then name (nothing else is imported or called)
+# the functions a job may name: module, then name (nothing else is called)
 JOBS = {("rigctl.calib.active_refine", "timed_refine"),
         ("rigctl.calib.active_plots", "draw_active_plots")}
-# what a child started with ``plots`` imports before its first job, besides the
-# refinement's modules: matplotlib's figure and Agg backend (0.6 s of the active-camera
-# plots' 0.9 s on the demo's re-solve), and the plots' own module
-PLOT_MODULES = ("matplotlib.figure", "matplotlib.backends.backend_agg",
-                "rigctl.calib.active_plots")
+# a child started with ``plots`` imports, before its first job, the plots' module and
+# matplotlib's (``active_plots.import_plot_modules``)
 PLOTS_VARIABLE = "RIGCTL_SOLVE_PROCESS_PLOTS"
 HEADER = struct.Struct(">Q")  # each frame: its length, then a pickle
 STOP_WAIT_S = 10.0  # after stdin closes: how long the child may finish its job
@@ -83,7 +80,7 @@ class SolveProcess:
     job here when the child cannot."""
 
     def __init__(self, plots: bool = False) -> None:
-        # ``plots``: the child imports ``PLOT_MODULES`` too, to draw a re-solve's plots
+        # ``plots``: the child imports the plots' modules too, to draw a re-solve's plots
         self.plots = plots
         env = {**os.environ, THREADS_VARIABLE: "1", PLOTS_VARIABLE: "1" if plots else "",
                "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
@@ -198,18 +195,6 @@ def start_if_useful(plots: bool = False) -> SolveProcess | None:
         return None
 
 
-def _import_plot_modules() -> None:
-    """``PLOT_MODULES``, when matplotlib is installed (the ``plots`` extra); without it the
-    plot job fails here and the parent reports the missing extra itself."""
-    import importlib
-
-    try:
-        for name in PLOT_MODULES:
-            importlib.import_module(name)
-    except ImportError:
-        pass
-
-
 def _serve() -> None:
     """The child: jobs from stdin until it closes, each outcome to the real stdout
     (anything printed goes to stderr)."""
@@ -245,7 +230,9 @@ if __name__ == "__main__":
     import rigctl.calib.active_refine  # noqa: F401
 
     if os.environ.get(PLOTS_VARIABLE):
-        _import_plot_modules()
+        from rigctl.calib.active_plots import import_plot_modules
+
+        import_plot_modules()
     _serve()
     # stdin closed: every outcome was flushed as it was written, so the interpreter's
     # teardown (0.2 s with matplotlib's modules, which the parent's ``close`` waits

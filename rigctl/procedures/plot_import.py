@@ -14,18 +14,12 @@ from __future__ import annotations
 
 import threading
 
-
-def _import_matplotlib() -> None:
-    try:
-        import matplotlib.backends.backend_agg
-        import matplotlib.figure  # noqa: F401
-    except ImportError:
-        pass
+from rigctl.calib.active_plots import import_plot_modules
 
 
 def import_matplotlib_in_background() -> threading.Thread:
     """Start importing matplotlib's ``Figure`` and Agg backend on a daemon thread (a
     second import of the same modules waits for this one, Python's import lock)."""
-    thread = threading.Thread(target=_import_matplotlib, name="import matplotlib", daemon=True)
+    thread = threading.Thread(target=import_plot_modules, name="import matplotlib", daemon=True)
     thread.start()
     return thread
