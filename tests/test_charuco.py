@@ -132,6 +132,17 @@ def test_a_board_that_is_not_the_configured_one_is_refused_by_name(printed, conf
     assert said in found.note and "view left out" in found.note, found.note
 
 
+def test_markers_too_small_to_decode_are_not_called_another_board():
+    """Random world 99403's 9.8 mm 6x6 markers at 0.9 m: too small to decode, a few of them
+    read as scattered DICT_4X4_1000 ids (24 and 852). The note says the outlines did not
+    decode, and names no other dictionary, as the old note did."""
+    world = World(WorldFile.model_validate(random_world(99403, "charuco")))
+    found = detect_target(world.render(_views(world, 3, 0.9)[0]), _config(world))
+    assert found.corners is None
+    assert "DICT_4X4" not in found.note, found.note
+    assert "square outlines did not decode" in found.note and "board not found" in found.note
+
+
 def test_rig_and_world_files_name_an_unknown_dictionary_and_the_known_ones():
     rig = "target: {type: charuco, rows: 7, cols: 10, square_mm: 30, marker_mm: 22, " \
           "dictionary: DICT_5X5_99}\n"

@@ -27,6 +27,14 @@ _FAMILIES = ("DICT_4X4_1000", "DICT_5X5_1000", "DICT_6X6_1000", "DICT_7X7_1000",
              "DICT_APRILTAG_16h5", "DICT_APRILTAG_25h9", "DICT_APRILTAG_36h10",
              "DICT_APRILTAG_36h11", "DICT_ARUCO_MIP_36h12", "DICT_ARUCO_ORIGINAL")
 MIN_MARKERS = 1  # a corner is identified from this many of its (up to 2) neighbouring markers
+# A board of another dictionary is named when its markers are this many, and this share
+# of the square outlines the configured dictionary could not decode. The configured
+# board's own markers, too small to decode, read as 2-3 scattered ids of a dictionary of
+# many markers (DICT_4X4_1000 ids 24 and 852, 37, 124 and 999 on random worlds 99403 and
+# 99405 at 0.9-1.6 m: 2-3 of 34-62 outlines); a board of another dictionary gave 23-35 of
+# 69-79 outlines at 0.45-1.2 m.
+MIN_FOREIGN_MARKERS = 4
+MIN_FOREIGN_SHARE = 0.2
 MIN_CORNERS = 6  # fewer identified corners in a view: not used (a pose needs 6)
 
 
@@ -126,13 +134,13 @@ def detect_charuco(image: np.ndarray, spec: CharucoSpec) -> CharucoDetection:
                                 f"are not on the configured board ({spec.name()}: ids 0-"
                                 f"{spec.markers() - 1}); view left out")
     if len(ids) < 2:
-        other = other_dictionary(gray, spec.dictionary) if len(rejected) >= 4 else None
-        if other is not None:
+        other = other_dictionary(gray, spec.dictionary) \
+            if len(rejected) >= MIN_FOREIGN_MARKERS else None
+        if other is not None and len(other[1]) >= MIN_FOREIGN_SHARE * len(rejected):
             return CharucoDetection(None, 0, f"markers of {other[0]} (ids {_id_list(other[1])})"
                                     f", not of the configured {spec.dictionary}: not the "
                                     f"configured board ({spec.name()}); view left out")
-        return CharucoDetection(None, 0, f"{len(ids)} markers of {spec.dictionary} found; "
-                                "board not found")
+        return CharucoDetection(None, 0, _not_found_note(spec, len(ids), len(rejected)))
     corners, corner_ids = _board_corners(gray, spec, marker_corners, marker_ids)
     found = 0 if corner_ids is None else len(corner_ids)
     if found < MIN_CORNERS and len(ids) >= 4 and found < len(ids) / 2:
@@ -145,6 +153,17 @@ def detect_charuco(image: np.ndarray, spec: CharucoSpec) -> CharucoDetection:
     out = np.full((n, 2), np.nan)
     out[corner_ids.ravel()] = corners.reshape(-1, 2)
     return CharucoDetection(out, found)
+
+
+def _not_found_note(spec: CharucoSpec, markers: int, outlines: int) -> str:
+    """Why no board was found: the configured dictionary's markers decoded, and the square
+    outlines that did not decode (a board too far, blurred or too small in the image
+    leaves its markers as such outlines)."""
+    note = f"{markers} markers of {spec.dictionary} decoded"
+    if outlines >= MIN_FOREIGN_MARKERS:
+        note += (f" ({outlines} square outlines did not decode: if the board is in view, its "
+                 "markers are too small in the image, blurred, or of another dictionary)")
+    return note + "; board not found"
 
 
 def _board_corners(gray, spec: CharucoSpec, marker_corners, marker_ids):
@@ -178,8 +197,8 @@ def _id_list(ids: list[int]) -> str:
 
 def other_dictionary(gray: np.ndarray, configured: str) -> tuple[str, list[int]] | None:
     """The predefined dictionary (the smallest of its family holding every id seen) whose
-    markers are in the image, with their ids, when at least two of one are and the
-    configured dictionary is not it; None otherwise."""
+    markers are in the image, with their ids, when at least ``MIN_FOREIGN_MARKERS`` of
+    one are and the configured dictionary is not it; None otherwise."""
     best: tuple[str, list[int]] | None = None
     params = cv2.aruco.DetectorParameters()
     for family in _FAMILIES:
@@ -187,7 +206,7 @@ def other_dictionary(gray: np.ndarray, configured: str) -> tuple[str, list[int]]
             continue
         _, ids, _ = cv2.aruco.ArucoDetector(dictionary(family), params).detectMarkers(gray)
         found = [] if ids is None else sorted(set(int(i) for i in ids.ravel()))
-        if len(found) >= 2 and (best is None or len(found) > len(best[1])):
+        if len(found) >= MIN_FOREIGN_MARKERS and (best is None or len(found) > len(best[1])):
             best = (_smallest_member(family, max(found)), found)
     if best is not None and best[0] == configured:
         return None
