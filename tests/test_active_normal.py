@@ -39,7 +39,10 @@ def test_motion_by_motion_normal_equations_are_the_dense_ones(depths, n_dist, an
     cost_d, H_d, g_d = _dense(pb, xf, assoc, targets, loss)
     assert cost == pytest.approx(cost_d, rel=1e-12)
     scale = np.sqrt(np.outer(np.diag(H_d), np.diag(H_d)))
-    assert np.abs((H - H_d) / scale).max() < 1e-11
+    # Eliminating each motion's offsets solves a small system per motion, whose condition
+    # amplifies the rounding of the two summation orders (1.2e-11 seen with numpy 2.4.6,
+    # against 1e-15 without elimination); a wrong term is off by 1e-6 or more.
+    assert np.abs((H - H_d) / scale).max() < (1e-9 if eliminating else 1e-13)
     assert np.abs(g - g_d).max() < 1e-11 * np.abs(g_d).max()
     assert np.abs(H_d).max() > 0 and np.abs(g_d).max() > 0
     if eliminating:  # each motion's step to its best offsets, as the dense elimination's
