@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import re
 import subprocess
 import sys
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -65,6 +67,7 @@ def test_bad_param_syntax(rig_file):
     assert result.returncode == 2 and "--param 'pan_deg': expected key=value" in result.stderr
 
 
+@pytest.mark.timeout(300)  # a hang guard: eight CLI processes, two re-solves timed
 def test_run_list_show_solve_export_against_stand_in(tmp_path):
     link = tmp_path / "dxl"
     proc = MockProcess(["-m", "rigctl.mocks.dynamixel_bus", "--link", str(link)])
@@ -87,6 +90,7 @@ def test_run_list_show_solve_export_against_stand_in(tmp_path):
         assert shown["captures"] == 2 and shown["result"]["poses"] == 2
         resolved = rigctl("solve", shown["run_dir"], "--json")
         assert resolved.returncode == 0 and json.loads(resolved.stdout) == doc
+        _time_resolve_reads_the_run_only(Path(shown["run_dir"]))
         exported = rigctl("export", run_id, "--rig", str(rig), "--format", "opencv")
         assert exported.returncode == 1
         assert "has no camera intrinsics to export" in exported.stderr
@@ -104,6 +108,36 @@ def test_run_list_show_solve_export_against_stand_in(tmp_path):
         assert stats["group"]["transactions"] >= 20
     finally:
         assert proc.stop() == 0
+
+
+def _digests(folder: Path) -> dict[str, str]:
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def _time_resolve_reads_the_run_only(run_dir: Path) -> None:
+    """tools/time_resolve.py re-solves a copy of ``run_dir`` as a whole `rigctl solve`
+    process: its summary adds up, and the run directory is left as it was."""
+    before = _digests(run_dir)
+    timed = subprocess.run([sys.executable, str(ROOT / "tools" / "time_resolve.py"),
+                            str(run_dir), "--runs", "2", "--json"], capture_output=True,
+                           text=True, timeout=300, cwd=ROOT)
+    assert timed.returncode == 0, timed.stderr[-2000:]
+    summary = json.loads(timed.stdout)
+    assert summary["run"] == str(run_dir) and len(summary["runs"]) == 2
+    for one in summary["runs"]:
+        assert one["whole_s"] > 0 and 0 <= one["solve_s"] < one["whole_s"]
+        assert one["beyond_s"] == pytest.approx(one["whole_s"] - one["solve_s"])
+    beyond = sorted(one["beyond_s"] for one in summary["runs"])
+    assert summary["beyond_median_s"] == pytest.approx(sum(beyond) / 2)
+    assert summary["met"] == (summary["beyond_median_s"] <= summary["target_beyond_s"])
+    assert sum(line.startswith("run ") for line in timed.stderr.splitlines()) == 2
+    assert _digests(run_dir) == before
+    refused = subprocess.run([sys.executable, str(ROOT / "tools" / "time_resolve.py"),
+                              str(run_dir.parent)], capture_output=True, text=True,
+                             timeout=60, cwd=ROOT)
+    assert refused.returncode == 2
+    assert f"{run_dir.parent}: not a run directory (no params.json)" in refused.stderr
 
 
 def test_doctor_says_clearly_what_is_missing(tmp_path):
