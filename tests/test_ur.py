@@ -180,14 +180,16 @@ def test_driver_move_joint_and_soft_limits(arm_proc):
 def test_the_driver_streams_at_the_configured_rate(arm_proc, extra, asked):
     """Both RTDE interfaces ask the rig file's rate (125 Hz unless set), and the stream
     never comes faster: the packages' controller timestamps, read on the client, are at
-    least a period apart (a busy host only spaces them more)."""
+    least a period apart (a busy host only spaces them more). Nor slower: some two are
+    one period apart, also at rest, where the stand-in steps several ticks at a wake-up
+    (never more than a package's)."""
     with URArm(arm_config(arm_proc.ready["host"], **extra)) as arm:
         seen = control(arm_proc.ready["control"], {"cmd": "dump"})["seen"]["rtde_frequencies"]
         assert seen == [asked, asked]  # receive, then control
         stamps = {arm.receive.getTimestamp()}
         wait_until(lambda: stamps.add(arm.receive.getTimestamp()) or len(stamps) > 40,
                    timeout=30, what="40 RTDE packages", poll=0.0005)
-        assert min(np.diff(sorted(stamps))) > 0.999 / asked
+        assert 0.999 / asked < min(np.diff(sorted(stamps))) < 1.001 / asked
 
 
 def test_a_restarted_control_script_is_waited_for_before_the_next_move(arm_proc):

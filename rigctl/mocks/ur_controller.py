@@ -57,6 +57,7 @@ from rigctl.mocks.ur_teach import end_teach, freedrive, refuse_in_teach, start_t
 log = logging.getLogger("mock.ur")
 
 PERIOD = 0.002
+REST_TICKS = 5  # the loop's ticks per wake-up while the arm is at rest (``run_loop``)
 STREAM_RESYNC_S = 0.05  # a stream this late drops the packages it missed
 JOINT_ACCEL_MAX = 40.0  # rad/s^2
 # RTDE outputs a CB3 (3.x) does not offer (RTDE guide: added with PolyScope 5.x)
@@ -237,6 +238,9 @@ class Controller:
         self.lock = threading.RLock()
         self.tick_cond = threading.Condition(self.lock)
         self.tick = 0
+        # each RTDE stream's ticks per package, by stream: a stream faster than
+        # REST_TICKS ticks a package caps the ticks stepped at one wake-up (``run_loop``)
+        self.stream_ticks: dict[int, int] = {}
         self.t = 0.0
         self.q = np.radians(home_deg or [0.0, -90.0, 90.0, -90.0, -90.0, 0.0])
         self.qd = np.zeros(6)
@@ -660,11 +664,30 @@ class Controller:
         snap.update(zip(_OUT_DOUBLE_NAMES, self.out_double, strict=True))
         self._snapshot = snap
 
+    def at_rest(self) -> bool:
+        """Whether the arm stands with no move under way, none about to report done,
+        and no free drive: a tick then changes nothing but the clock."""
+        return self.motion is None and not self.pending_done and not self.teach
+
     def run_loop(self, stop: threading.Event) -> None:
         next_t = time.perf_counter()
         while not stop.is_set():
-            next_t += PERIOD
-            self.step()
+            # At rest, up to REST_TICKS ticks are stepped at one wake-up (no more than
+            # the fastest stream's ticks per package), then the loop sleeps their
+            # periods: the wake-ups at rest, most of the stand-in's CPU, drop to one in
+            # REST_TICKS. A tick that leaves the rest (a command began a move) ends the
+            # burst, and the next ticks come one a period again. At rest the clock is
+            # then up to burst - 1 periods ahead, and a command is taken up as late:
+            # within one package of the fastest stream.
+            with self.lock:
+                burst = min([REST_TICKS, *self.stream_ticks.values()])
+            ticks = 0
+            while True:
+                self.step()
+                ticks += 1
+                if ticks >= burst or not self.at_rest():
+                    break
+            next_t += ticks * PERIOD
             remaining = next_t - time.perf_counter()
             if remaining > 0:
                 time.sleep(remaining)  # never spin: spinning holds the GIL from the streams
@@ -789,6 +812,8 @@ class RTDEConnection:
         # each field's flattened value, kept while the snapshot holds the same value (at
         # rest most fields do): 500 packings a second cost a tenth of a core otherwise
         flat: dict[str, tuple] = {}
+        with ctrl.lock:
+            ctrl.stream_ticks[id(self)] = every
         try:
             while self.streaming:
                 next_t += period
@@ -833,6 +858,9 @@ class RTDEConnection:
                 self.sock.shutdown(socket.SHUT_RDWR)
             except OSError:
                 pass
+        finally:
+            with ctrl.lock:
+                ctrl.stream_ticks.pop(id(self), None)
 
 
 def _flatten(value) -> tuple:
