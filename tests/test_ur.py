@@ -192,6 +192,18 @@ def test_the_driver_streams_at_the_configured_rate(arm_proc, extra, asked):
         assert 0.999 / asked < min(np.diff(sorted(stamps))) < 1.001 / asked
 
 
+def test_a_controller_loop_that_fails_ends_the_stand_in_saying_so(arm_proc):
+    """A stand-in whose controller loop ended by an error is no controller (its clock
+    stopped, its streams silent): it ends with exit status 1 and the error on stderr,
+    where `sim up` and the tests report a crashed stand-in."""
+    assert control(arm_proc.ready["control"], {"cmd": "fail_loop", "message": "tick 42"})["ok"]
+    wait_until(lambda: arm_proc.proc.poll() is not None, timeout=30,
+               what="the stand-in to end")
+    assert arm_proc.proc.returncode == 1
+    stderr = arm_proc.stderr_text()
+    assert "controller loop failed" in stderr and "tick 42" in stderr
+
+
 def test_a_restarted_control_script_is_waited_for_before_the_next_move(arm_proc):
     """``recover`` (after an unlock) uploads the control script again; a controller that
     takes 0.3 s to start it still gets the next move (ur_rtde's ``reuploadScript`` does

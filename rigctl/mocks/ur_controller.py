@@ -241,6 +241,7 @@ class Controller:
         # each RTDE stream's ticks per package, by stream: a stream faster than
         # REST_TICKS ticks a package caps the ticks stepped at one wake-up (``run_loop``)
         self.stream_ticks: dict[int, int] = {}
+        self.loop_fault: str | None = None  # the next tick raises this (``fail_loop``)
         self.t = 0.0
         self.q = np.radians(home_deg or [0.0, -90.0, 90.0, -90.0, -90.0, 0.0])
         self.qd = np.zeros(6)
@@ -531,6 +532,8 @@ class Controller:
 
     def step(self) -> None:
         with self.lock:
+            if self.loop_fault is not None:  # injected (control socket ``fail_loop``)
+                raise RuntimeError(self.loop_fault)
             self.tick += 1
             self.t = self.tick * PERIOD
             self._advance_motion()
@@ -882,8 +885,13 @@ DASHBOARD_ANSWERS = {
 class Server:
     """All listening sockets of one stand-in, on one loopback address."""
 
-    def __init__(self, ctrl: Controller, host: str, control_path: Path | None) -> None:
+    def __init__(self, ctrl: Controller, host: str, control_path: Path | None,
+                 on_fault=None) -> None:
+        """``on_fault``: called when the controller loop ends by an error (``fault``
+        then names it); the stand-in is then no controller, and should end."""
         self.ctrl, self.host, self.control_path = ctrl, host, control_path
+        self.on_fault = on_fault
+        self.fault: str | None = None
         self.stop_event = threading.Event()
         self.clients: set[socket.socket] = set()
         self.clients_lock = threading.Lock()
@@ -909,14 +917,25 @@ class Server:
             pass
 
     def start(self) -> None:
-        threading.Thread(target=self.ctrl.run_loop, args=(self.stop_event,), daemon=True,
-                         name="controller").start()
+        threading.Thread(target=self._run_controller, daemon=True, name="controller").start()
         for port, (sock, handler) in self.listeners.items():
             threading.Thread(target=self._accept, args=(sock, handler), daemon=True,
                              name=f"accept-{port}").start()
         if self.control_sock is not None:
             threading.Thread(target=self._accept, args=(self.control_sock, self.on_control),
                              daemon=True, name="control").start()
+
+    def _run_controller(self) -> None:
+        """The controller loop; should it end by an error, the error is logged and
+        ``on_fault`` called: a stand-in whose clock stopped would otherwise go on
+        answering, its RTDE streams silent, the dashboard as if nothing happened."""
+        try:
+            self.ctrl.run_loop(self.stop_event)
+        except Exception as exc:
+            log.exception("controller loop failed")
+            self.fault = f"controller loop failed: {exc!r}"
+            if self.on_fault is not None:
+                self.on_fault()
 
     def _accept(self, listener: socket.socket, handler) -> None:
         while not self.stop_event.is_set():
@@ -1047,6 +1066,8 @@ class Server:
                     pass
         elif cmd in ("stall_stream", "resume_stream", "script_start_delay"):
             self._timing(cmd, request.get("seconds"))
+        elif cmd == "fail_loop":  # the stand-in's own fault: its loop ends, then it
+            ctrl.loop_fault = str(request.get("message", "injected loop fault"))
         elif cmd == "freeze":
             ctrl.freeze(float(request.get("at_fraction", 0.5)))
         elif cmd == "thaw":
@@ -1112,9 +1133,9 @@ def main(argv: list[str] | None = None) -> int:
     model = arm.get("model", args.model) if args.world else args.model
     ctrl = Controller(model, arm.get("errors") or {}, args.tcp_model, arm.get("home_deg"),
                       arm.get("factory_errors"))
-    server = Server(ctrl, args.host, args.control)
-    server.start()
     done = threading.Event()
+    server = Server(ctrl, args.host, args.control, on_fault=done.set)
+    server.start()
     signal.signal(signal.SIGTERM, lambda *_: done.set())
     signal.signal(signal.SIGINT, lambda *_: done.set())
     print(json.dumps({"host": args.host, "rtde_port": 30004, "dashboard_port": 29999,
@@ -1122,6 +1143,9 @@ def main(argv: list[str] | None = None) -> int:
                       "control": str(args.control) if args.control else None}), flush=True)
     done.wait()
     server.close()
+    if server.fault is not None:
+        print(json.dumps({"error": server.fault}), file=sys.stderr, flush=True)
+        return 1
     return 0
 
 
