@@ -241,7 +241,7 @@ class Controller:
         # each RTDE stream's ticks per package, by stream: a stream faster than
         # REST_TICKS ticks a package caps the ticks stepped at one wake-up (``run_loop``)
         self.stream_ticks: dict[int, int] = {}
-        self.loop_fault: str | None = None  # the next tick raises this (``fail_loop``)
+        self.loop_fault: str | None = None  # the loop's next wake-up raises this (``fail_loop``)
         self.t = 0.0
         self.q = np.radians(home_deg or [0.0, -90.0, 90.0, -90.0, -90.0, 0.0])
         self.qd = np.zeros(6)
@@ -532,8 +532,6 @@ class Controller:
 
     def step(self) -> None:
         with self.lock:
-            if self.loop_fault is not None:  # injected (control socket ``fail_loop``)
-                raise RuntimeError(self.loop_fault)
             self.tick += 1
             self.t = self.tick * PERIOD
             self._advance_motion()
@@ -683,6 +681,8 @@ class Controller:
             # then up to burst - 1 periods ahead, and a command is taken up as late:
             # within one package of the fastest stream.
             with self.lock:
+                if self.loop_fault is not None:  # injected (control socket ``fail_loop``)
+                    raise RuntimeError(self.loop_fault)
                 burst = min([REST_TICKS, *self.stream_ticks.values()])
             ticks = 0
             while True:
