@@ -242,7 +242,7 @@ def runs_list(rig: Path = typer.Option(..., "--rig"), limit: int = typer.Option(
               procedure: str | None = typer.Option(None, "--procedure"),
               as_json: bool = typer.Option(False, "--json")) -> None:
     """Recent runs from the index."""
-    from rigctl.records import RecordIndex, replay_pending
+    from rigctl.record_index import RecordIndex, replay_pending
 
     try:
         config = load_rig(rig)
@@ -268,7 +268,8 @@ def runs_list(rig: Path = typer.Option(..., "--rig"), limit: int = typer.Option(
 def runs_show(run_id: str, rig: Path = typer.Option(..., "--rig"),
               as_json: bool = typer.Option(False, "--json")) -> None:
     """One run of this rig: its index row and its result."""
-    from rigctl.records import RecordIndex, RunDirectory
+    from rigctl.record_index import RecordIndex
+    from rigctl.records import RunDirectory
 
     try:
         config = load_rig(rig)
@@ -330,7 +331,8 @@ def runs_poses(run: str = typer.Argument(..., help="Run directory, or run id wit
     """Write the arm poses of a run's captures as a pose file (joint angles in degrees)
     for `--param poses_file=...` of hand-eye and robot-kinematics."""
     from rigctl.procedures.planning import pose_file_text
-    from rigctl.records import RecordIndex, RunDirectory
+    from rigctl.record_index import RecordIndex
+    from rigctl.records import RunDirectory
 
     try:
         run_path = Path(run)
@@ -401,21 +403,27 @@ def _solve_process_for(run_dir: Path):
 def _solve_offline(run_dir: Path, excluded: list[int], operator: str | None, reason: str,
                    helper, as_json: bool) -> dict[str, Any]:
     """``runner.solve_recorded`` on ``run_dir`` with the run's own record index (its
-    rig's database, else an ``index.sqlite`` beside it); a failure ends the command."""
-    from rigctl.records import RecordIndex, RunDirectory
+    rig's database, else an ``index.sqlite`` beside it); a failure ends the command.
+    SQLAlchemy is imported only when there is an index to open (a run directory copied
+    elsewhere has none)."""
+    from rigctl.records import RunDirectory
     from rigctl.runner import recorded_config, solve_recorded
 
     try:
         index = None
         try:
             config = recorded_config(RunDirectory(run_dir))
-            index = RecordIndex(config.database_url()) if config.records.database_url else None
+            if config.records.database_url:
+                from rigctl.record_index import RecordIndex
+
+                index = RecordIndex(config.database_url())
         except RigError:
             pass
-        if index is None:
-            index_path = run_dir.resolve().parent / "index.sqlite"
-            if index_path.exists():
-                index = RecordIndex(f"sqlite:///{index_path}")
+        index_path = run_dir.resolve().parent / "index.sqlite"
+        if index is None and index_path.exists():
+            from rigctl.record_index import RecordIndex
+
+            index = RecordIndex(f"sqlite:///{index_path}")
         return solve_recorded(run_dir, index, exclude=excluded, by=operator, reason=reason,
                               solve_process=helper)
     except ConfigError as exc:  # the run directory or an excluded index is wrong
@@ -433,7 +441,8 @@ def export(run: str = typer.Argument(..., help="Run directory, or run id with --
            rig: Path | None = typer.Option(None, "--rig")) -> None:
     """Export a run's calibration."""
     from rigctl.exports import SUFFIXES, export_result
-    from rigctl.records import RecordIndex, RunDirectory
+    from rigctl.record_index import RecordIndex
+    from rigctl.records import RunDirectory
 
     try:
         run_path = Path(run)

@@ -29,7 +29,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from importlib import metadata as importlib_metadata
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from rich.console import Console
 from rich.progress import (
@@ -70,7 +70,6 @@ from rigctl.procedures.base import (
     Step,
 )
 from rigctl.records import (
-    RecordIndex,
     RunDirectory,
     new_run_id,
     run_row,
@@ -82,6 +81,9 @@ from rigctl.records import (
 from rigctl.redaction import RedactingFormatter, redact_rig_text, scrub
 from rigctl.rig import Rig
 from rigctl.runner_resume import ResumeMixin
+
+if TYPE_CHECKING:
+    from rigctl.record_index import RecordIndex
 
 log = logging.getLogger("rigctl.run")
 # how long a capture keeps waiting for a fresh view when a frame after a motion shows
@@ -167,6 +169,8 @@ class Runner(ResumeMixin):
         self.abort_event = threading.Event()
         self.continue_event = threading.Event()  # the operator's resume of a paused run
         self._abort_reason = "abort requested"
+        from rigctl.record_index import RecordIndex  # SQLAlchemy: only where a run opens it
+
         self.index = RecordIndex(config.database_url())
         self.paused: str | None = None  # the reason, while paused
 

@@ -1,6 +1,6 @@
 """The runner's resume of a recorded run (``rigctl run --resume``, ``POST
 /runs/{id}/resume``), its record of the rig it ran on, and its index writes that
-survive the database being away (``records.JournaledIndex``)."""
+survive the database being away (``record_index.JournaledIndex``)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from rigctl import procedures
 from rigctl import resume as resuming
 from rigctl.errors import ConfigError, RigError
 from rigctl.plan_check import PlanCheck, check_plan, refuse_violations
-from rigctl.records import JournaledIndex, RunDirectory, replay_pending, write_json
+from rigctl.records import RunDirectory, write_json
 
 log = logging.getLogger("rigctl.run")
 
@@ -89,15 +89,21 @@ class ResumeMixin:
     def _index_update(self, run: RunDirectory, run_id: str, **values: Any) -> None:
         """Update the run's index row; kept in the run directory while the database is
         away, and replayed when it returns."""
+        from rigctl.record_index import JournaledIndex
+
         JournaledIndex(self.index, run.path).write("update", run_id, values)
 
     def _index_insert(self, run: RunDirectory, row: dict[str, Any]) -> None:
         """Insert the run's index row (journaled like ``_index_update``)."""
+        from rigctl.record_index import JournaledIndex
+
         JournaledIndex(self.index, run.path).write("insert", row["run_id"], row)
 
     def catch_up_index(self) -> int:
         """Replay the pending index writes of every run of this rig's records."""
         try:
+            from rigctl.record_index import replay_pending
+
             return replay_pending(self.index, self.config.records_dir())
         except Exception as exc:  # never in a run's way
             log.warning("index catch-up: %s", exc)

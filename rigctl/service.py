@@ -47,7 +47,8 @@ from rigctl.console.pages import (
 )
 from rigctl.errors import BusyError, ConfigError, RigError, SafetyError
 from rigctl.locks import rig_lock
-from rigctl.records import RecordIndex, RunDirectory, new_run_id, run_row, to_jsonable, utcnow
+from rigctl.record_index import RecordIndex
+from rigctl.records import RunDirectory, new_run_id, run_row, to_jsonable, utcnow
 from rigctl.resume import close_dangling, read_segments
 from rigctl.runner import Runner, prepare_run, refuse_violations, solve_recorded
 from rigctl.service_resume import report_lost_queue, resume_run, save_queue

@@ -18,7 +18,8 @@ from rigctl.config import load_rig, parse_rig
 from rigctl.drivers.v4l2_controls import V4L2Controls
 from rigctl.errors import ConfigError, DeviceError
 from rigctl.procedures.camera_settings import check_settings, settings_of_run
-from rigctl.records import RecordIndex, RunDirectory
+from rigctl.record_index import RecordIndex
+from rigctl.records import RunDirectory
 from rigctl.runner import Runner
 from tests.doubles import DoubleHead
 from tests.test_v4l2_controls import NEW_NAMES, OLD_NAMES, FakeCamera

@@ -19,7 +19,8 @@ import yaml
 
 from rigctl.config import load_rig
 from rigctl.geometry.kinematics import KinematicModel, nominal_ur
-from rigctl.records import RecordIndex, RunDirectory, run_row, utcnow
+from rigctl.record_index import RecordIndex
+from rigctl.records import RunDirectory, run_row, utcnow
 from tests.mockproc import ROOT
 from tests.needs import dev_dependency
 

@@ -17,7 +17,8 @@ import yaml
 
 from rigctl.config import load_rig
 from rigctl.mocks.sim import STAND_IN_TIMING
-from rigctl.records import RecordIndex, RunDirectory
+from rigctl.record_index import RecordIndex
+from rigctl.records import RunDirectory
 from tests.mockproc import ROOT, control
 from tests.test_dynamixel import bus  # noqa: F401 (the bus fixture)
 from tests.test_ur import HOME, arm_proc  # noqa: F401 (the arm fixture)

@@ -27,7 +27,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from rigctl.config import load_rig
-from rigctl.records import RecordIndex
+from rigctl.record_index import RecordIndex
 from rigctl.service import RigService, create_app
 from rigctl.simrig import SimulatedRig
 from tests.mockproc import ROOT

@@ -11,7 +11,8 @@ import math
 import pytest
 
 from rigctl.errors import ConfigError
-from rigctl.records import RecordIndex, RunDirectory
+from rigctl.record_index import RecordIndex
+from rigctl.records import RunDirectory
 from rigctl.runner import solve_recorded
 from tests.test_runner import make_runner
 

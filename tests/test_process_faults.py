@@ -15,7 +15,8 @@ from pathlib import Path
 import pytest
 
 from rigctl.config import load_rig
-from rigctl.records import PENDING, RecordIndex, RunDirectory, replay_pending
+from rigctl.record_index import PENDING, RecordIndex, replay_pending
+from rigctl.records import RunDirectory
 from tests.needs import dev_dependency
 from tests.test_runner import SMALL, make_runner
 from tests.waiting import wait_until

@@ -18,7 +18,8 @@ import pytest
 
 from rigctl.config import load_rig
 from rigctl.errors import ConfigError
-from rigctl.records import RecordIndex, RunDirectory, run_row, utcnow
+from rigctl.record_index import RecordIndex
+from rigctl.records import RunDirectory, run_row, utcnow
 from rigctl.runner import solve_recorded
 from tests.mockproc import ROOT
 from tests.needs import dev_dependency

@@ -23,7 +23,8 @@ from rigctl.bench.truth import model_against_truth, position_z
 from rigctl.config import load_rig
 from rigctl.locks import rig_lock
 from rigctl.mocks.world import load_world
-from rigctl.records import RecordIndex, RunDirectory
+from rigctl.record_index import RecordIndex
+from rigctl.records import RunDirectory
 from tests.mockproc import ROOT, control, simulated_rig
 from tests.waiting import wait_until
 

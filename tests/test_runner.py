@@ -17,7 +17,8 @@ import pytest
 from rigctl.config import load_rig
 from rigctl.errors import BusyError, ConfigError, SafetyError
 from rigctl.locks import RigLock
-from rigctl.records import RecordIndex, RunDirectory, utcnow
+from rigctl.record_index import RecordIndex
+from rigctl.records import RunDirectory, utcnow
 from rigctl.runner import Runner, solve_recorded
 from tests.doubles import DoubleCamera, DoubleHead
 from tests.service_stack import LockHolder

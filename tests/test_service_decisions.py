@@ -12,7 +12,8 @@ import pytest
 from fastapi.testclient import TestClient
 
 from rigctl.config import load_rig
-from rigctl.records import RecordIndex, RunDirectory, utcnow
+from rigctl.record_index import RecordIndex
+from rigctl.records import RunDirectory, utcnow
 from rigctl.runner import RunOutcome
 from rigctl.service import Job, RigService, create_app
 from tests.waiting import wait_until

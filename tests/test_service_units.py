@@ -16,7 +16,8 @@ from rigctl import drift
 from rigctl.config import DriftThresholds, parse_duration, parse_rig
 from rigctl.errors import ConfigError
 from rigctl.locks import rig_lock
-from rigctl.records import RecordIndex, RunDirectory, utcnow
+from rigctl.record_index import RecordIndex
+from rigctl.records import RunDirectory, utcnow
 from rigctl.service import RigService, create_app
 from tests.waiting import wait_until
 

@@ -17,7 +17,7 @@ import pytest
 import yaml
 
 from rigctl.loopback import free_port
-from rigctl.records import RecordIndex
+from rigctl.record_index import RecordIndex
 from tests.mockproc import ROOT, control
 from tests.service_stack import HTTP
 from tests.waiting import wait_until

@@ -12,7 +12,7 @@ from rigctl.calib import head_model
 from rigctl.config import RigConfig
 from rigctl.errors import ConfigError, SolveError
 from rigctl.geometry.camera import camera_matrix
-from rigctl.records import RecordIndex, RunDirectory
+from rigctl.records import RunDirectory
 
 from .camera_settings import check_settings
 
@@ -41,6 +41,8 @@ def _intrinsics(config: RigConfig, given: dict | None) -> dict[str, Any]:
         if given.get("head_geometry") is not None:
             out["head_geometry"] = _checked_head(given["head_geometry"], "intrinsics parameter")
         return out
+    from rigctl.record_index import RecordIndex  # SQLAlchemy: only when none is given
+
     row = RecordIndex(config.database_url()).latest("active-camera", config.name)
     if row is None:
         raise ConfigError(f"{config.name}: no intrinsics: run active-camera first, or give "

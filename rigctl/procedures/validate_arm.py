@@ -32,7 +32,7 @@ from rigctl.calib.board import target_points
 from rigctl.errors import ConfigError, SolveError
 from rigctl.geometry.kinematics import KinematicModel, nominal_ur
 from rigctl.geometry.transforms import R_to_rotvec, inv_T
-from rigctl.records import RecordIndex, RunDirectory
+from rigctl.records import RunDirectory
 
 from .base import Params, Procedure, SolveContext
 from .intrinsics import camera_model, intrinsics_from
@@ -75,6 +75,8 @@ class ValidateArm(Procedure):
     def resolve_inputs(self, params: ValidateArmParams, config) -> dict[str, Any]:
         """The calibration to check (given run, else this rig's latest robot-kinematics)
         and the intrinsics (given, else the calibration's own)."""
+        from rigctl.record_index import RecordIndex  # SQLAlchemy: only when planned
+
         index = RecordIndex(config.database_url())
         row = index.get(params.calibration_run) if params.calibration_run else \
             index.latest("robot-kinematics", config.name)
