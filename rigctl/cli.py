@@ -400,12 +400,19 @@ def _solve_process_for(run_dir: Path):
     return start_if_useful(plots=True) if name in SOLVE_PROCESS_USERS else None
 
 
+def _open_index(url: str):
+    """The record index at ``url`` (``record_index.RecordIndex``, whose SQLAlchemy is
+    imported here, only when there is an index to open)."""
+    from rigctl.record_index import RecordIndex
+
+    return RecordIndex(url)
+
+
 def _solve_offline(run_dir: Path, excluded: list[int], operator: str | None, reason: str,
                    helper, as_json: bool) -> dict[str, Any]:
     """``runner.solve_recorded`` on ``run_dir`` with the run's own record index (its
-    rig's database, else an ``index.sqlite`` beside it); a failure ends the command.
-    SQLAlchemy is imported only when there is an index to open (a run directory copied
-    elsewhere has none)."""
+    rig's database, else an ``index.sqlite`` beside it; a run directory copied elsewhere
+    has none); a failure ends the command."""
     from rigctl.records import RunDirectory
     from rigctl.runner import recorded_config, solve_recorded
 
@@ -414,16 +421,12 @@ def _solve_offline(run_dir: Path, excluded: list[int], operator: str | None, rea
         try:
             config = recorded_config(RunDirectory(run_dir))
             if config.records.database_url:
-                from rigctl.record_index import RecordIndex
-
-                index = RecordIndex(config.database_url())
+                index = _open_index(config.database_url())
         except RigError:
             pass
-        index_path = run_dir.resolve().parent / "index.sqlite"
-        if index is None and index_path.exists():
-            from rigctl.record_index import RecordIndex
-
-            index = RecordIndex(f"sqlite:///{index_path}")
+        beside = run_dir.resolve().parent / "index.sqlite"
+        if index is None and beside.exists():
+            index = _open_index(f"sqlite:///{beside}")
         return solve_recorded(run_dir, index, exclude=excluded, by=operator, reason=reason,
                               solve_process=helper)
     except ConfigError as exc:  # the run directory or an excluded index is wrong

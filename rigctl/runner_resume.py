@@ -89,15 +89,18 @@ class ResumeMixin:
     def _index_update(self, run: RunDirectory, run_id: str, **values: Any) -> None:
         """Update the run's index row; kept in the run directory while the database is
         away, and replayed when it returns."""
-        from rigctl.record_index import JournaledIndex
-
-        JournaledIndex(self.index, run.path).write("update", run_id, values)
+        self._journal(run).write("update", run_id, values)
 
     def _index_insert(self, run: RunDirectory, row: dict[str, Any]) -> None:
         """Insert the run's index row (journaled like ``_index_update``)."""
+        self._journal(run).write("insert", row["run_id"], row)
+
+    def _journal(self, run: RunDirectory):
+        """The run's ``record_index.JournaledIndex`` over this runner's index (imported
+        here: the runner's modules import without SQLAlchemy)."""
         from rigctl.record_index import JournaledIndex
 
-        JournaledIndex(self.index, run.path).write("insert", row["run_id"], row)
+        return JournaledIndex(self.index, run.path)
 
     def catch_up_index(self) -> int:
         """Replay the pending index writes of every run of this rig's records."""
