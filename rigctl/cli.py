@@ -7,7 +7,9 @@ limits, busy), 3 aborted.
 
 from __future__ import annotations
 
+import atexit
 import contextlib
+import gc
 import json
 import os
 import sys
@@ -32,6 +34,8 @@ class _Typer(typer.Typer):
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
         from rigctl.extras import missing_extra
 
+        atexit.unregister(_skip_exit_collections)  # once, however often it is called
+        atexit.register(_skip_exit_collections)
         try:
             return super().__call__(*args, **kwargs)
         except (ModuleNotFoundError, ConfigError) as exc:
@@ -41,6 +45,15 @@ class _Typer(typer.Typer):
             Console(stderr=True, soft_wrap=True).print(
                 f"[red]error:[/red] {escape(str(missing))}", highlight=False)
             sys.exit(EXIT_REFUSED)
+
+
+def _skip_exit_collections() -> None:
+    """At the command's exit: freeze the objects the command made, so that the
+    interpreter's teardown does not traverse them again in its last garbage collections
+    (0.3 s after an active-camera re-solve). Nothing an ending process needs is left to
+    them: the command's files are written and closed, and the exit handlers (logging's,
+    temporary directories') do not wait on a collection."""
+    gc.freeze()
 
 
 app = _Typer(add_completion=False, no_args_is_help=True,
