@@ -52,15 +52,21 @@ def draw_active_plots(plots_dir: Path, ref_image: np.ndarray, contour_points: li
     for points in tracked_points:
         axes[1].plot(points[:, 0], points[:, 1], ".", ms=1)
     axes[1].set_title(f"{shown}: tracked {len(tracked_points)}")
-    for ax in axes:
+    for ax in axes:  # no ticks either: the layout then measures none (the same picture)
+        ax.set_xticks([])
+        ax.set_yticks([])
         ax.axis("off")
     fig.tight_layout()
     fig.savefig(plots_dir / "contours.png", dpi=80)
-    fig = Figure(figsize=(7, 3.5))
-    ax = fig.subplots()
     labels = list(residuals_by_motion)
-    ax.bar(labels, [residuals_by_motion[k] for k in labels])
-    ax.set_ylabel("RMS point-to-contour residual (px)")
+    # one bar a motion, its name beside it: a run has 30 or more motions, whose names
+    # under vertical bars overlapped
+    fig = Figure(figsize=(7, max(3.0, 1.2 + 0.16 * len(labels))))
+    ax = fig.subplots()
+    ax.barh(labels, [residuals_by_motion[k] for k in labels])
+    ax.invert_yaxis()  # in the motions' order, from the top
+    ax.tick_params(axis="y", labelsize=7)
+    ax.set_xlabel("RMS point-to-contour residual (px)")
     ax.set_title(f"refinement residuals (overall {rms_px:.3f} px)")
     fig.tight_layout()
     fig.savefig(plots_dir / "residuals.png", dpi=80)
