@@ -58,18 +58,27 @@ def draw_active_plots(plots_dir: Path, ref_image: np.ndarray, contour_points: li
         ax.axis("off")
     fig.tight_layout()
     fig.savefig(plots_dir / "contours.png", dpi=80)
+    residuals_figure(residuals_by_motion, rms_px).savefig(plots_dir / "residuals.png",
+                                                          dpi=80)
+
+
+def residuals_figure(residuals_by_motion: dict[str, float], rms_px: float):
+    """The refinement's RMS point-to-contour residual by motion (thesis eq. 3.27's
+    residual): one horizontal bar a motion, named beside it, in the motions' order from
+    the top (a run has 30 or more motions, whose names under vertical bars overlapped);
+    a matplotlib ``Figure``, laid out."""
+    from matplotlib.figure import Figure
+
     labels = list(residuals_by_motion)
-    # one bar a motion, its name beside it: a run has 30 or more motions, whose names
-    # under vertical bars overlapped
     fig = Figure(figsize=(7, max(3.0, 1.2 + 0.16 * len(labels))))
     ax = fig.subplots()
     ax.barh(labels, [residuals_by_motion[k] for k in labels])
-    ax.invert_yaxis()  # in the motions' order, from the top
+    ax.invert_yaxis()
     ax.tick_params(axis="y", labelsize=7)
     ax.set_xlabel("RMS point-to-contour residual (px)")
     ax.set_title(f"refinement residuals (overall {rms_px:.3f} px)")
     fig.tight_layout()
-    fig.savefig(plots_dir / "residuals.png", dpi=80)
+    return fig
 
 
 def _show_image(ax, image: np.ndarray) -> None:

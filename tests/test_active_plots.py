@@ -1,0 +1,46 @@
+"""The active-camera run's residuals plot names every motion legibly: each label is a
+motion's name, in the motions' order, and no two labels overlap, for as many motions as
+the default plan has and more. Pure drawing (matplotlib's Agg canvas), no mocks."""
+
+from __future__ import annotations
+
+import pytest
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+from rigctl.calib.active_plots import residuals_figure
+
+
+def _motions(n: int) -> dict[str, float]:
+    """``n`` motion names as a run names them, each with a residual (px)."""
+    names = ["pan+", "pan-", "tilt+", "tilt-"]
+    for deg in (8, 12, 16, 20, 25, 30, 35):
+        names += [f"pan+{deg}", f"pan-{deg}", f"tilt+{deg}", f"tilt-{deg}"]
+    names += [f"roll{sign}{deg}" for deg in (45, 90, 135) for sign in "+-"] + ["roll-180"]
+    return {name: 0.1 + 0.001 * i for i, name in enumerate(names[:n])}
+
+
+def _overlaps(boxes) -> list[tuple[int, int]]:
+    return [(i, j) for i in range(len(boxes)) for j in range(i + 1, len(boxes))
+            if boxes[i].overlaps(boxes[j])]
+
+
+@pytest.mark.parametrize("n", [5, 31, 39])
+def test_every_motion_is_named_once_and_no_two_names_overlap(n):
+    residuals = _motions(n)
+    fig = residuals_figure(residuals, 0.118)
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()
+    renderer = canvas.get_renderer()
+    (ax,) = fig.axes
+    # the axis that carries the motions' names: the one whose tick labels are not numbers
+    named = [label for axis in (ax.xaxis, ax.yaxis) for label in axis.get_ticklabels()
+             if label.get_text() in residuals]
+    assert [label.get_text() for label in
+            sorted(named, key=lambda t: -t.get_window_extent(renderer).y0)] == list(residuals) \
+        or [label.get_text() for label in
+            sorted(named, key=lambda t: t.get_window_extent(renderer).x0)] == list(residuals)
+    boxes = [label.get_window_extent(renderer) for label in named]
+    assert _overlaps(boxes) == []
+    # every name inside the figure, not cut at its edge
+    width, height = canvas.get_width_height()
+    assert all(b.x0 >= 0 and b.y0 >= 0 and b.x1 <= width and b.y1 <= height for b in boxes)
