@@ -137,13 +137,9 @@ def residual_jacobian(x: np.ndarray, n_dist: int, dist_slots: tuple, und_unique:
     n_cols = N_BASE + n_dist + n_rot - 5
     out_t = np.empty((n_cols, n))  # column-major: each parameter's column contiguous
     per_motion_t = np.empty((n_rot + 5, n))
-    eye = np.eye(3)
-    for R, dR, a, b in zip(rotations, d_rotations, bounds[:-1], bounds[1:], strict=True):
-        B = np.zeros((12, n_rot + 5))
-        B[:9, :n_rot] = dR.reshape(n_rot, 9).T
-        B[9:, n_rot:n_rot + 2] = R[:2, :].T
-        B[9:, n_rot + 2:] = (R - eye).T
-        np.matmul(B.T, terms_t[:, a:b], out=per_motion_t[:, a:b])
+    B = _motion_products(rotations, d_rotations, n_rot)
+    for B_m, a, b in zip(B, bounds[:-1], bounds[1:], strict=True):
+        np.matmul(B_m.T, terms_t[:, a:b], out=per_motion_t[:, a:b])
     out_t[4:9] = per_motion_t[:5]
     out_t[N_BASE + n_dist:] = per_motion_t[5:n_rot]
     du0, du1 = per_motion_t[n_rot], per_motion_t[n_rot + 1]
@@ -180,6 +176,23 @@ def residual_jacobian(x: np.ndarray, n_dist: int, dist_slots: tuple, und_unique:
     pixels[:, 0] = fx * xd0 + x[2]
     pixels[:, 1] = fy * xd1 + x[3]
     return out_t.T, d_rho, pixels
+
+
+def _motion_products(rotations, d_rotations, n_rot: int) -> np.ndarray:
+    """Per motion (motions x 12 x (n_rot + 5)), the matrix ``B`` whose transpose takes
+    a row's 12 terms of ``residual_jacobian`` to d residual / d (the rotation's
+    parameters, und, s): ``B[:9, :n_rot]`` the derivatives of ``R`` flattened,
+    ``B[9:, n_rot:n_rot + 2]`` its first two rows transposed, ``B[9:, n_rot + 2:]``
+    ``(R - I)^T``. Built for all motions at once (one motion at a time, 1 ms of a 3 ms
+    evaluation of 31 motions); each motion's ``B`` is laid out as before, so its product
+    is the same to the bit."""
+    R = np.asarray(rotations, float).reshape(-1, 3, 3)
+    dR = np.asarray(d_rotations, float).reshape(len(R), n_rot, 9)
+    B = np.zeros((len(R), 12, n_rot + 5))
+    B[:, :9, :n_rot] = dR.transpose(0, 2, 1)
+    B[:, 9:, n_rot:n_rot + 2] = R[:, :2, :].transpose(0, 2, 1)
+    B[:, 9:, n_rot + 2:] = (R - np.eye(3)).transpose(0, 2, 1)
+    return B
 
 
 def distort(xy: np.ndarray, k: np.ndarray) -> np.ndarray:
