@@ -32,14 +32,14 @@ def test_every_motion_is_named_once_and_no_two_names_overlap(n):
     canvas.draw()
     renderer = canvas.get_renderer()
     (ax,) = fig.axes
-    # the axis that carries the motions' names: the one whose tick labels are not numbers
-    named = [label for axis in (ax.xaxis, ax.yaxis) for label in axis.get_ticklabels()
+    # the motions' names, on whichever axis carries them, each with its extent
+    named = [(label.get_text(), label.get_window_extent(renderer))
+             for axis in (ax.xaxis, ax.yaxis) for label in axis.get_ticklabels()
              if label.get_text() in residuals]
-    assert [label.get_text() for label in
-            sorted(named, key=lambda t: -t.get_window_extent(renderer).y0)] == list(residuals) \
-        or [label.get_text() for label in
-            sorted(named, key=lambda t: t.get_window_extent(renderer).x0)] == list(residuals)
-    boxes = [label.get_window_extent(renderer) for label in named]
+    top_down = [name for name, box in sorted(named, key=lambda item: -item[1].y0)]
+    left_right = [name for name, box in sorted(named, key=lambda item: item[1].x0)]
+    assert top_down == list(residuals) or left_right == list(residuals)
+    boxes = [box for _, box in named]
     assert _overlaps(boxes) == []
     # every name inside the figure, not cut at its edge
     width, height = canvas.get_width_height()
